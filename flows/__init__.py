@@ -1,0 +1,1 @@
+"""Prefect flows built from the tasks in ``tasks/``."""

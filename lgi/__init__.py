@@ -1,0 +1,12 @@
+"""lgi: facial performance capture by Local Geometric Indexing.
+
+The core library works on plain numpy arrays and has no Prefect dependency; see the README for the
+command line and ``docs/`` for the file formats.
+"""
+
+from .dataset import ShapeDataset, ShapeMeta
+from .errors import InputError, LgiError
+
+__version__ = "0.1.0"
+
+__all__ = ["InputError", "LgiError", "ShapeDataset", "ShapeMeta", "__version__"]

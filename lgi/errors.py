@@ -1,0 +1,55 @@
+"""Errors raised on bad input.
+
+Every error names where the problem is (file, line, frame, marker) so that a user can fix the input
+without reading the code. The command line turns them into a one-line message and exit status 2.
+"""
+
+from __future__ import annotations
+
+from os import PathLike
+
+
+class LgiError(Exception):
+    """Base class of all errors that lgi raises on bad input or bad configuration."""
+
+
+class InputError(LgiError):
+    """Bad input data, located as precisely as possible.
+
+    Parameters
+    ----------
+    message
+        What is wrong, in words.
+    path
+        The file (or directory) that holds the problem.
+    line
+        1-based line number inside ``path``.
+    frame, marker
+        For per-frame marker data: the frame number and marker name.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        path: str | PathLike[str] | None = None,
+        line: int | None = None,
+        frame: int | None = None,
+        marker: str | None = None,
+    ) -> None:
+        self.message = message
+        self.path = None if path is None else str(path)
+        self.line = line
+        self.frame = frame
+        self.marker = marker
+        super().__init__(self._format())
+
+    def _format(self) -> str:
+        where = []
+        if self.path is not None:
+            where.append(self.path if self.line is None else f"{self.path}:{self.line}")
+        if self.frame is not None:
+            where.append(f"frame {self.frame}")
+        if self.marker is not None:
+            where.append(f"marker {self.marker!r}")
+        return f"{', '.join(where)}: {self.message}" if where else self.message
