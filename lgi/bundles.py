@@ -99,7 +99,7 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None)
     xyz = np.empty((len(df), 3))
     for k, col in enumerate("xyz"):
         raw = df[col]
-        if raw.dtype == object:
+        if not pd.api.types.is_numeric_dtype(raw):
             text = raw.astype(str).str.strip()
             empty = text.isin(["", "nan", "NaN", "NA"])
             num = pd.to_numeric(text.where(~empty, "nan"), errors="coerce")

@@ -2,7 +2,8 @@
 
 Production dot patterns are roughly even over the face and denser where the skin moves in complex
 ways (around the mouth and eyes). This samples candidate surface points in a seeded random order and
-accepts a point when it is at least ``r(p) = r0 / sqrt(density(p))`` from every accepted one; ``r0``
+accepts a point when it is at least the mean of the two points' radii ``r(p) = r0 / sqrt(density(p))``
+from every accepted one; ``r0``
 is found by bisection so that the layout has the requested number of markers.
 """
 
@@ -38,11 +39,11 @@ def poisson_disk(points: np.ndarray, density: np.ndarray, r0: float, order: np.n
         if blocked[i]:
             continue
         accepted.append(i)
-        # Block every candidate closer than the larger of the two radii (symmetric spacing rule).
+        # Block every candidate closer than the mean of the two radii (symmetric, keeps the contrast).
         near = np.asarray(tree.query_ball_point(points[i], max(radius[i], radius.max())))
         if near.size:
             d = np.linalg.norm(points[near] - points[i], axis=1)
-            blocked[near[d < np.maximum(radius[near], radius[i])]] = True
+            blocked[near[d < 0.5 * (radius[near] + radius[i])]] = True
     return np.asarray(accepted, np.int64)
 
 

@@ -25,10 +25,10 @@ N_MARKERS = 110
 
 
 def density(p: np.ndarray, mouth: np.ndarray, eyes: np.ndarray) -> np.ndarray:
-    """Relative dot density: 3x at the mouth, 2.2x at the eyes, 1 elsewhere (smooth)."""
+    """Relative dot density: 4.5x at the mouth, 2.5x at the eyes, 1 elsewhere (smooth)."""
     dm = np.linalg.norm(p - mouth, axis=1)
     de = np.min([np.linalg.norm(p - e, axis=1) for e in eyes], axis=0)
-    return 1.0 + 2.0 * np.exp(-(dm**2) / (2 * 2.0**2)) + 1.2 * np.exp(-(de**2) / (2 * 1.5**2))
+    return 1.0 + 3.5 * np.exp(-(dm**2) / (2 * 2.0**2)) + 1.5 * np.exp(-(de**2) / (2 * 1.5**2))
 
 
 def synthetic_layout() -> None:

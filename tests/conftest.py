@@ -1,0 +1,48 @@
+"""Shared fixtures. Prefect settings are set before Prefect is imported anywhere."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+_PREFECT_HOME = tempfile.mkdtemp(prefix="lgi-test-prefect-")
+os.environ.setdefault("PREFECT_HOME", _PREFECT_HOME)
+os.environ.setdefault("PREFECT_LOCAL_STORAGE_PATH", os.path.join(_PREFECT_HOME, "storage"))
+os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
+
+from lgi import synth  # noqa: E402
+from lgi.obj import write_obj  # noqa: E402
+from lgi.paths import shared_data  # noqa: E402
+
+ICT = shared_data("ict-facekit")
+
+
+@pytest.fixture(scope="session")
+def ict_dir() -> Path:
+    if not (ICT / "generic_neutral_mesh.obj").is_file():
+        pytest.skip(f"ICT FaceKit data not found at {ICT} (set LGI_SHARED_DATA to the shared data folder)")
+    return ICT
+
+
+@pytest.fixture(scope="session")
+def small_actor() -> synth.SyntheticActor:
+    return synth.make_actor(1500)
+
+
+@pytest.fixture()
+def obj_folder(tmp_path: Path, small_actor: synth.SyntheticActor) -> Path:
+    """A folder with neutral.obj and three full-mesh shapes of the small synthetic actor."""
+    folder = tmp_path / "shapes"
+    a = small_actor
+    write_obj(folder / "neutral.obj", a.neutral, a.face_vertices, a.face_offsets, a.uvs, a.face_uvs)
+    eye = np.eye(len(synth.CONTROLS))
+    for name in ("jaw_open", "smile_L", "pucker"):
+        write_obj(folder / f"{name}.obj", a.evaluate(eye[synth.C[name]]), a.face_vertices, a.face_offsets,
+                  a.uvs, a.face_uvs)
+    return folder

@@ -1,0 +1,124 @@
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lgi.bundles import read_bundles
+from lgi.cli import main
+from lgi.dataset import ShapeDataset
+from lgi.markers import read_layout
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "lgi.cli", *args], capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.parametrize("cmd", ["import", "synth", "bundles", "demo"])
+def test_help(cmd: str) -> None:
+    r = run(cmd, "--help")
+    assert r.returncode == 0 and "usage: lgi" in r.stdout
+
+
+def test_synth_writes_contract_files(tmp_path: Path) -> None:
+    assert main(["synth", "--out", str(tmp_path / "s"), "--vertices", "3000", "--frames", "12", "-q"]) == 0
+    out = tmp_path / "s"
+    ds = ShapeDataset.load(out / "dataset", verify=True)
+    layout = read_layout(out / "markers.csv", ds.triangles)
+    truth = np.load(out / "truth.npz")
+    assert truth["vertices"].shape == (12, ds.n_vertices, 3) and truth["vertices"].dtype == np.float32
+    b = read_bundles(out / "bundles.csv", layout.names)
+    np.testing.assert_allclose(b.positions, layout.evaluate(truth["vertices"].astype(float)), atol=1e-5)
+    assert not list(out.glob(".*")), "staging left behind"
+
+
+def test_bundles_one_frame_per_shape(tmp_path: Path) -> None:
+    main(["synth", "--out", str(tmp_path / "s"), "--vertices", "3000", "--frames", "2", "-q"])
+    s = tmp_path / "s"
+    assert main(["bundles", str(s / "dataset"), "--markers", str(s / "markers.csv"), "--out",
+                 str(tmp_path / "b.parquet"), "--shapes", "smile*"]) == 0
+    ds = ShapeDataset.load(s / "dataset").select(include="smile*")
+    layout = read_layout(s / "markers.csv")
+    b = read_bundles(tmp_path / "b.parquet", layout.names)
+    assert len(b.frames) == ds.n_shapes
+    np.testing.assert_allclose(b.positions[1], layout.evaluate(ds.shape(1)), atol=1e-9)
+    assert (tmp_path / "b.shapes.csv").read_text().splitlines()[2] == f"1,{ds.names[1]}"
+
+
+def _expect_failure(args: list[str], out: Path, *words: str) -> str:
+    r = run(*args)
+    assert r.returncode == 2, r.stderr
+    for w in words:
+        assert w in r.stderr, r.stderr
+    assert not out.exists(), "partial output left behind"
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}")]
+    return r.stderr
+
+
+def test_import_bad_inputs_leave_nothing(tmp_path: Path, obj_folder: Path) -> None:
+    out = tmp_path / "ds"
+    # non-numeric value
+    bad = obj_folder / "smile_L.obj"
+    lines = bad.read_text().splitlines()
+    lines[10] = "v 1.0 abc 2.0"
+    bad.write_text("\n".join(lines) + "\n")
+    _expect_failure(["import", str(obj_folder), "--out", str(out), "-q"], out, "smile_L.obj:11", "non-numeric")
+    # face index out of range in the neutral
+    shutil.copy(obj_folder / "pucker.obj", bad)
+    neutral = obj_folder / "neutral.obj"
+    text = neutral.read_text().splitlines()
+    k = next(i for i, ln in enumerate(text) if ln.startswith("f "))
+    text[k] = "f 1/1 2/2 99999/3"
+    neutral.write_text("\n".join(text) + "\n")
+    _expect_failure(["import", str(obj_folder), "--out", str(out), "-q"], out, f"neutral.obj:{k + 1}", "out of range")
+
+
+def test_import_topology_mismatch_and_missing(tmp_path: Path, obj_folder: Path) -> None:
+    out = tmp_path / "ds"
+    p = obj_folder / "pucker.obj"
+    text = p.read_text().splitlines()
+    k = next(i for i, ln in enumerate(text) if ln.startswith("f "))
+    parts = text[k].split()
+    text[k] = " ".join([parts[0], parts[2], parts[1], *parts[3:]])
+    p.write_text("\n".join(text) + "\n")
+    _expect_failure(["import", str(obj_folder), "--out", str(out), "-q"], out, f"pucker.obj:{k + 1}", "face 0")
+    v = [ln for ln in text if not ln.startswith("v ")] + [ln for ln in text if ln.startswith("v ")][:-1]
+    p.write_text("\n".join(v) + "\n")
+    _expect_failure(["import", str(obj_folder), "--out", str(out), "-q"], out, "pucker.obj", "vertex count")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    _expect_failure(["import", str(empty), "--out", str(out)], out, "no OBJ files")
+    (obj_folder / "neutral.obj").rename(obj_folder / "base.obj")
+    _expect_failure(["import", str(obj_folder), "--out", str(out)], out, "no neutral found")
+
+
+def test_import_existing_output_survives_failure(tmp_path: Path, obj_folder: Path) -> None:
+    out = tmp_path / "ds"
+    assert main(["import", str(obj_folder), "--out", str(out), "-q"]) == 0
+    before = ShapeDataset.load(out).content_hash()
+    (obj_folder / "jaw_open.obj").write_text("v 0 0 0\n")
+    assert main(["import", str(obj_folder), "--out", str(out), "-q"]) == 2
+    assert ShapeDataset.load(out, verify=True).content_hash() == before
+
+
+def test_import_ict(tmp_path: Path, ict_dir: Path) -> None:
+    r = run("import", str(ict_dir), "--out", str(tmp_path / "ict"), "--rigid-vertices",
+            str(ict_dir / "vertex_indices.json"), "-q")
+    assert r.returncode == 0, r.stderr
+    ds = ShapeDataset.load(tmp_path / "ict", verify=True)
+    assert ds.n_shapes == 57 and ds.n_vertices == 26719 and len(ds.face_offsets) - 1 == 26384
+    assert ds.uvs.shape == (28911, 2)
+    assert "identity000" not in ds.names and "mouthClose" in ds.names
+    assert np.diff(ds.face_offsets).max() == 4  # quads kept
+
+
+def test_import_ict_identity_blend(tmp_path: Path, ict_dir: Path) -> None:
+    assert main(["import", str(ict_dir), "--out", str(tmp_path / "a"), "--include", "jawOpen,mouthSmile_L",
+                 "--identity", "identity000=1.5,identity003=-1", "--rigid-vertices", "none", "-q"]) == 0
+    assert main(["import", str(ict_dir), "--out", str(tmp_path / "b"), "--include", "jawOpen,mouthSmile_L",
+                 "--rigid-vertices", "none", "-q"]) == 0
+    a, b = ShapeDataset.load(tmp_path / "a"), ShapeDataset.load(tmp_path / "b")
+    assert np.abs(a.neutral - b.neutral).max() > 0.1  # a different face
+    np.testing.assert_allclose(a.deltas, b.deltas, atol=1e-5)  # the same expression deltas
