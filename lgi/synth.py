@@ -124,7 +124,9 @@ class SyntheticActor:
         n = f["normal"]
         for side, sgn in (("L", 1.0), ("R", -1.0)):
             s = a[C[f"smile_{side}"]]
-            path = s * np.array([0.55 * sgn, 0.45, -0.25]) + s**2 * np.array([0.15 * sgn, 0.35, 0.1])
+            # The corner's lift weakens as the jaw opens and stretches the cheek (a product term).
+            lift = 1 - 0.4 * a[C["jaw_open"]]
+            path = s * np.array([0.55 * sgn, 0.45 * lift, -0.25]) + s**2 * np.array([0.15 * sgn, 0.35 * lift, 0.1])
             x += f[f"smile_{side}"][:, None] * path
             b = a[C[f"brow_raise_{side}"]]
             x += f[f"brow_{side}"][:, None] * np.array([0.0, 0.8, 0.05]) * (1 - np.exp(-2.5 * b)) / (1 - np.exp(-2.5))
@@ -132,8 +134,9 @@ class SyntheticActor:
             x += f[f"sneer_{side}"][:, None] * (sn * np.array([0.0, 0.5, 0.15]) + sn**2 * np.array([0.0, 0.1, 0.05]))
             # Nasolabial fold: depth grows with the square of the combined pull (smile, sneer, puff).
             pull = s + 0.6 * sn + 0.3 * a[C["cheek_puff"]]
-            depth = 0.22 * pull**2
-            x += n * (depth * (0.6 * f[f"fold_bulge_{side}"] - f[f"fold_{side}"]))[:, None]
+            if pull > 0:
+                crease, bulge = fold_profile(self.neutral[:, 0], self.neutral[:, 1], sgn, 0.45 * pull)
+                x += n * (0.3 * pull**2 * (0.6 * bulge - crease))[:, None]
         p = a[C["pucker"]]
         x += f["pucker"][:, None] * np.array([0.0, 0.0, 0.7]) * p
         x[:, 0] -= f["pucker"] * 0.35 * p**1.5 * np.clip(self.neutral[:, 0] / MOUTH_HALF_WIDTH, -1, 1)
@@ -142,8 +145,11 @@ class SyntheticActor:
         x += f["brow_lower"][:, None] * np.array([0.0, -0.45, -0.05]) * bl
         x[:, 0] -= f["brow_lower"] * 0.3 * bl * np.tanh(self.neutral[:, 0] / 1.0) * f["glabella_mask"]
         x -= n * (0.1 * bl**2 * f["glabella_lines"])[:, None]
-        fh = (a[C["brow_raise_L"]] * f["forehead_L"] + a[C["brow_raise_R"]] * f["forehead_R"]) ** 2
-        x -= n * (0.12 * fh * f["forehead_lines"])[:, None]
+        raise_ = a[C["brow_raise_L"]] * f["forehead_L"] + a[C["brow_raise_R"]] * f["forehead_R"]
+        # Forehead creases ride up with the brow (a moving pattern, like the nasolabial fold).
+        yy = self.neutral[:, 1] - 5.0 - 0.5 * raise_
+        lines = f["forehead_mask"] * (0.5 - 0.5 * np.cos(2 * np.pi * yy / 1.3))
+        x -= n * (0.2 * raise_**2 * lines)[:, None]
         # Puffed cheeks flatten as the jaw opens (a product term).
         puff = a[C["cheek_puff"]] * (1 - 0.6 * a[C["jaw_open"]])
         x += n * (1.0 * puff * f["cheeks"])[:, None]
@@ -260,6 +266,24 @@ def _jaw_weights(v: np.ndarray, lower: np.ndarray) -> np.ndarray:
     return m * inner + (1 - m) * outer
 
 
+def fold_profile(x: np.ndarray, y: np.ndarray, sgn: float, shift: float) -> tuple[np.ndarray, np.ndarray]:
+    """Nasolabial crease and the cheek bulge beside it, for a fold line moved ``shift`` cm outward.
+
+    The line runs from beside the nose wing to beyond the mouth corner; as the cheek is pulled the
+    crease slides laterally, so no fixed set of displacement patterns reproduces it.
+    """
+    p0 = np.array([sgn * (1.7 + shift), -2.0 + 0.5 * shift])
+    p1 = np.array([sgn * (3.4 + shift), -5.8 + 0.5 * shift])
+    d = p1 - p0
+    t = np.clip(((x - p0[0]) * d[0] + (y - p0[1]) * d[1]) / (d @ d), 0, 1)
+    dist = np.hypot(p0[0] + t * d[0] - x, p0[1] + t * d[1] - y)
+    # Which side of the (infinite) line: the cheek side (lateral, above) carries the bulge.
+    lateral = (sgn * ((x - p0[0]) * d[1] - (y - p0[1]) * d[0])) < 0
+    crease = np.exp(-(dist**2) / (2 * 0.25**2))
+    bulge = np.exp(-((dist - 0.6) ** 2) / (2 * 0.35**2)) * lateral
+    return crease, bulge
+
+
 def _fields(actor: SyntheticActor) -> dict[str, np.ndarray]:
     v = actor.neutral
     x, y = v[:, 0], v[:, 1]
@@ -270,22 +294,12 @@ def _fields(actor: SyntheticActor) -> dict[str, np.ndarray]:
         f[f"brow_{side}"] = _g(x, y, sgn * 3.0, 4.6, 2.2, 2.5) * _smoothstep((y - 2.8) / 1.5)
         f[f"forehead_{side}"] = _smoothstep((sgn * x + 2.5) / 5.0)
         f[f"sneer_{side}"] = _g(x, y, sgn * 1.1, -1.8, 0.8, 1.2) + 0.6 * _g(x, y, sgn * 1.0, -3.9, 0.9, 0.45)
-        # Fold line from beside the nose wing to beyond the mouth corner.
-        p0, p1 = np.array([sgn * 1.7, -2.0]), np.array([sgn * 3.4, -5.8])
-        d = p1 - p0
-        t = np.clip(((x - p0[0]) * d[0] + (y - p0[1]) * d[1]) / (d @ d), 0, 1)
-        qx, qy = p0[0] + t * d[0] - x, p0[1] + t * d[1] - y
-        dist = np.hypot(qx, qy)
-        lateral = np.sign(sgn * x - (sgn * p0[0] + (y - p0[1]) * d[0] * sgn / d[1]))
-        f[f"fold_{side}"] = np.exp(-(dist**2) / (2 * 0.25**2))
-        f[f"fold_bulge_{side}"] = np.exp(-((dist - 0.6) ** 2) / (2 * 0.35**2)) * (lateral > 0)
     f["pucker"] = _g(x, y, 0, MOUTH_Y, 1.8, 1.0)
     f["lip_lines"] = _g(x, y, 0, MOUTH_Y, 1.6, 0.5) * (0.5 - 0.5 * np.cos(2 * np.pi * x / 0.35))
     f["brow_lower"] = _g(x, y, 0, 4.2, 2.5, 1.0)
     f["glabella_mask"] = _g(x, y, 0, 4.0, 1.5, 1.0)
     f["glabella_lines"] = _g(x, y, 0, 3.8, 1.0, 0.8) * (0.5 - 0.5 * np.cos(2 * np.pi * x / 0.8))
-    f["forehead_lines"] = (_smoothstep((y - 5.0) / 0.8) * _smoothstep((9.5 - y) / 0.8)
-                           * np.exp(-(x**2) / (2 * 4.5**2)) * (0.5 - 0.5 * np.cos(2 * np.pi * (y - 5.0) / 1.3)))
+    f["forehead_mask"] = _smoothstep((y - 5.0) / 0.8) * _smoothstep((9.5 - y) / 0.8) * np.exp(-(x**2) / (2 * 4.5**2))
     f["cheeks"] = _g(ax, y, 3.2, -3.8, 1.6)
     return f
 
