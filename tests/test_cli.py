@@ -122,3 +122,29 @@ def test_import_ict_identity_blend(tmp_path: Path, ict_dir: Path) -> None:
     a, b = ShapeDataset.load(tmp_path / "a"), ShapeDataset.load(tmp_path / "b")
     assert np.abs(a.neutral - b.neutral).max() > 0.1  # a different face
     np.testing.assert_allclose(a.deltas, b.deltas, atol=1e-5)  # the same expression deltas
+
+
+@pytest.mark.parametrize("with_faces", [True, False])
+def test_delta_import_matches_full_import(tmp_path: Path, obj_folder: Path, with_faces: bool) -> None:
+    from lgi.obj import read_obj
+
+    assert main(["import", str(obj_folder), "--out", str(tmp_path / "f"), "--rigid-vertices", "none", "-q"]) == 0
+    full = ShapeDataset.load(tmp_path / "f")
+    neutral = read_obj(obj_folder / "neutral.obj")
+    dfolder = tmp_path / "deltas"
+    dfolder.mkdir()
+    shutil.copy(obj_folder / "neutral.obj", dfolder / "neutral.obj")
+    for name in full.names:
+        d = np.asarray(full.deltas[full.index(name)], np.float64)
+        text = "".join(f"v {x:.7f} {y:.7f} {z:.7f}\n" for x, y, z in d)
+        if with_faces:
+            text += "".join(
+                "f " + " ".join(str(v + 1) for v in neutral.face_vertices[a:b]) + "\n"
+                for a, b in zip(neutral.face_offsets[:-1], neutral.face_offsets[1:], strict=True)
+            )
+        (dfolder / f"{name}.obj").write_text(text)
+    assert main(["import", str(dfolder), "--out", str(tmp_path / "d"), "--deltas", "--rigid-vertices", "none",
+                 "-q"]) == 0
+    delta = ShapeDataset.load(tmp_path / "d")
+    assert delta.names == full.names
+    np.testing.assert_allclose(delta.deltas, full.deltas, atol=2e-6)
