@@ -1,0 +1,458 @@
+"""Compiled inner loops of the indexing solver (numba).
+
+Arrays are the flattened index (see :mod:`lgi.index`): per-bundle blocks of points, simplices, hull
+facets and grid cells addressed through offset arrays. Local coordinates are padded to 3 components and
+simplices to 4 corners (-1 where unused); a bundle's dimension ``d`` says how many are real.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+# Status codes written to the diagnostics.
+CONTAINED, PROJECTED, MISSING = 0, 1, 2
+
+
+@nb.njit(cache=True)
+def build_grids(pts, pt_off, sx, sx_off, dim, target_per_cell):  # pragma: no cover - compiled
+    """Uniform grid per bundle over its local bounding box; every simplex is listed in the cells its
+    bounding box overlaps. Returns lo (M,3), h (M,), dims (M,3), cell_off (M+1), cell_start, items."""
+    m = dim.shape[0]
+    lo = np.zeros((m, 3))
+    h = np.ones(m)
+    dims = np.ones((m, 3), np.int64)
+    cell_off = np.zeros(m + 1, np.int64)
+    for i in range(m):
+        d = dim[i]
+        a, b = pt_off[i], pt_off[i + 1]
+        n_sx = sx_off[i + 1] - sx_off[i]
+        ext = 0.0
+        for k in range(d):
+            lo[i, k] = pts[a:b, k].min()
+            e = pts[a:b, k].max() - lo[i, k]
+            ext = max(ext, e)
+        if d == 0 or ext <= 0:
+            cell_off[i + 1] = cell_off[i] + 1
+            continue
+        vol = 1.0
+        for k in range(d):
+            vol *= max(pts[a:b, k].max() - lo[i, k], ext * 1e-3)
+        cells = max(1.0, n_sx / target_per_cell)
+        hh = (vol / cells) ** (1.0 / d)
+        h[i] = max(hh, ext / 64.0)
+        n_c = 1
+        for k in range(d):
+            dims[i, k] = min(64, int(np.floor((pts[a:b, k].max() - lo[i, k]) / h[i])) + 1)
+            n_c *= dims[i, k]
+        cell_off[i + 1] = cell_off[i] + n_c
+    counts = np.zeros(cell_off[m] + 1, np.int64)
+    for pass_ in range(2):
+        if pass_ == 1:
+            start = np.zeros(cell_off[m] + 1, np.int64)
+            for c in range(cell_off[m]):
+                start[c + 1] = start[c] + counts[c]
+            items = np.zeros(start[cell_off[m]], np.int64)
+            fill = start[:-1].copy()
+        for i in range(m):
+            d = dim[i]
+            for s in range(sx_off[i], sx_off[i + 1]):
+                c0 = np.zeros(3, np.int64)
+                c1 = np.zeros(3, np.int64)
+                for k in range(d):
+                    mn = 1e300
+                    mx = -1e300
+                    for c in range(d + 1):
+                        v = pts[sx[s, c], k]
+                        mn = min(mn, v)
+                        mx = max(mx, v)
+                    c0[k] = min(dims[i, k] - 1, max(0, int(np.floor((mn - lo[i, k]) / h[i]))))
+                    c1[k] = min(dims[i, k] - 1, max(0, int(np.floor((mx - lo[i, k]) / h[i]))))
+                for x in range(c0[0], c1[0] + 1):
+                    for y in range(c0[1], c1[1] + 1):
+                        for z in range(c0[2], c1[2] + 1):
+                            cell = cell_off[i] + (x * dims[i, 1] + y) * dims[i, 2] + z
+                            if pass_ == 0:
+                                counts[cell] += 1
+                            else:
+                                items[fill[cell]] = s
+                                fill[cell] += 1
+    return lo, h, dims, cell_off, start, items
+
+
+@nb.njit(cache=True)
+def _cell(y, i, lo, h, dims, cell_off, d):  # pragma: no cover - compiled
+    idx = np.zeros(3, np.int64)
+    for k in range(d):
+        c = int(np.floor((y[k] - lo[i, k]) / h[i]))
+        if c < 0 or c >= dims[i, k]:
+            return -1
+        idx[k] = c
+    return cell_off[i] + (idx[0] * dims[i, 1] + idx[1]) * dims[i, 2] + idx[2]
+
+
+@nb.njit(cache=True)
+def _bary(y, s, sx, tinv, pts, d, lam):  # pragma: no cover - compiled
+    p0 = sx[s, 0]
+    tot = 0.0
+    for r in range(d):
+        acc = 0.0
+        for k in range(d):
+            acc += tinv[s, r, k] * (y[k] - pts[p0, k])
+        lam[r + 1] = acc
+        tot += acc
+    lam[0] = 1.0 - tot
+    for r in range(d + 1, 4):
+        lam[r] = 0.0
+
+
+@nb.njit(cache=True)
+def _closest_on_segment(y, a, b, d, out):  # pragma: no cover - compiled
+    num = 0.0
+    den = 0.0
+    for k in range(d):
+        num += (y[k] - a[k]) * (b[k] - a[k])
+        den += (b[k] - a[k]) ** 2
+    t = 0.0 if den <= 0 else min(1.0, max(0.0, num / den))
+    dist = 0.0
+    for k in range(d):
+        out[k] = a[k] + t * (b[k] - a[k])
+        dist += (y[k] - out[k]) ** 2
+    return dist
+
+
+@nb.njit(cache=True)
+def _closest_on_triangle(p, a, b, c, out):  # pragma: no cover - compiled
+    """Closest point of triangle abc to p (3D), Ericson's region tests; returns squared distance."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = ab @ ap
+    d2 = ac @ ap
+    if d1 <= 0 and d2 <= 0:
+        out[:] = a
+    else:
+        bp = p - b
+        d3 = ab @ bp
+        d4 = ac @ bp
+        if d3 >= 0 and d4 <= d3:
+            out[:] = b
+        else:
+            vc = d1 * d4 - d3 * d2
+            if vc <= 0 and d1 >= 0 and d3 <= 0:
+                out[:] = a + d1 / (d1 - d3) * ab
+            else:
+                cp = p - c
+                d5 = ab @ cp
+                d6 = ac @ cp
+                if d6 >= 0 and d5 <= d6:
+                    out[:] = c
+                else:
+                    vb = d5 * d2 - d1 * d6
+                    if vb <= 0 and d2 >= 0 and d6 <= 0:
+                        out[:] = a + d2 / (d2 - d6) * ac
+                    else:
+                        va = d3 * d6 - d5 * d4
+                        if va <= 0 and (d4 - d3) >= 0 and (d5 - d6) >= 0:
+                            out[:] = b + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (c - b)
+                        else:
+                            den = 1.0 / (va + vb + vc)
+                            out[:] = a + ab * (vb * den) + ac * (vc * den)
+    diff = p - out
+    return diff @ diff
+
+
+@nb.njit(cache=True)
+def _score(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2):  # pragma: no cover - compiled
+    """RMS distance (cm) of the natural neighbours (and, if own2 > 0, of the bundle itself) to where
+    the candidate's blend of shapes puts them."""
+    tot = own2
+    cnt = 1
+    for e in range(nb_off[i], nb_off[i + 1]):
+        j = nb_idx[e]
+        if not seen[j]:
+            continue
+        for k in range(3):
+            acc = -p[j, k]
+            for c in range(nz):
+                acc += lam[c] * ptab[shapes[c], j, k]
+            tot += acc * acc
+        cnt += 1
+    return np.sqrt(tot / max(cnt, 1))
+
+
+@nb.njit(cache=True)
+def _consider(i, shapes_in, lam_in, nz, p, seen, ptab, nb_off, nb_idx, own2, alias_pt, alias_off, alias_shape,
+              alias_min_w, prev, mu, agree, nu, best_shapes, best_lam, best_pts, best):  # pragma: no cover
+    """Score one candidate (with alias expansion at its dominant corner); keep it if best so far.
+    Returns True if it became the best."""
+    improved = False
+    shapes = shapes_in.copy()
+    lam = lam_in.copy()
+    dom = 0
+    for c in range(nz):
+        if lam[c] > lam[dom]:
+            dom = c
+    options_a = alias_off[alias_pt[dom]]
+    options_b = alias_off[alias_pt[dom] + 1]
+    if lam[dom] < alias_min_w:
+        options_b = options_a + 1
+    for o in range(options_a, options_b):
+        shapes[dom] = alias_shape[o]
+        sc = _score(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2)
+        if mu > 0 and prev[i, 0] >= 0:
+            shared = 0
+            for c in range(nz):
+                for q in range(4):
+                    if prev[i, q] == shapes[c]:
+                        shared += 1
+                        break
+            sc += mu * (1.0 - shared / nz)
+        if nu > 0:
+            ag = 0.0
+            for c in range(nz):
+                ag += lam[c] * agree[i, shapes[c]]
+            sc += nu * (1.0 - ag)
+        if sc < best[0]:
+            best[0] = sc
+            improved = True
+            for c in range(4):
+                best_shapes[c] = shapes[c] if c < nz else 0
+                best_lam[c] = lam[c] if c < nz else 0.0
+                best_pts[c] = alias_pt[c] if c < nz else -1
+    return improved
+
+
+@nb.njit(cache=True)
+def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, alias_shape, sx, sx_off, tinv,
+                    hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
+                  agree, nu, alias_min_w, tol, dist_tol, n_project):  # pragma: no cover - compiled
+    """Choose every bundle's simplex and barycentric weights for one frame.
+
+    Returns shapes (M,4) int64 (extended shape indices), lam (M,4), points (M,4) (cloud points of the
+    corners, -1 unused), n_contain (M,), status (M,), proj_dist (M,) cm, score (M,) cm.
+    """
+    m = p.shape[0]
+    out_shapes = np.zeros((m, 4), np.int64)
+    out_lam = np.zeros((m, 4))
+    n_contain = np.zeros(m, np.int64)
+    status = np.full(m, MISSING, np.int64)
+    proj = np.zeros(m)
+    score = np.full(m, np.nan)
+    y = np.zeros(3)
+    q = np.zeros(3)
+    lam = np.zeros(4)
+    shapes = np.zeros(4, np.int64)
+    apt = np.zeros(4, np.int64)
+    best = np.zeros(1)
+    bshapes = np.zeros(4, np.int64)
+    blam = np.zeros(4)
+    bpts = np.full(4, -1, np.int64)
+    out_pts = np.full((m, 4), -1, np.int64)
+    tmp = np.zeros(3)
+    for i in range(m):
+        if not seen[i]:
+            continue
+        d = dim[i]
+        off2 = 0.0
+        for k in range(3):
+            y[k] = 0.0
+        for k in range(d):
+            acc = 0.0
+            for r in range(3):
+                acc += basis[i, r, k] * (p[i, r] - origin[i, r])
+            y[k] = acc
+        for r in range(3):
+            acc = p[i, r] - origin[i, r]
+            for k in range(d):
+                acc -= basis[i, r, k] * y[k]
+            off2 += acc * acc
+        best[0] = 1e300
+        found = 0
+        if d == 0:
+            shapes[0] = pt_shape[pt_off[i]]
+            apt[0] = pt_off[i]
+            lam[0] = 1.0
+            _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, alias_shape,
+                      alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+            found = 1
+        else:
+            cell = _cell(y, i, lo, h, dims, cell_off, d)
+            if cell >= 0:
+                for e in range(cell_start[cell], cell_start[cell + 1]):
+                    s = items[e]
+                    _bary(y, s, sx, tinv, pts, d, lam)
+                    inside = True
+                    for c in range(d + 1):
+                        if lam[c] < -tol:
+                            inside = False
+                    if not inside:
+                        continue
+                    found += 1
+                    tot = 0.0
+                    for c in range(d + 1):
+                        lam[c] = max(lam[c], 0.0)
+                        tot += lam[c]
+                    for c in range(d + 1):
+                        lam[c] /= tot
+                        apt[c] = sx[s, c]
+                        shapes[c] = pt_shape[sx[s, c]]
+                    _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off,
+                              alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+        # Points within the snap radius: their dropped and merged shapes lie there, so try each point
+        # alone (with its aliases), the bundle's own distance counted in the score.
+        snapped = -1.0
+        for a in range(pt_off[i], pt_off[i + 1]):
+            dd = off2
+            for k in range(d):
+                dd += (y[k] - pts[a, k]) ** 2
+            if dd <= snap_r[i] * snap_r[i]:
+                shapes[0] = pt_shape[a]
+                apt[0] = a
+                lam[0] = 1.0
+                if _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, alias_shape,
+                             alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best):
+                    snapped = dd
+        n_contain[i] = found
+        if snapped >= 0:
+            # On a dataset point (a pruned shape's position): inside the data, not a projection.
+            status[i] = CONTAINED
+            proj[i] = np.sqrt(snapped)
+        elif found > 0:
+            status[i] = CONTAINED if off2 <= dist_tol * dist_tol else PROJECTED
+            proj[i] = np.sqrt(off2)
+        else:
+            # Project onto the hull: the n_project nearest facets, then the simplices containing
+            # each projected point; scored with the bundle's own distance included.
+            nh = hull_off[i + 1] - hull_off[i]
+            dists = np.empty(nh)
+            for f in range(nh):
+                hf = hull_off[i] + f
+                if d == 3:
+                    dists[f] = _closest_on_triangle(y, pts[hull[hf, 0]], pts[hull[hf, 1]], pts[hull[hf, 2]], tmp)
+                elif d == 2:
+                    dists[f] = _closest_on_segment(y, pts[hull[hf, 0]], pts[hull[hf, 1]], d, tmp)
+                else:
+                    dists[f] = (y[0] - pts[hull[hf, 0], 0]) ** 2
+            order = np.argsort(dists)
+            best_proj = 1e300
+            for rank in range(min(n_project, nh)):
+                hf = hull_off[i] + order[rank]
+                if d == 3:
+                    d2 = _closest_on_triangle(y, pts[hull[hf, 0]], pts[hull[hf, 1]], pts[hull[hf, 2]], q)
+                elif d == 2:
+                    d2 = _closest_on_segment(y, pts[hull[hf, 0]], pts[hull[hf, 1]], d, q)
+                else:
+                    q[0] = pts[hull[hf, 0], 0]
+                    d2 = (y[0] - q[0]) ** 2
+                cell = _cell(q, i, lo, h, dims, cell_off, d)
+                if cell < 0:
+                    continue
+                for e in range(cell_start[cell], cell_start[cell + 1]):
+                    s = items[e]
+                    _bary(q, s, sx, tinv, pts, d, lam)
+                    inside = True
+                    for c in range(d + 1):
+                        if lam[c] < -1e-6:
+                            inside = False
+                    if not inside:
+                        continue
+                    tot = 0.0
+                    for c in range(d + 1):
+                        lam[c] = max(lam[c], 0.0)
+                        tot += lam[c]
+                    for c in range(d + 1):
+                        lam[c] /= tot
+                        apt[c] = sx[s, c]
+                        shapes[c] = pt_shape[sx[s, c]]
+                    before = best[0]
+                    _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2 + d2 + 1e-300, apt,
+                              alias_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+                    if best[0] < before:
+                        best_proj = d2
+            if best[0] >= 1e299:
+                # Numerically no simplex contains the hull point: fall back to the nearest point.
+                bestp = pt_off[i]
+                bd = 1e300
+                for a in range(pt_off[i], pt_off[i + 1]):
+                    dd = 0.0
+                    for k in range(d):
+                        dd += (y[k] - pts[a, k]) ** 2
+                    if dd < bd:
+                        bd = dd
+                        bestp = a
+                shapes[0] = pt_shape[bestp]
+                apt[0] = bestp
+                lam[0] = 1.0
+                _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2 + bd + 1e-300, apt, alias_off,
+                          alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+                best_proj = bd
+            status[i] = PROJECTED
+            proj[i] = np.sqrt(off2 + best_proj)
+        score[i] = best[0]
+        for c in range(4):
+            out_shapes[i, c] = bshapes[c]
+            out_lam[i, c] = blam[c]
+            out_pts[i, c] = bpts[c]
+    return out_shapes, out_lam, out_pts, n_contain, status, proj, score
+
+
+@nb.njit(parallel=True, cache=True)
+def blend(x0, deltas_vm, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma: no cover - compiled
+    """out[v] = x0[v] + sum_i w[v, i] sum_c lam[i, c] deltas_vm[v, shapes[i, c]]."""
+    n_v = x0.shape[0]
+    for v in nb.prange(n_v):
+        a0 = x0[v, 0]
+        a1 = x0[v, 1]
+        a2 = x0[v, 2]
+        for e in range(w_indptr[v], w_indptr[v + 1]):
+            i = w_indices[e]
+            w = w_data[e]
+            for c in range(4):
+                lc = lam[i, c]
+                if lc != 0.0:
+                    k = shapes[i, c]
+                    f = w * lc
+                    a0 += f * deltas_vm[v, k, 0]
+                    a1 += f * deltas_vm[v, k, 1]
+                    a2 += f * deltas_vm[v, k, 2]
+        out[v, 0] = a0
+        out[v, 1] = a1
+        out[v, 2] = a2
+
+
+@nb.njit(cache=True)
+def agreement(points, lam, seen, alias_off, alias_shape, nb_off, nb_idx, n_shapes):  # pragma: no cover
+    """(M, S+1) evidence for each shape from the first-pass choices: every corner's weight is split
+    over all shapes merged into its cloud point (they are indistinguishable at that bundle), so only a
+    shape consistent with many bundles collects much; half from the bundle's natural neighbours, half
+    from the whole frame."""
+    m = points.shape[0]
+    vote = np.zeros((m, n_shapes))
+    glob = np.zeros(n_shapes)
+    n_seen = 0
+    for j in range(m):
+        if not seen[j]:
+            continue
+        n_seen += 1
+        for c in range(4):
+            a = points[j, c]
+            if a < 0 or lam[j, c] <= 0:
+                continue
+            n_al = alias_off[a + 1] - alias_off[a]
+            for o in range(alias_off[a], alias_off[a + 1]):
+                vote[j, alias_shape[o]] += lam[j, c] / n_al
+        for s in range(n_shapes):
+            glob[s] += vote[j, s]
+    out = np.zeros((m, n_shapes))
+    for i in range(m):
+        cnt = 0
+        for e in range(nb_off[i], nb_off[i + 1]):
+            j = nb_idx[e]
+            if seen[j]:
+                cnt += 1
+                for s in range(n_shapes):
+                    out[i, s] += vote[j, s]
+        for s in range(n_shapes):
+            out[i, s] = 0.5 * (out[i, s] / max(cnt, 1) + glob[s] / max(n_seen, 1))
+    return out

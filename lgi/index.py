@@ -1,0 +1,300 @@
+"""The LGI index: everything built once per (dataset, marker layout) and reused for every frame.
+
+Saved as a directory (see ``docs/indexing.md``)::
+
+    manifest.json   format, source dataset hash, layout, options, counts, build figures
+    index.npz       flattened per-bundle clouds, simplices, grids, hull facets, natural-neighbour
+                    weights, neighbours, bundle table, correction basis, neutral mesh
+    deltas_vm.npy   (V, S + 1, 3) float32 shape displacements, vertex-major, column 0 the neutral (zeros)
+    pruning.csv     per bundle and shape: kept, dropped (barely moves the bundle) or merged, and motion
+    bundles.csv     per bundle: points before/after, dimension, simplices by kind, natural neighbours
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import scipy.sparse as sp
+
+from . import _kernels as K
+from .atomic import atomic_dir
+from .cloud import BundleCloud, CloudOptions, barycentric_inverse, build_cloud
+from .dataset import ShapeDataset
+from .errors import InputError
+from .markers import MarkerLayout
+from .natural import natural_neighbour_weights
+from .progress import progress
+from .smooth import SmoothInterpolator
+
+FORMAT = "lgi-index"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class IndexOptions:
+    """Build options: pruning and simplices (:class:`CloudOptions`), natural neighbours, correction."""
+
+    cloud: CloudOptions = field(default_factory=CloudOptions)
+    region_radius: float = 3.0
+    nn_subdivisions: int = 3
+    grid_target: float = 4.0
+    ks: float = 1.0
+    kb: float = 100.0
+
+    def to_json(self) -> dict:
+        return {**{k: v for k, v in self.__dict__.items() if k != "cloud"}, "cloud": self.cloud.to_json()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> IndexOptions:
+        d = dict(d)
+        cloud = CloudOptions(**d.pop("cloud", {}))
+        return cls(cloud=cloud, **d)
+
+
+def layout_hash(layout: MarkerLayout) -> str:
+    h = hashlib.sha256()
+    h.update(json.dumps(layout.names).encode())
+    for a in (layout.triangles, layout.vertices, np.round(layout.weights, 12)):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+@dataclass
+class LGIIndex:
+    """A built index (arrays as described in the module docstring)."""
+
+    manifest: dict[str, Any]
+    arrays: dict[str, np.ndarray]
+    deltas_vm: np.ndarray
+
+    # --------------------------------------------------------------- convenience views
+    @property
+    def marker_names(self) -> list[str]:
+        return list(self.manifest["markers"])
+
+    @property
+    def shape_names(self) -> list[str]:
+        """Extended shape names: index 0 is the neutral."""
+        return ["neutral", *self.manifest["shapes"]]
+
+    @property
+    def n_markers(self) -> int:
+        return len(self.manifest["markers"])
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.arrays["neutral"].shape[0])
+
+    def layout(self) -> MarkerLayout:
+        a = self.arrays
+        return MarkerLayout(self.marker_names, a["marker_triangle"], a["marker_vertices"], a["marker_weights"])
+
+    def nn_weights(self) -> sp.csr_matrix:
+        a = self.arrays
+        return sp.csr_matrix((a["w_data"], a["w_indices"], a["w_indptr"]), shape=(self.n_vertices, self.n_markers))
+
+    # --------------------------------------------------------------- disk
+    def save(self, directory: str | os.PathLike[str], reports: dict[str, pd.DataFrame] | None = None) -> Path:
+        directory = Path(directory)
+        with atomic_dir(directory) as tmp:
+            np.savez(tmp / "index.npz", **self.arrays)
+            np.save(tmp / "deltas_vm.npy", self.deltas_vm)
+            for name, df in (reports or {}).items():
+                df.to_csv(tmp / name, index=False, float_format="%.6g")
+            (tmp / "manifest.json").write_text(json.dumps(self.manifest, indent=1))
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike[str], mmap: bool = True) -> LGIIndex:
+        directory = Path(directory)
+        mpath = directory / "manifest.json"
+        if not mpath.is_file():
+            raise InputError("not an LGI index (no manifest.json)", path=directory)
+        manifest = json.loads(mpath.read_text())
+        if manifest.get("format") != FORMAT:
+            raise InputError(f"manifest format is {manifest.get('format')!r}, expected {FORMAT!r}", path=mpath)
+        if manifest.get("format_version", 0) > FORMAT_VERSION:
+            raise InputError(f"index format version {manifest['format_version']} is newer than this lgi reads",
+                             path=mpath)
+        with np.load(directory / "index.npz") as z:
+            arrays = {k: z[k] for k in z.files}
+        deltas_vm = np.load(directory / "deltas_vm.npy", mmap_mode="r" if mmap else None)
+        return cls(manifest, arrays, deltas_vm)
+
+
+def _flatten(clouds: list[BundleCloud]) -> dict[str, np.ndarray]:
+    m = len(clouds)
+    dim = np.array([c.dim for c in clouds], np.int64)
+    origin = np.stack([c.origin for c in clouds])
+    basis = np.zeros((m, 3, 3))
+    pts_l, shp_l, al_off, al_l, sx_l, tinv_l, kind_l, hull_l = [], [], [0], [], [], [], [], []
+    pt_off = np.zeros(m + 1, np.int64)
+    sx_off = np.zeros(m + 1, np.int64)
+    hull_off = np.zeros(m + 1, np.int64)
+    for i, c in enumerate(clouds):
+        d = c.dim
+        basis[i, :, :d] = c.basis
+        n = len(c.points)
+        p3 = np.zeros((n, 3))
+        p3[:, :d] = c.points
+        pts_l.append(p3)
+        shp_l.append(c.point_shape)
+        for a in c.aliases:
+            al_l.append(a)
+            al_off.append(al_off[-1] + len(a))
+        base = pt_off[i]
+        s4 = np.full((len(c.simplices), 4), -1, np.int64)
+        s4[:, : c.simplices.shape[1]] = c.simplices + base
+        sx_l.append(s4)
+        t3 = np.zeros((len(c.simplices), 3, 3))
+        if d > 0:
+            t3[:, :d, :d] = barycentric_inverse(c.points, c.simplices)
+        tinv_l.append(t3)
+        kind_l.append(c.kinds)
+        h3 = np.full((len(c.hull), 3), -1, np.int64)
+        h3[:, : c.hull.shape[1]] = c.hull + base
+        hull_l.append(h3)
+        pt_off[i + 1] = base + n
+        sx_off[i + 1] = sx_off[i] + len(c.simplices)
+        hull_off[i + 1] = hull_off[i] + len(c.hull)
+    return {
+        "dim": dim, "origin": origin, "basis": basis, "pts": np.concatenate(pts_l), "pt_off": pt_off,
+        "pt_shape": np.concatenate(shp_l).astype(np.int64), "alias_off": np.asarray(al_off, np.int64),
+        "alias_shape": np.concatenate(al_l).astype(np.int64), "sx": np.concatenate(sx_l), "sx_off": sx_off,
+        "tinv": np.concatenate(tinv_l), "sx_kind": np.concatenate(kind_l), "hull": np.concatenate(hull_l),
+        "hull_off": hull_off, "snap_radius": np.array([c.report["snap_radius"] for c in clouds]),
+    }
+
+
+def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptions | None = None,
+                show_progress: bool = True) -> tuple[LGIIndex, dict[str, pd.DataFrame]]:
+    """Build the index of a dataset for a marker layout.
+
+    Parameters
+    ----------
+    dataset
+        Shapes (S of them) on the neutral; V vertices.
+    layout
+        M markers on the neutral (checked against the dataset's triangles).
+    options
+        See :class:`IndexOptions`.
+
+    Returns
+    -------
+    index : LGIIndex
+    reports : dict of DataFrame
+        ``pruning.csv`` (per bundle and shape) and ``bundles.csv`` (per bundle), saved with the index.
+    """
+    opts = options or IndexOptions()
+    t0 = time.perf_counter()
+    layout.check_mesh(dataset.triangles)
+    timings: dict[str, float] = {}
+    # Bundle table: every bundle's position on the neutral (row 0) and on every shape.
+    deltas = np.asarray(dataset.deltas, np.float32)
+    tab = np.empty((dataset.n_shapes + 1, len(layout), 3))
+    tab[0] = layout.evaluate(dataset.neutral)
+    tab[1:] = tab[0][None] + layout.evaluate(deltas).astype(np.float64)
+    timings["bundle_table_s"] = time.perf_counter() - t0
+
+    t = time.perf_counter()
+    rng = np.random.default_rng(opts.cloud.seed)
+    clouds = [build_cloud(tab[:, i], opts.cloud, rng)
+              for i in progress(range(len(layout)), "point clouds", disable=not show_progress)]
+    flat = _flatten(clouds)
+    timings["clouds_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    lo, h, dims, cell_off, cell_start, items = K.build_grids(
+        flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target))
+    timings["grid_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    nn = natural_neighbour_weights(dataset.neutral, dataset.face_vertices, dataset.face_offsets, dataset.uvs,
+                                   dataset.face_uvs, layout.triangles, layout.weights, opts.region_radius,
+                                   opts.nn_subdivisions)
+    timings["natural_neighbours_s"] = time.perf_counter() - t
+    nb_off = np.zeros(len(layout) + 1, np.int64)
+    nb_off[1:] = np.cumsum([len(n) for n in nn.neighbours])
+    nb_idx = np.concatenate(nn.neighbours).astype(np.int64) if nb_off[-1] else np.zeros(0, np.int64)
+
+    t = time.perf_counter()
+    smooth = SmoothInterpolator(dataset.neutral, dataset.triangles, layout.vertices, layout.weights, opts.ks,
+                                opts.kb)
+    correction = smooth.basis().astype(np.float32)
+    timings["correction_basis_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    dvm = np.zeros((dataset.n_vertices, dataset.n_shapes + 1, 3), np.float32)
+    dvm[:, 1:] = np.transpose(deltas, (1, 0, 2))
+    timings["vertex_major_s"] = time.perf_counter() - t
+
+    w = nn.weights.tocsr()
+    w.sort_indices()
+    arrays = {
+        **flat, "grid_lo": lo, "grid_h": h, "grid_dims": dims, "cell_off": cell_off, "cell_start": cell_start,
+        "cell_items": items, "ptab": tab.astype(np.float64), "nb_off": nb_off, "nb_idx": nb_idx,
+        "w_indptr": w.indptr.astype(np.int64), "w_indices": w.indices.astype(np.int64),
+        "w_data": w.data.astype(np.float64), "nn_distance": nn.distance, "nn_owner": nn.owner,
+        "nn_region": nn.region, "correction": correction, "neutral": dataset.neutral,
+        "face_vertices": dataset.face_vertices, "face_offsets": dataset.face_offsets,
+        "marker_triangle": layout.triangles, "marker_vertices": layout.vertices, "marker_weights": layout.weights,
+    }
+    if dataset.uvs is not None:
+        arrays["uvs"] = dataset.uvs
+        arrays["face_uvs"] = dataset.face_uvs
+
+    rows = []
+    for i, c in enumerate(clouds):
+        motion = np.linalg.norm(tab[1:, i] - tab[0, i], axis=1)
+        rep_of = {}
+        dropped = set(c.aliases[0].tolist())
+        for a in c.aliases:
+            for s in a.tolist():
+                rep_of[s] = int(a[0])
+        for k in range(dataset.n_shapes):
+            r = rep_of.get(k + 1, k + 1)
+            if k + 1 in dropped:
+                status = "dropped: barely moves this bundle (alias of the neutral point)"
+            elif r != k + 1:
+                status = f"merged into {dataset.names[r - 1]}"
+            else:
+                status = "kept"
+            rows.append((layout.names[i], dataset.names[k], status, motion[k] * 10))
+    pruning = pd.DataFrame(rows, columns=["marker", "shape", "status", "motion_mm"])
+    per_bundle = pd.DataFrame({
+        "marker": layout.names,
+        "points_before": [dataset.n_shapes + 1] * len(layout),
+        "points_after": [c.report["points"] for c in clouds],
+        "dropped_static": [c.report["dropped_static"] for c in clouds],
+        "merged_duplicates": [c.report["merged_duplicates"] for c in clouds],
+        "dim": [c.dim for c in clouds],
+        "simplices": [c.report["simplices"] for c in clouds],
+        "delaunay": [c.report["by_kind"][0] for c in clouds],
+        "subset_delaunay": [c.report["by_kind"][1] for c in clouds],
+        "knn_fans": [c.report["by_kind"][2] for c in clouds],
+        "filtered": [c.report["filtered"] for c in clouds],
+        "natural_neighbours": [len(n) for n in nn.neighbours],
+    })
+    timings["total_s"] = time.perf_counter() - t0
+    manifest = {
+        "format": FORMAT, "format_version": FORMAT_VERSION,
+        "dataset_hash": dataset.content_hash(), "layout_hash": layout_hash(layout),
+        "dataset_info": {"name": dataset.info.get("name"), "units": dataset.units},
+        "markers": layout.names, "shapes": dataset.names, "units": dataset.units,
+        "options": opts.to_json(),
+        "counts": {
+            "vertices": dataset.n_vertices, "shapes": dataset.n_shapes, "markers": len(layout),
+            "points": int(len(flat["pts"])), "simplices": int(len(flat["sx"])),
+            "grid_entries": int(len(items)), "nn_region_vertices": int(nn.region.sum()),
+        },
+        "nn_conflicts": nn.conflicts, "uv_scale_cm": nn.uv_scale, "timings": timings,
+    }
+    return LGIIndex(manifest, arrays, dvm), {"pruning.csv": pruning, "bundles.csv": per_bundle}

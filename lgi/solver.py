@@ -1,0 +1,247 @@
+"""Per-frame reconstruction by local geometric indexing.
+
+For every bundle the solver finds the simplices of its point cloud that contain it; each gives convex
+barycentric weights over shapes, a candidate local surface through the bundle. It keeps the candidate
+whose blend of shapes best fits the bundle's natural neighbours (RMS distance, plus a preference for
+shapes shared with the previous frame's choice). A bundle outside its cloud is projected onto the
+cloud's hull, the candidate chosen by the same criterion with its own distance included. Every vertex
+then mixes the bundles' shape weights with its natural-neighbour weights. Where a bundle was projected
+(or an alias shape replaced a merged point), the remaining bundle residuals are interpolated smoothly
+(:mod:`lgi.smooth`) so the surface passes through every seen bundle.
+
+A bundle missing from a frame takes its previous frame's choice, or else that of its nearest seen
+natural neighbour (or nearest seen bundle); the diagnostics say which.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from . import _kernels as K
+from .bundles import Bundles
+from .errors import InputError
+from .index import LGIIndex
+from .progress import progress
+
+STATUS = {K.CONTAINED: "contained", K.PROJECTED: "projected", K.MISSING: "missing"}
+
+
+@dataclass
+class FrameResult:
+    """One reconstructed frame.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float32, cm
+    shapes : (M, 4) int64
+        Chosen shapes per bundle (extended index: 0 neutral, k + 1 dataset shape k).
+    weights : (M, 4) float64
+        Their convex barycentric weights.
+    n_containing : (M,) int64
+        Simplices that contained the bundle.
+    status : (M,) int64
+        0 contained, 1 projected, 2 missing.
+    projection : (M,) float64, cm
+        Distance from the bundle to its cloud's volume (0 when contained).
+    score : (M,) float64, cm
+        RMS neighbour misfit of the chosen candidate.
+    residual : (M,) float64, cm
+        Distance from each seen bundle to the reconstructed surface point (NaN if missing).
+    fallback : list of str
+        For missing bundles: where their choice came from.
+    """
+
+    vertices: np.ndarray
+    shapes: np.ndarray
+    weights: np.ndarray
+    n_containing: np.ndarray
+    status: np.ndarray
+    projection: np.ndarray
+    score: np.ndarray
+    residual: np.ndarray
+    fallback: list[str]
+
+
+@dataclass
+class SequenceResult:
+    """A reconstructed sequence: vertices (F, V, 3) float32 cm, frame numbers, per-bundle diagnostics."""
+
+    frames: np.ndarray
+    vertices: np.ndarray
+    diagnostics: pd.DataFrame
+
+
+class LGISolver:
+    """Reconstruct frames of bundles with a built :class:`~lgi.index.LGIIndex`.
+
+    Parameters
+    ----------
+    index
+        The built index.
+    temporal_weight : float, mm
+        Added to a candidate's score per unit share of its shapes not used by the previous frame's
+        choice for the bundle (0 disables; used by :meth:`solve_sequence`).
+    alias_min_weight : float
+        A candidate's dominant corner tries every shape merged into that point when its weight is at
+        least this.
+    correct_residuals : bool
+        Interpolate remaining bundle residuals smoothly so the surface passes through every bundle.
+    tolerance : float
+        Barycentric tolerance of the containment test.
+    n_project : int
+        Hull facets tried when projecting a bundle.
+    spatial_weight : float, mm
+        Weight of a second pass preferring shapes chosen by the bundle's natural neighbours and by the
+        whole frame in the first pass. The default is a tie-break: it decides only between candidates
+        whose neighbour misfits differ by less than about a tenth of a micrometre (bundles that do not
+        see a motion their neighbours do not see either). 0 disables the second pass.
+    """
+
+    def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.5,
+                 correct_residuals: bool = True, tolerance: float = 1e-9, n_project: int = 3,
+                 spatial_weight: float = 1e-4) -> None:
+        self.index = index
+        a = index.arrays
+        self._a = a
+        self.temporal_weight = float(temporal_weight)
+        self.alias_min_weight = float(alias_min_weight)
+        self.correct_residuals = correct_residuals
+        self.tolerance = float(tolerance)
+        self.n_project = int(n_project)
+        self.spatial_weight = float(spatial_weight)
+        self._n_ext = len(index.manifest["shapes"]) + 1
+        self._no_agree = np.zeros((1, 1))
+        self.layout = index.layout()
+        self._x0 = np.asarray(a["neutral"], np.float64)
+        self._dvm = np.asarray(index.deltas_vm)  # read once: the blend touches all of it every frame
+        self._correction = np.asarray(a["correction"], np.float64)
+        nb_off, nb_idx = a["nb_off"], a["nb_idx"]
+        self._neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(index.n_markers)]
+        self._rest = a["ptab"][0]
+        # A bundle off a flat cloud's plane by less than the flatness tolerance is still inside it.
+        self._dist_tol = float(index.manifest["options"]["cloud"]["flat_tol"])
+
+    # ---------------------------------------------------------------------------------- frames
+    def solve_frame(self, bundles: np.ndarray, previous: FrameResult | None = None) -> FrameResult:
+        """Reconstruct one frame.
+
+        Parameters
+        ----------
+        bundles : (M, 3) float, cm
+            Bundle positions in layout order; rows of NaN are missing markers.
+        previous
+            The previous frame's result (temporal preference and missing-marker fallback).
+        """
+        a = self._a
+        p = np.asarray(bundles, np.float64)
+        if p.shape != (self.index.n_markers, 3):
+            raise InputError(f"bundles have shape {p.shape}, the index has {self.index.n_markers} markers")
+        seen = np.all(np.isfinite(p), axis=1)
+        pk = np.where(seen[:, None], p, 0.0)
+        prev = previous.shapes if previous is not None else np.full((len(p), 4), -1, np.int64)
+        mu = self.temporal_weight / 10.0 if previous is not None else 0.0
+        args = (pk, seen, a["dim"], a["origin"], a["basis"], a["pts"], a["pt_off"], a["pt_shape"], a["alias_off"],
+                a["alias_shape"], a["sx"], a["sx_off"], a["tinv"], a["hull"], a["hull_off"], a["grid_lo"],
+                a["grid_h"], a["grid_dims"], a["cell_off"], a["cell_start"], a["cell_items"], a["ptab"],
+                a["nb_off"], a["nb_idx"], a["snap_radius"], prev, mu)
+        tail = (self.alias_min_weight, self.tolerance, self._dist_tol, self.n_project)
+        shapes, lam, pts, n_contain, status, proj, score = K.solve_bundles(*args, self._no_agree, 0.0, *tail)
+        if self.spatial_weight > 0:
+            # Second pass: break near-ties toward the shapes the neighbours and the frame agree on.
+            agree = K.agreement(pts, lam, seen, a["alias_off"], a["alias_shape"], a["nb_off"], a["nb_idx"],
+                                self._n_ext)
+            shapes, lam, pts, n_contain, status, proj, score = K.solve_bundles(
+                *args, agree, self.spatial_weight / 10, *tail)
+        fallback = self._fill_missing(seen, shapes, lam, previous)
+        x = np.empty_like(self._x0)
+        K.blend(self._x0, self._dvm, a["w_indptr"], a["w_indices"], a["w_data"], shapes, lam, x)
+        on_surface = self.layout.evaluate(x)
+        resid_vec = np.where(seen[:, None], p - on_surface, 0.0)
+        if self.correct_residuals:
+            fix = np.flatnonzero(np.linalg.norm(resid_vec, axis=1) > 1e-9)
+            if fix.size:
+                x += self._correction[:, fix] @ resid_vec[fix]
+                resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
+        residual = np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
+        return FrameResult(x.astype(np.float32), shapes, lam, n_contain, status, proj, score, residual, fallback)
+
+    def _fill_missing(self, seen: np.ndarray, shapes: np.ndarray, lam: np.ndarray,
+                      previous: FrameResult | None) -> list[str]:
+        notes = [""] * len(seen)
+        missing = np.flatnonzero(~seen)
+        if missing.size == 0:
+            return notes
+        if not seen.any():
+            raise InputError("no marker seen in this frame")
+        seen_idx = np.flatnonzero(seen)
+        for i in missing:
+            if previous is not None:
+                shapes[i], lam[i] = previous.shapes[i], previous.weights[i]
+                notes[i] = "previous frame"
+                continue
+            nbs = [j for j in self._neighbours[i] if seen[j]]
+            if nbs:
+                j = min(nbs, key=lambda j: np.linalg.norm(self._rest[j] - self._rest[i]))
+                notes[i] = f"neighbour {self.index.marker_names[j]}"
+            else:
+                j = seen_idx[np.argmin(np.linalg.norm(self._rest[seen_idx] - self._rest[i], axis=1))]
+                notes[i] = f"nearest seen {self.index.marker_names[j]}"
+            shapes[i], lam[i] = shapes[j], lam[j]
+        return notes
+
+    # ---------------------------------------------------------------------------------- sequences
+    def solve_sequence(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
+                       show_progress: bool = False) -> SequenceResult:
+        """Reconstruct frames in order, carrying each frame's choice into the next.
+
+        Parameters
+        ----------
+        bundles
+            A :class:`~lgi.bundles.Bundles` (markers matched by name) or an (F, M, 3) array in layout order.
+        frames
+            Frame numbers for an array input (default 0..F-1).
+        """
+        if isinstance(bundles, Bundles):
+            pos = self.align(bundles)
+            frames = bundles.frames
+        else:
+            pos = np.asarray(bundles, np.float64)
+            frames = np.arange(len(pos)) if frames is None else np.asarray(frames)
+        out = np.empty((len(pos), self.index.n_vertices, 3), np.float32)
+        rows = []
+        prev = None
+        names = self.index.marker_names
+        shape_names = self.index.shape_names
+        for f in progress(range(len(pos)), "reconstructing", disable=not show_progress):
+            try:
+                r = self.solve_frame(pos[f], prev)
+            except InputError as exc:
+                raise InputError(exc.message, frame=int(frames[f])) from None
+            out[f] = r.vertices
+            prev = r
+            for i in range(len(names)):
+                nz = r.weights[i] > 0
+                rows.append((
+                    int(frames[f]), names[i], STATUS[int(r.status[i])] if not r.fallback[i] else "missing",
+                    int(r.n_containing[i]), "+".join(shape_names[k] for k in r.shapes[i][nz]),
+                    " ".join(f"{w:.4f}" for w in r.weights[i][nz]), r.projection[i] * 10, r.score[i] * 10,
+                    r.residual[i] * 10, r.fallback[i],
+                ))
+        diag = pd.DataFrame(rows, columns=["frame", "marker", "status", "n_containing", "shapes", "weights",
+                                           "projection_mm", "score_mm", "residual_mm", "fallback"])
+        return SequenceResult(np.asarray(frames), out, diag)
+
+    def align(self, bundles: Bundles) -> np.ndarray:
+        """(F, M, 3) positions of a bundles file in this index's marker order (unknown markers rejected)."""
+        col = {n: i for i, n in enumerate(bundles.markers)}
+        unknown = [n for n in bundles.markers if n not in set(self.index.marker_names)]
+        if unknown:
+            raise InputError(f"markers not in the index: {unknown[:5]}", marker=unknown[0])
+        pos = np.full((len(bundles.frames), self.index.n_markers, 3), np.nan)
+        for i, n in enumerate(self.index.marker_names):
+            if n in col:
+                pos[:, i] = bundles.positions[:, col[n]]
+        return pos
