@@ -11,7 +11,7 @@ import numba as nb
 import numpy as np
 
 # Status codes written to the diagnostics.
-CONTAINED, PROJECTED, MISSING = 0, 1, 2
+CONTAINED, PROJECTED, MISSING, BORROWED = 0, 1, 2, 3
 
 
 @nb.njit(cache=True)
@@ -163,9 +163,9 @@ def _closest_on_triangle(p, a, b, c, out):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True)
-def _score(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2):  # pragma: no cover - compiled
-    """RMS distance (cm) of the natural neighbours (and, if own2 > 0, of the bundle itself) to where
-    the candidate's blend of shapes puts them."""
+def _misfit(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2):  # pragma: no cover - compiled
+    """RMS distance (cm) of the natural neighbours, and of the bundle itself (``own2``, squared), to
+    where the candidate's blend of shapes puts them."""
     tot = own2
     cnt = 1
     for e in range(nb_off[i], nb_off[i + 1]):
@@ -178,55 +178,89 @@ def _score(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2):  # pragma: 
                 acc += lam[c] * ptab[shapes[c], j, k]
             tot += acc * acc
         cnt += 1
-    return np.sqrt(tot / max(cnt, 1))
+    return np.sqrt(tot / cnt)
 
 
 @nb.njit(cache=True)
-def _consider(i, shapes_in, lam_in, nz, p, seen, ptab, nb_off, nb_idx, own2, alias_pt, alias_off, alias_shape,
-              alias_min_w, prev, mu, agree, nu, best_shapes, best_lam, best_pts, best):  # pragma: no cover
-    """Score one candidate (with alias expansion at its dominant corner); keep it if best so far.
-    Returns True if it became the best."""
-    improved = False
+def _penalty(i, shapes, lam, nz, prev, mu, agree, nu):  # pragma: no cover - compiled
+    """Temporal (shapes not shared with the previous frame) and agreement (shapes the frame's evidence
+    does not support) terms of the score, cm."""
+    out = 0.0
+    if mu > 0 and prev[i, 0] >= 0:
+        shared = 0
+        for c in range(nz):
+            for q in range(4):
+                if prev[i, q] == shapes[c]:
+                    shared += 1
+                    break
+        out += mu * (1.0 - shared / nz)
+    if nu > 0:
+        ag = 0.0
+        for c in range(nz):
+            ag += lam[c] * agree[i, shapes[c]]
+        out += nu * (1.0 - ag)
+    return out
+
+
+@nb.njit(cache=True)
+def _consider(i, shapes_in, lam_in, nz, p, seen, ptab, nb_off, nb_idx, own2, alias_pt, alias_off, class_off,
+              alias_shape, alias_min_w, prev, mu, agree, nu, best_shapes, best_lam, best_pts, best):  # pragma: no cover
+    """Score one candidate and keep it if it is the best so far; returns True if it is.
+
+    Every corner with weight >= alias_min_w (heaviest first) tries the shapes merged into its cloud
+    point, one alias class at a time (a class: shapes that also coincide at all natural neighbours, so
+    they share one misfit); within a class the temporal and agreement terms pick the member.
+    """
     shapes = shapes_in.copy()
     lam = lam_in.copy()
-    dom = 0
-    for c in range(nz):
-        if lam[c] > lam[dom]:
-            dom = c
-    options_a = alias_off[alias_pt[dom]]
-    options_b = alias_off[alias_pt[dom] + 1]
-    if lam[dom] < alias_min_w:
-        options_b = options_a + 1
-    for o in range(options_a, options_b):
-        shapes[dom] = alias_shape[o]
-        sc = _score(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2)
-        if mu > 0 and prev[i, 0] >= 0:
-            shared = 0
-            for c in range(nz):
-                for q in range(4):
-                    if prev[i, q] == shapes[c]:
-                        shared += 1
-                        break
-            sc += mu * (1.0 - shared / nz)
-        if nu > 0:
-            ag = 0.0
-            for c in range(nz):
-                ag += lam[c] * agree[i, shapes[c]]
-            sc += nu * (1.0 - ag)
-        if sc < best[0]:
-            best[0] = sc
-            improved = True
-            for c in range(4):
-                best_shapes[c] = shapes[c] if c < nz else 0
-                best_lam[c] = lam[c] if c < nz else 0.0
-                best_pts[c] = alias_pt[c] if c < nz else -1
-    return improved
+    done = np.zeros(4, np.bool_)
+    for _ in range(nz):
+        c = -1
+        for q in range(nz):
+            if not done[q] and (c < 0 or lam[q] > lam[c]):
+                c = q
+        done[c] = True
+        pt = alias_pt[c]
+        if pt < 0 or lam[c] < alias_min_w or alias_off[pt + 1] - alias_off[pt] <= 1 and \
+                class_off[alias_off[pt] + 1] - class_off[alias_off[pt]] <= 1:
+            continue
+        keep = shapes[c]
+        keep_sc = 1e300
+        for cls in range(alias_off[pt], alias_off[pt + 1]):
+            shapes[c] = alias_shape[class_off[cls]]
+            fit = _misfit(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2)
+            if fit >= keep_sc:
+                continue
+            member = shapes[c]
+            pen = _penalty(i, shapes, lam, nz, prev, mu, agree, nu)
+            if mu > 0 or nu > 0:
+                for o in range(class_off[cls] + 1, class_off[cls + 1]):
+                    shapes[c] = alias_shape[o]
+                    pn = _penalty(i, shapes, lam, nz, prev, mu, agree, nu)
+                    if pn < pen:
+                        pen = pn
+                        member = alias_shape[o]
+            if fit + pen < keep_sc:
+                keep_sc = fit + pen
+                keep = member
+        shapes[c] = keep
+    sc = _misfit(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2) + _penalty(i, shapes, lam, nz, prev, mu,
+                                                                                      agree, nu)
+    if sc < best[0]:
+        best[0] = sc
+        for c in range(4):
+            best_shapes[c] = shapes[c] if c < nz else 0
+            best_lam[c] = lam[c] if c < nz else 0.0
+            best_pts[c] = alias_pt[c] if c < nz else -1
+        return True
+    return False
 
 
 @nb.njit(cache=True)
-def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, alias_shape, sx, sx_off, tinv,
+def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, sx_off,
+                  tinv,
                     hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
-                  agree, nu, alias_min_w, tol, dist_tol, n_project):  # pragma: no cover - compiled
+                  agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project):  # pragma: no cover
     """Choose every bundle's simplex and barycentric weights for one frame.
 
     Returns shapes (M,4) int64 (extended shape indices), lam (M,4), points (M,4) (cloud points of the
@@ -273,7 +307,7 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
             shapes[0] = pt_shape[pt_off[i]]
             apt[0] = pt_off[i]
             lam[0] = 1.0
-            _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, alias_shape,
+            _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off, alias_shape,
                       alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
             found = 1
         else:
@@ -298,7 +332,7 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
                         apt[c] = sx[s, c]
                         shapes[c] = pt_shape[sx[s, c]]
                     _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off,
-                              alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+                              class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
         # Points within the snap radius: their dropped and merged shapes lie there, so try each point
         # alone (with its aliases), the bundle's own distance counted in the score.
         snapped = -1.0
@@ -310,7 +344,7 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
                 shapes[0] = pt_shape[a]
                 apt[0] = a
                 lam[0] = 1.0
-                if _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, alias_shape,
+                if _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off, alias_shape,
                              alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best):
                     snapped = dd
         n_contain[i] = found
@@ -367,7 +401,8 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
                         shapes[c] = pt_shape[sx[s, c]]
                     before = best[0]
                     _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2 + d2 + 1e-300, apt,
-                              alias_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+                              alias_off, class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts,
+                                 best)
                     if best[0] < before:
                         best_proj = d2
             if best[0] >= 1e299:
@@ -385,10 +420,38 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
                 apt[0] = bestp
                 lam[0] = 1.0
                 _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2 + bd + 1e-300, apt, alias_off,
-                          alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+                          class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
                 best_proj = bd
             status[i] = PROJECTED
             proj[i] = np.sqrt(off2 + best_proj)
+        # Second pass: a natural neighbour's first-pass mixture, scored with this bundle's own distance.
+        # A bundle that barely moves, or sits where its cloud has no combination of the shapes its
+        # neighbours show, cannot tell those shapes apart; its neighbours can.
+        borrowed = -1.0
+        if nu > 0:
+            for e in range(nb_off[i], nb_off[i + 1]):
+                j = nb_idx[e]
+                if not seen[j]:
+                    continue
+                dd = 0.0
+                for k in range(3):
+                    acc = -p[i, k]
+                    for c in range(4):
+                        acc += first_lam[j, c] * ptab[first_shapes[j, c], i, k]
+                    dd += acc * acc
+                nzj = 0
+                for c in range(4):
+                    if first_lam[j, c] > 0:
+                        shapes[nzj] = first_shapes[j, c]
+                        lam[nzj] = first_lam[j, c]
+                        apt[nzj] = -1
+                        nzj += 1
+                if _consider(i, shapes, lam, nzj, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off,
+                             alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best):
+                    borrowed = dd
+        if borrowed >= 0:
+            status[i] = BORROWED
+            proj[i] = np.sqrt(borrowed)
         score[i] = best[0]
         for c in range(4):
             out_shapes[i, c] = bshapes[c]
@@ -422,37 +485,39 @@ def blend(x0, deltas_vm, w_indptr, w_indices, w_data, shapes, lam, out):  # prag
 
 
 @nb.njit(cache=True)
-def agreement(points, lam, seen, alias_off, alias_shape, nb_off, nb_idx, n_shapes):  # pragma: no cover
+def agreement(points, lam, seen, alias_off, class_off, alias_shape, nb_off, nb_idx, n_shapes):  # pragma: no cover
     """(M, S+1) evidence for each shape from the first-pass choices: every corner's weight is split
     over all shapes merged into its cloud point (they are indistinguishable at that bundle), so only a
     shape consistent with many bundles collects much; half from the bundle's natural neighbours, half
-    from the whole frame."""
+    from the whole frame, each relative to its best-supported shape."""
     m = points.shape[0]
     vote = np.zeros((m, n_shapes))
     glob = np.zeros(n_shapes)
-    n_seen = 0
     for j in range(m):
         if not seen[j]:
             continue
-        n_seen += 1
         for c in range(4):
             a = points[j, c]
             if a < 0 or lam[j, c] <= 0:
                 continue
-            n_al = alias_off[a + 1] - alias_off[a]
-            for o in range(alias_off[a], alias_off[a + 1]):
-                vote[j, alias_shape[o]] += lam[j, c] / n_al
+            first = class_off[alias_off[a]]
+            last = class_off[alias_off[a + 1]]
+            for o in range(first, last):
+                vote[j, alias_shape[o]] += lam[j, c] / (last - first)
         for s in range(n_shapes):
             glob[s] += vote[j, s]
+    gmax = max(glob.max(), 1e-300)
     out = np.zeros((m, n_shapes))
+    local = np.zeros(n_shapes)
     for i in range(m):
-        cnt = 0
+        local[:] = 0.0
         for e in range(nb_off[i], nb_off[i + 1]):
             j = nb_idx[e]
             if seen[j]:
-                cnt += 1
                 for s in range(n_shapes):
-                    out[i, s] += vote[j, s]
+                    local[s] += vote[j, s]
+        lmax = max(local.max(), 1e-300)
         for s in range(n_shapes):
-            out[i, s] = 0.5 * (out[i, s] / max(cnt, 1) + glob[s] / max(n_seen, 1))
+            # Relative to the best-supported shape, so that the leader scores 1.
+            out[i, s] = 0.5 * (local[s] / lmax + glob[s] / gmax)
     return out

@@ -145,6 +145,101 @@ def cmd_bundles(args: argparse.Namespace) -> int:
     return 0
 
 
+def _index_options(args: argparse.Namespace):
+    from .cloud import CloudOptions
+    from .index import IndexOptions
+
+    c = CloudOptions(min_motion_rel=args.min_motion_rel, min_motion_abs=args.min_motion_abs, merge_tol=args.merge_tol,
+                     n_subsets=args.subsets, subset_fraction=args.subset_fraction, knn=args.knn,
+                     min_quality=args.min_quality, max_edge_rel=args.max_edge_rel, budget=args.budget, seed=args.seed)
+    return IndexOptions(cloud=c, region_radius=args.region_radius)
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    from .dataset import ShapeDataset
+    from .index import build_index
+    from .markers import read_layout
+
+    t0 = time.perf_counter()
+    ds = ShapeDataset.load(args.dataset_dir)
+    layout = read_layout(args.markers, ds.triangles)
+    index, reports = build_index(ds, layout, _index_options(args), show_progress=not args.quiet)
+    index.save(args.out, reports)
+    c = index.manifest["counts"]
+    per = reports["bundles.csv"]
+    print(f"index of {c['shapes']} shapes x {c['markers']} markers built in {time.perf_counter() - t0:.1f} s")
+    print(f"points per bundle: {int(per.points_before.iloc[0])} before, {per.points_after.median():.0f} median after "
+          f"pruning ({per.points_after.min()}-{per.points_after.max()}); simplices: {c['simplices']} "
+          f"({per.simplices.median():.0f} median per bundle)")
+    for msg in index.manifest["nn_conflicts"]:
+        print(f"warning: {msg}")
+    print(f"index: {Path(args.out).resolve()}  (reports: bundles.csv, pruning.csv)")
+    return 0
+
+
+def _solver(index, args: argparse.Namespace):
+    from .solver import LGISolver
+
+    return LGISolver(index, temporal_weight=getattr(args, "temporal_weight", 0.0),
+                     spatial_weight=args.spatial_weight)
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    import shutil
+
+    from .bundles import read_bundles
+    from .index import LGIIndex
+    from .obj import write_obj
+
+    t0 = time.perf_counter()
+    index = LGIIndex.load(args.index_dir)
+    bundles = read_bundles(args.bundles, index.marker_names)
+    solver = _solver(index, args)
+    t1 = time.perf_counter()
+    res = solver.solve_sequence(bundles, show_progress=not args.quiet)
+    t2 = time.perf_counter()
+    out = Path(args.out)
+    stage = _stage(out)
+    try:
+        np.savez(stage / "meshes.npz", vertices=res.vertices, frames=res.frames)
+        res.diagnostics.to_csv(stage / "diagnostics.csv", index=False, float_format="%.6g")
+        if args.obj:
+            a = index.arrays
+            (stage / "obj").mkdir()
+            for f, frame in enumerate(res.frames):
+                write_obj(stage / "obj" / f"frame_{int(frame):05d}.obj", res.vertices[f], a["face_vertices"],
+                          a["face_offsets"], a.get("uvs"), a.get("face_uvs"))
+        _commit(stage, out)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    d = res.diagnostics
+    n = len(res.frames)
+    print(f"reconstructed {n} frames x {index.n_vertices} vertices in {t2 - t1:.2f} s "
+          f"({n / max(t2 - t1, 1e-9):.0f} frames/s; index loaded in {t1 - t0:.2f} s)")
+    print(f"bundles: {(d.status == 'contained').mean() * 100:.1f} % contained, "
+          f"{(d.status == 'projected').mean() * 100:.1f} % projected (median distance "
+          f"{d.projection_mm[d.status == 'projected'].median() if (d.status == 'projected').any() else 0:.3f} mm), "
+          f"{(d.status == 'missing').mean() * 100:.1f} % missing; max bundle residual {d.residual_mm.max():.2e} mm")
+    print(f"outputs in {out.resolve()}: meshes.npz, diagnostics.csv{', obj/' if args.obj else ''}")
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from .index import LGIIndex
+    from .verify import verify_index
+
+    index = LGIIndex.load(args.index_dir)
+    table = verify_index(index, _solver(index, args), args.shapes, show_progress=not args.quiet)
+    bad = table.rms_mm > args.tolerance
+    with np.printoptions(suppress=True):
+        print(table.to_string(index=False, float_format=lambda v: f"{v:.5f}"))
+    print(f"{len(table)} shapes: worst RMS {table.rms_mm.max():.5f} mm ({table.shape.iloc[table.rms_mm.argmax()]}), "
+          f"worst max {table.max_mm.max():.4f} mm, largest bundle residual {table.residual_mm.max():.2e} mm; "
+          f"tolerance {args.tolerance} mm RMS: {'FAILED for ' + str(int(bad.sum())) if bad.any() else 'passed'}")
+    return 1 if bad.any() else 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from . import synth
 
@@ -152,14 +247,36 @@ def cmd_demo(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     r = write_synthetic(out, args.vertices, args.frames, args.seed, args.quiet)
     actor = r["actor"]
-    print(f"[1/2] synthetic actor: {actor.n_vertices} vertices, {r['dataset'].n_shapes} dataset shapes, "
+    print(f"[1/4] synthetic actor: {actor.n_vertices} vertices, {r['dataset'].n_shapes} dataset shapes, "
           f"{len(r['layout'])} markers, {args.frames}-frame performance ({time.perf_counter() - t0:.1f} s)")
     nl = synth.nonlinearity(actor, r["activations"])
-    print("[2/2] how far the truth is from a linear blend of the extreme shapes (mm), over the performance:")
+    print("[2/4] how far the truth is from a linear blend of the extreme shapes (mm), over the performance:")
     print(f"      RMS per frame: median {np.median(nl[:, 0]):.2f}, 95th pct {np.percentile(nl[:, 0], 95):.2f}; "
           f"max per frame: median {np.median(nl[:, 1]):.2f}, 95th pct {np.percentile(nl[:, 1], 95):.2f}, "
           f"worst {nl[:, 1].max():.2f}")
-    print(f"outputs in {out.resolve()}: dataset/, markers.csv, bundles.csv, truth.npz")
+    from .index import build_index
+    from .solver import LGISolver
+
+    t = time.perf_counter()
+    index, reports = build_index(r["dataset"], r["layout"], show_progress=not args.quiet)
+    index.save(out / "index", reports)
+    print(f"[3/4] LGI index: {index.manifest['counts']['simplices']} simplices over {len(r['layout'])} bundles "
+          f"({time.perf_counter() - t:.1f} s)")
+    from .bundles import read_bundles
+
+    bundles = read_bundles(out / "bundles.csv", index.marker_names)
+    t = time.perf_counter()
+    res = LGISolver(index, temporal_weight=0.02).solve_sequence(bundles, show_progress=not args.quiet)
+    dt = time.perf_counter() - t
+    np.savez(out / "meshes.npz", vertices=res.vertices, frames=res.frames)
+    res.diagnostics.to_csv(out / "diagnostics.csv", index=False, float_format="%.6g")
+    err = np.linalg.norm(res.vertices - r["truth"], axis=2) * 10
+    print(f"[4/4] reconstructed the {args.frames}-frame performance (frames not in the dataset) at "
+          f"{args.frames / dt:.0f} frames/s; error against the truth: RMS {np.sqrt(np.mean(err**2)):.3f} mm, "
+          f"95th pct {np.percentile(err, 95):.3f} mm, max {err.max():.2f} mm; "
+          f"max bundle residual {np.nanmax(res.diagnostics.residual_mm):.1e} mm")
+    print(f"outputs in {out.resolve()}: dataset/, markers.csv, bundles.csv, truth.npz, index/, meshes.npz, "
+          f"diagnostics.csv")
     return 0
 
 
@@ -204,6 +321,55 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, metavar="BUNDLES", help=".csv or .parquet")
     s.add_argument("--shapes", metavar="PATTERN", help="only shapes matching these shell patterns")
     s.set_defaults(func=cmd_bundles)
+
+    s = sub.add_parser("build", help="build the LGI index of a dataset for a marker layout",
+                       description="Build the local geometric index: per-bundle point clouds (pruned), overlapping "
+                                   "simplices, search grids, natural-neighbour weights. See docs/indexing.md.")
+    s.add_argument("dataset_dir", metavar="DATASET_DIR")
+    s.add_argument("--markers", required=True, metavar="MARKERS_CSV")
+    s.add_argument("--out", required=True, metavar="INDEX_DIR")
+    g = s.add_argument_group("pruning (lengths in dataset units)")
+    g.add_argument("--min-motion-rel", type=float, default=0.005, metavar="R",
+                   help="drop a shape from a bundle's cloud if it moves the bundle less than R x the largest "
+                        "motion (default 0.005)")
+    g.add_argument("--min-motion-abs", type=float, default=1e-4, metavar="D", help="... or less than D (1e-4)")
+    g.add_argument("--merge-tol", type=float, default=1e-4, metavar="D", help="merge points closer than D (1e-4)")
+    g = s.add_argument_group("simplices")
+    g.add_argument("--subsets", type=int, default=4, metavar="N", help="extra Delaunay tessellations of subsets (4)")
+    g.add_argument("--subset-fraction", type=float, default=0.6, metavar="F", help="subset size (0.6)")
+    g.add_argument("--knn", type=int, default=6, metavar="K", help="k of the nearest-neighbour fans (6, 0 = none)")
+    g.add_argument("--min-quality", type=float, default=0.02, metavar="Q", help="drop slivers below Q (0.02)")
+    g.add_argument("--max-edge-rel", type=float, default=0.6, metavar="E",
+                   help="drop extra simplices longer than E x the cloud's extent (0.6)")
+    g.add_argument("--budget", type=int, default=20000, metavar="B", help="simplices per bundle at most (20000)")
+    g.add_argument("--region-radius", type=float, default=3.0, metavar="R",
+                   help="natural-neighbour region: within R (cm-equivalent) of a bundle (3.0)")
+    g.add_argument("--seed", type=int, default=0)
+    s.add_argument("-q", "--quiet", action="store_true")
+    s.set_defaults(func=cmd_build)
+
+    s = sub.add_parser("reconstruct", help="reconstruct meshes from a bundles file",
+                       description="Write OUT_DIR/meshes.npz (vertices (F, V, 3) float32, frames), "
+                                   "OUT_DIR/diagnostics.csv and, with --obj, OUT_DIR/obj/frame_NNNNN.obj.")
+    s.add_argument("index_dir", metavar="INDEX_DIR")
+    s.add_argument("--bundles", required=True, metavar="BUNDLES")
+    s.add_argument("--out", required=True, metavar="OUT_DIR")
+    s.add_argument("--obj", action="store_true", help="also write one OBJ per frame")
+    s.add_argument("--temporal-weight", type=float, default=0.02, metavar="MM",
+                   help="preference for the previous frame's shapes, in mm of neighbour misfit (0.02; 0 = none)")
+    s.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
+                   help="tie-break toward shapes the neighbours agree on, in mm (1e-3; 0 = none)")
+    s.add_argument("-q", "--quiet", action="store_true")
+    s.set_defaults(func=cmd_reconstruct)
+
+    s = sub.add_parser("verify", help="reconstruct every dataset shape from its own bundles (paper 7.1)",
+                       description="Print per-shape errors (RMS and max, mm); exit 1 if any RMS exceeds the tolerance.")
+    s.add_argument("index_dir", metavar="INDEX_DIR")
+    s.add_argument("--tolerance", type=float, default=0.01, metavar="MM", help="RMS tolerance in mm (0.01)")
+    s.add_argument("--shapes", metavar="PATTERN", help="only shapes matching these shell patterns")
+    s.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM")
+    s.add_argument("-q", "--quiet", action="store_true")
+    s.set_defaults(func=cmd_verify)
 
     s = sub.add_parser("demo", help="run the main job end to end on the built-in synthetic actor",
                        description="Build the synthetic actor and run the pipeline on its performance; "

@@ -211,7 +211,8 @@ def build_cloud(positions: np.ndarray, opts: CloudOptions, rng: np.random.Genera
     filtered = int((~keep_b).sum())
     if extra:
         allc = np.concatenate([simp_list[0]] + [s for s, _ in extra])
-        allk = np.concatenate([np.full(len(simp_list[0]), -1, np.int8)] + [np.full(len(s), k, np.int8) for s, k in extra])
+        allk = np.concatenate([np.full(len(simp_list[0]), -1, np.int8)]
+                              + [np.full(len(s), k, np.int8) for s, k in extra])
         key = np.sort(allc, axis=1)
         # First occurrence wins, so a simplex already in the base tessellation is not repeated.
         _, first = np.unique(key, axis=0, return_index=True)

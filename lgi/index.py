@@ -130,12 +130,32 @@ class LGIIndex:
         return cls(manifest, arrays, deltas_vm)
 
 
-def _flatten(clouds: list[BundleCloud]) -> dict[str, np.ndarray]:
+def _alias_classes(aliases: np.ndarray, tab: np.ndarray, neighbours: np.ndarray, tol: float) -> list[list[int]]:
+    """Group a point's shapes into classes that also coincide (within tol) at every natural neighbour:
+    they score alike, so the solver evaluates one misfit per class. The representative stays first."""
+    if len(aliases) == 1 or len(neighbours) == 0:
+        return [aliases.tolist()]
+    sig = tab[aliases][:, neighbours].reshape(len(aliases), -1)
+    classes: list[list[int]] = []
+    reps: list[int] = []
+    for k, s in enumerate(aliases.tolist()):
+        for ci, r in enumerate(reps):
+            if np.max(np.abs(sig[k] - sig[r])) <= tol:
+                classes[ci].append(s)
+                break
+        else:
+            reps.append(k)
+            classes.append([s])
+    return classes
+
+
+def _flatten(clouds: list[BundleCloud], tab: np.ndarray, neighbours: list[np.ndarray],
+             tol: float) -> dict[str, np.ndarray]:
     m = len(clouds)
     dim = np.array([c.dim for c in clouds], np.int64)
     origin = np.stack([c.origin for c in clouds])
     basis = np.zeros((m, 3, 3))
-    pts_l, shp_l, al_off, al_l, sx_l, tinv_l, kind_l, hull_l = [], [], [0], [], [], [], [], []
+    pts_l, shp_l, al_off, cl_off, al_l, sx_l, tinv_l, kind_l, hull_l = [], [], [0], [0], [], [], [], [], []
     pt_off = np.zeros(m + 1, np.int64)
     sx_off = np.zeros(m + 1, np.int64)
     hull_off = np.zeros(m + 1, np.int64)
@@ -148,8 +168,10 @@ def _flatten(clouds: list[BundleCloud]) -> dict[str, np.ndarray]:
         pts_l.append(p3)
         shp_l.append(c.point_shape)
         for a in c.aliases:
-            al_l.append(a)
-            al_off.append(al_off[-1] + len(a))
+            for cls in _alias_classes(a, tab, neighbours[i], tol):
+                al_l.append(np.asarray(cls))
+                cl_off.append(cl_off[-1] + len(cls))
+            al_off.append(len(cl_off) - 1)
         base = pt_off[i]
         s4 = np.full((len(c.simplices), 4), -1, np.int64)
         s4[:, : c.simplices.shape[1]] = c.simplices + base
@@ -168,6 +190,7 @@ def _flatten(clouds: list[BundleCloud]) -> dict[str, np.ndarray]:
     return {
         "dim": dim, "origin": origin, "basis": basis, "pts": np.concatenate(pts_l), "pt_off": pt_off,
         "pt_shape": np.concatenate(shp_l).astype(np.int64), "alias_off": np.asarray(al_off, np.int64),
+        "class_off": np.asarray(cl_off, np.int64),
         "alias_shape": np.concatenate(al_l).astype(np.int64), "sx": np.concatenate(sx_l), "sx_off": sx_off,
         "tinv": np.concatenate(tinv_l), "sx_kind": np.concatenate(kind_l), "hull": np.concatenate(hull_l),
         "hull_off": hull_off, "snap_radius": np.array([c.report["snap_radius"] for c in clouds]),
@@ -208,19 +231,22 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
     rng = np.random.default_rng(opts.cloud.seed)
     clouds = [build_cloud(tab[:, i], opts.cloud, rng)
               for i in progress(range(len(layout)), "point clouds", disable=not show_progress)]
-    flat = _flatten(clouds)
     timings["clouds_s"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    lo, h, dims, cell_off, cell_start, items = K.build_grids(
-        flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target))
-    timings["grid_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     nn = natural_neighbour_weights(dataset.neutral, dataset.face_vertices, dataset.face_offsets, dataset.uvs,
                                    dataset.face_uvs, layout.triangles, layout.weights, opts.region_radius,
                                    opts.nn_subdivisions)
     timings["natural_neighbours_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    flat = _flatten(clouds, tab, nn.neighbours, opts.cloud.merge_tol)
+    timings["flatten_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    lo, h, dims, cell_off, cell_start, items = K.build_grids(
+        flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target))
+    timings["grid_s"] = time.perf_counter() - t
+
     nb_off = np.zeros(len(layout) + 1, np.int64)
     nb_off[1:] = np.cumsum([len(n) for n in nn.neighbours])
     nb_idx = np.concatenate(nn.neighbours).astype(np.int64) if nb_off[-1] else np.zeros(0, np.int64)

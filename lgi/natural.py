@@ -82,7 +82,7 @@ def uv_metric_graph(
     """
     fo = np.asarray(face_offsets, np.int64)
     sizes = np.diff(fo)
-    rows_a, rows_b, la, lb = [], [], [], []
+    rows_a, rows_b, la = [], [], []
     for n in np.unique(sizes):
         polys = np.flatnonzero(sizes == n)
         idx = fo[polys][:, None] + np.arange(n)[None]

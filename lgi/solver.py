@@ -26,7 +26,7 @@ from .errors import InputError
 from .index import LGIIndex
 from .progress import progress
 
-STATUS = {K.CONTAINED: "contained", K.PROJECTED: "projected", K.MISSING: "missing"}
+STATUS = {K.CONTAINED: "contained", K.PROJECTED: "projected", K.MISSING: "missing", K.BORROWED: "neighbour"}
 
 
 @dataclass
@@ -43,9 +43,11 @@ class FrameResult:
     n_containing : (M,) int64
         Simplices that contained the bundle.
     status : (M,) int64
-        0 contained, 1 projected, 2 missing.
+        0 contained, 1 projected, 2 missing, 3 neighbour (took a natural neighbour's mixture).
     projection : (M,) float64, cm
-        Distance from the bundle to its cloud's volume (0 when contained).
+        Distance from the bundle to where its chosen blend puts it before correction: to its cloud's
+        volume when projected, to the neighbour's mixture when borrowed, 0 (or the snap offset) when
+        contained.
     score : (M,) float64, cm
         RMS neighbour misfit of the chosen candidate.
     residual : (M,) float64, cm
@@ -85,8 +87,7 @@ class LGISolver:
         Added to a candidate's score per unit share of its shapes not used by the previous frame's
         choice for the bundle (0 disables; used by :meth:`solve_sequence`).
     alias_min_weight : float
-        A candidate's dominant corner tries every shape merged into that point when its weight is at
-        least this.
+        A candidate's corner tries the shapes merged into its cloud point when its weight is at least this.
     correct_residuals : bool
         Interpolate remaining bundle residuals smoothly so the surface passes through every bundle.
     tolerance : float
@@ -95,14 +96,16 @@ class LGISolver:
         Hull facets tried when projecting a bundle.
     spatial_weight : float, mm
         Weight of a second pass preferring shapes chosen by the bundle's natural neighbours and by the
-        whole frame in the first pass. The default is a tie-break: it decides only between candidates
-        whose neighbour misfits differ by less than about a tenth of a micrometre (bundles that do not
-        see a motion their neighbours do not see either). 0 disables the second pass.
+        whole frame in the first pass; the second pass also lets a bundle take a neighbour's first-pass
+        mixture when that keeps the bundle within its snap radius (a bundle that barely moves cannot
+        tell its shapes apart, its neighbours can). The default weight is a tie-break: it decides only
+        between candidates whose misfits differ by less than about a micrometre. 0 disables
+        the second pass.
     """
 
-    def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.5,
+    def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.1,
                  correct_residuals: bool = True, tolerance: float = 1e-9, n_project: int = 3,
-                 spatial_weight: float = 1e-4) -> None:
+                 spatial_weight: float = 1e-3) -> None:
         self.index = index
         a = index.arrays
         self._a = a
@@ -114,6 +117,8 @@ class LGISolver:
         self.spatial_weight = float(spatial_weight)
         self._n_ext = len(index.manifest["shapes"]) + 1
         self._no_agree = np.zeros((1, 1))
+        self._no_shapes = np.zeros((index.n_markers, 4), np.int64)
+        self._no_lam = np.zeros((index.n_markers, 4))
         self.layout = index.layout()
         self._x0 = np.asarray(a["neutral"], np.float64)
         self._dvm = np.asarray(index.deltas_vm)  # read once: the blend touches all of it every frame
@@ -144,17 +149,18 @@ class LGISolver:
         prev = previous.shapes if previous is not None else np.full((len(p), 4), -1, np.int64)
         mu = self.temporal_weight / 10.0 if previous is not None else 0.0
         args = (pk, seen, a["dim"], a["origin"], a["basis"], a["pts"], a["pt_off"], a["pt_shape"], a["alias_off"],
-                a["alias_shape"], a["sx"], a["sx_off"], a["tinv"], a["hull"], a["hull_off"], a["grid_lo"],
+                a["class_off"], a["alias_shape"], a["sx"], a["sx_off"], a["tinv"], a["hull"], a["hull_off"], a["grid_lo"],
                 a["grid_h"], a["grid_dims"], a["cell_off"], a["cell_start"], a["cell_items"], a["ptab"],
                 a["nb_off"], a["nb_idx"], a["snap_radius"], prev, mu)
         tail = (self.alias_min_weight, self.tolerance, self._dist_tol, self.n_project)
-        shapes, lam, pts, n_contain, status, proj, score = K.solve_bundles(*args, self._no_agree, 0.0, *tail)
+        shapes, lam, pts, n_contain, status, proj, score = K.solve_bundles(*args, self._no_agree, 0.0, self._no_shapes,
+                                                                           self._no_lam, *tail)
         if self.spatial_weight > 0:
             # Second pass: break near-ties toward the shapes the neighbours and the frame agree on.
-            agree = K.agreement(pts, lam, seen, a["alias_off"], a["alias_shape"], a["nb_off"], a["nb_idx"],
+            agree = K.agreement(pts, lam, seen, a["alias_off"], a["class_off"], a["alias_shape"], a["nb_off"], a["nb_idx"],
                                 self._n_ext)
             shapes, lam, pts, n_contain, status, proj, score = K.solve_bundles(
-                *args, agree, self.spatial_weight / 10, *tail)
+                *args, agree, self.spatial_weight / 10, shapes, lam, *tail)
         fallback = self._fill_missing(seen, shapes, lam, previous)
         x = np.empty_like(self._x0)
         K.blend(self._x0, self._dvm, a["w_indptr"], a["w_indices"], a["w_data"], shapes, lam, x)
@@ -226,7 +232,7 @@ class LGISolver:
                 nz = r.weights[i] > 0
                 rows.append((
                     int(frames[f]), names[i], STATUS[int(r.status[i])] if not r.fallback[i] else "missing",
-                    int(r.n_containing[i]), "+".join(shape_names[k] for k in r.shapes[i][nz]),
+                    int(r.n_containing[i]), ";".join(shape_names[k] for k in r.shapes[i][nz]),
                     " ".join(f"{w:.4f}" for w in r.weights[i][nz]), r.projection[i] * 10, r.score[i] * 10,
                     r.residual[i] * 10, r.fallback[i],
                 ))
