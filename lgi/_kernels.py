@@ -12,10 +12,13 @@ import numpy as np
 
 # Status codes written to the diagnostics.
 CONTAINED, PROJECTED, MISSING, BORROWED = 0, 1, 2, 3
+# A candidate's own distance to the bundle counts as much as this many natural neighbours' misfits
+# (measured on held-out ICT and synthetic frames, see docs/indexing.md).
+OWN_WEIGHT = 4.0
 
 
 @nb.njit(cache=True)
-def build_grids(pts, pt_off, sx, sx_off, dim, target_per_cell):  # pragma: no cover - compiled
+def build_grids(pts, pt_off, sx, sx_off, dim, target_per_cell, max_dim):  # pragma: no cover - compiled
     """Uniform grid per bundle over its local bounding box; every simplex is listed in the cells its
     bounding box overlaps. Returns lo (M,3), h (M,), dims (M,3), cell_off (M+1), cell_start, items."""
     m = dim.shape[0]
@@ -40,10 +43,10 @@ def build_grids(pts, pt_off, sx, sx_off, dim, target_per_cell):  # pragma: no co
             vol *= max(pts[a:b, k].max() - lo[i, k], ext * 1e-3)
         cells = max(1.0, n_sx / target_per_cell)
         hh = (vol / cells) ** (1.0 / d)
-        h[i] = max(hh, ext / 64.0)
+        h[i] = max(hh, ext / max_dim)
         n_c = 1
         for k in range(d):
-            dims[i, k] = min(64, int(np.floor((pts[a:b, k].max() - lo[i, k]) / h[i])) + 1)
+            dims[i, k] = min(max_dim, int(np.floor((pts[a:b, k].max() - lo[i, k]) / h[i])) + 1)
             n_c *= dims[i, k]
         cell_off[i + 1] = cell_off[i] + n_c
     counts = np.zeros(cell_off[m] + 1, np.int64)
@@ -164,10 +167,10 @@ def _closest_on_triangle(p, a, b, c, out):  # pragma: no cover - compiled
 
 @nb.njit(cache=True)
 def _misfit(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2):  # pragma: no cover - compiled
-    """RMS distance (cm) of the natural neighbours, and of the bundle itself (``own2``, squared), to
-    where the candidate's blend of shapes puts them."""
-    tot = own2
-    cnt = 1
+    """RMS distance (cm) of the natural neighbours, and of the bundle itself (``own2``, squared, weighted
+    OWN_WEIGHT), to where the candidate's blend of shapes puts them."""
+    tot = OWN_WEIGHT * own2
+    cnt = OWN_WEIGHT
     for e in range(nb_off[i], nb_off[i + 1]):
         j = nb_idx[e]
         if not seen[j]:
@@ -232,14 +235,24 @@ def _consider(i, shapes_in, lam_in, nz, p, seen, ptab, nb_off, nb_idx, own2, ali
             if fit >= keep_sc:
                 continue
             member = shapes[c]
+            if (mu > 0 and prev[i, 0] >= 0) or nu > 0:
+                # Members differ only in this corner's temporal and agreement terms: take the best.
+                best_gain = -1.0
+                for o in range(class_off[cls], class_off[cls + 1]):
+                    m_ = alias_shape[o]
+                    gain = 0.0
+                    if nu > 0:
+                        gain += nu * lam[c] * agree[i, m_]
+                    if mu > 0 and prev[i, 0] >= 0:
+                        for q in range(4):
+                            if prev[i, q] == m_:
+                                gain += mu / nz
+                                break
+                    if gain > best_gain:
+                        best_gain = gain
+                        member = m_
+                shapes[c] = member
             pen = _penalty(i, shapes, lam, nz, prev, mu, agree, nu)
-            if mu > 0 or nu > 0:
-                for o in range(class_off[cls] + 1, class_off[cls + 1]):
-                    shapes[c] = alias_shape[o]
-                    pn = _penalty(i, shapes, lam, nz, prev, mu, agree, nu)
-                    if pn < pen:
-                        pen = pn
-                        member = alias_shape[o]
             if fit + pen < keep_sc:
                 keep_sc = fit + pen
                 keep = member
@@ -257,62 +270,72 @@ def _consider(i, shapes_in, lam_in, nz, p, seen, ptab, nb_off, nb_idx, own2, ali
 
 
 @nb.njit(cache=True)
-def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, sx_off,
-                  tinv,
-                    hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
-                  agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project):  # pragma: no cover
-    """Choose every bundle's simplex and barycentric weights for one frame.
+def _take_simplex(s, lam, sx, pt_shape, d, shapes, apt):  # pragma: no cover - compiled
+    """Clamp tiny negative weights, renormalise, and fill the candidate's shapes and cloud points."""
+    tot = 0.0
+    for c in range(d + 1):
+        lam[c] = max(lam[c], 0.0)
+        tot += lam[c]
+    for c in range(d + 1):
+        lam[c] /= tot
+        apt[c] = sx[s, c]
+        shapes[c] = pt_shape[sx[s, c]]
 
-    Returns shapes (M,4) int64 (extended shape indices), lam (M,4), points (M,4) (cloud points of the
-    corners, -1 unused), n_contain (M,), status (M,), proj_dist (M,) cm, score (M,) cm.
-    """
-    m = p.shape[0]
-    out_shapes = np.zeros((m, 4), np.int64)
-    out_lam = np.zeros((m, 4))
-    n_contain = np.zeros(m, np.int64)
-    status = np.full(m, MISSING, np.int64)
-    proj = np.zeros(m)
-    score = np.full(m, np.nan)
+
+@nb.njit(cache=True)
+def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, tinv,
+               hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
+               agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k, cand_in,
+               out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out):  # pragma: no cover
+    d = dim[i]
     y = np.zeros(3)
     q = np.zeros(3)
+    tmp = np.zeros(3)
     lam = np.zeros(4)
     shapes = np.zeros(4, np.int64)
-    apt = np.zeros(4, np.int64)
-    best = np.zeros(1)
+    apt = np.full(4, -1, np.int64)
+    best = np.full(1, 1e300)
     bshapes = np.zeros(4, np.int64)
     blam = np.zeros(4)
     bpts = np.full(4, -1, np.int64)
-    out_pts = np.full((m, 4), -1, np.int64)
-    tmp = np.zeros(3)
-    for i in range(m):
-        if not seen[i]:
-            continue
-        d = dim[i]
-        off2 = 0.0
-        for k in range(3):
-            y[k] = 0.0
-        for k in range(d):
-            acc = 0.0
-            for r in range(3):
-                acc += basis[i, r, k] * (p[i, r] - origin[i, r])
-            y[k] = acc
+    off2 = 0.0
+    for k in range(d):
+        acc = 0.0
         for r in range(3):
-            acc = p[i, r] - origin[i, r]
-            for k in range(d):
-                acc -= basis[i, r, k] * y[k]
-            off2 += acc * acc
-        best[0] = 1e300
-        found = 0
-        if d == 0:
-            shapes[0] = pt_shape[pt_off[i]]
-            apt[0] = pt_off[i]
-            lam[0] = 1.0
-            _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off, alias_shape,
-                      alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
-            found = 1
+            acc += basis[i, r, k] * (p[i, r] - origin[i, r])
+        y[k] = acc
+    for r in range(3):
+        acc = p[i, r] - origin[i, r]
+        for k in range(d):
+            acc -= basis[i, r, k] * y[k]
+        off2 += acc * acc
+
+    found = 0
+    if d == 0:
+        shapes[0] = pt_shape[pt_off[i]]
+        apt[0] = pt_off[i]
+        lam[0] = 1.0
+        _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off, alias_shape,
+                  alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+        found = 1
+    else:
+        if cand_in[i, 0] >= -1:
+            # Second pass: the first pass's distinct best containing simplices, no grid scan.
+            for r in range(top_k):
+                s = cand_in[i, r]
+                if s < 0:
+                    break
+                found += 1
+                _bary(y, s, sx, tinv, pts, d, lam)
+                _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
+                _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off,
+                          alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
         else:
             cell = _cell(y, i, lo, h, dims, cell_off, d)
             if cell >= 0:
+                n_items = cell_start[cell + 1] - cell_start[cell]
+                cand = np.empty(n_items, np.int64)
+                pre = np.empty(n_items)
                 for e in range(cell_start[cell], cell_start[cell + 1]):
                     s = items[e]
                     _bary(y, s, sx, tinv, pts, d, lam)
@@ -322,147 +345,198 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
                             inside = False
                     if not inside:
                         continue
+                    _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
+                    cand[found] = s
+                    # Pre-screen with the points' representative shapes; only the best go on to the
+                    # full score (alias sweep, temporal and agreement terms).
+                    pre[found] = _misfit(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2)
                     found += 1
-                    tot = 0.0
+                order = np.argsort(pre[:found])
+                kept_lam = np.zeros((top_k, 4))
+                kept_shapes = np.zeros((top_k, 4), np.int64)
+                n_kept = 0
+                for r in range(found):
+                    if n_kept >= top_k:
+                        break
+                    s = cand[order[r]]
+                    _bary(y, s, sx, tinv, pts, d, lam)
+                    _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
+                    dup = False
+                    for u in range(n_kept):  # the same blend reached through another simplex
+                        same = True
+                        for c in range(d + 1):
+                            hit = False
+                            for c2 in range(d + 1):
+                                if kept_shapes[u, c2] == shapes[c] and abs(kept_lam[u, c2] - lam[c]) < 1e-12:
+                                    hit = True
+                            if lam[c] > 0 and not hit:
+                                same = False
+                        if same:
+                            dup = True
+                            break
+                    if dup:
+                        continue
                     for c in range(d + 1):
-                        lam[c] = max(lam[c], 0.0)
-                        tot += lam[c]
-                    for c in range(d + 1):
-                        lam[c] /= tot
-                        apt[c] = sx[s, c]
-                        shapes[c] = pt_shape[sx[s, c]]
+                        kept_shapes[n_kept, c] = shapes[c]
+                        kept_lam[n_kept, c] = lam[c]
+                    cand_out[i, n_kept] = s
+                    n_kept += 1
                     _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off,
                               class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
-        # Points within the snap radius: their dropped and merged shapes lie there, so try each point
-        # alone (with its aliases), the bundle's own distance counted in the score.
-        snapped = -1.0
-        for a in range(pt_off[i], pt_off[i + 1]):
-            dd = off2
-            for k in range(d):
-                dd += (y[k] - pts[a, k]) ** 2
-            if dd <= snap_r[i] * snap_r[i]:
-                shapes[0] = pt_shape[a]
-                apt[0] = a
-                lam[0] = 1.0
-                if _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off, alias_shape,
-                             alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best):
-                    snapped = dd
-        n_contain[i] = found
-        if snapped >= 0:
-            # On a dataset point (a pruned shape's position): inside the data, not a projection.
-            status[i] = CONTAINED
-            proj[i] = np.sqrt(snapped)
-        elif found > 0:
-            status[i] = CONTAINED if off2 <= dist_tol * dist_tol else PROJECTED
-            proj[i] = np.sqrt(off2)
-        else:
-            # Project onto the hull: the n_project nearest facets, then the simplices containing
-            # each projected point; scored with the bundle's own distance included.
-            nh = hull_off[i + 1] - hull_off[i]
-            dists = np.empty(nh)
-            for f in range(nh):
-                hf = hull_off[i] + f
-                if d == 3:
-                    dists[f] = _closest_on_triangle(y, pts[hull[hf, 0]], pts[hull[hf, 1]], pts[hull[hf, 2]], tmp)
-                elif d == 2:
-                    dists[f] = _closest_on_segment(y, pts[hull[hf, 0]], pts[hull[hf, 1]], d, tmp)
-                else:
-                    dists[f] = (y[0] - pts[hull[hf, 0], 0]) ** 2
-            order = np.argsort(dists)
-            best_proj = 1e300
-            for rank in range(min(n_project, nh)):
-                hf = hull_off[i] + order[rank]
-                if d == 3:
-                    d2 = _closest_on_triangle(y, pts[hull[hf, 0]], pts[hull[hf, 1]], pts[hull[hf, 2]], q)
-                elif d == 2:
-                    d2 = _closest_on_segment(y, pts[hull[hf, 0]], pts[hull[hf, 1]], d, q)
-                else:
-                    q[0] = pts[hull[hf, 0], 0]
-                    d2 = (y[0] - q[0]) ** 2
-                cell = _cell(q, i, lo, h, dims, cell_off, d)
-                if cell < 0:
+
+    # Points within the snap radius: their dropped and merged shapes lie there, so try each point
+    # alone (with its aliases), the bundle's own distance counted in the score.
+    snapped = -1.0
+    for a in range(pt_off[i], pt_off[i + 1]):
+        dd = off2
+        for k in range(d):
+            dd += (y[k] - pts[a, k]) ** 2
+        if dd <= snap_r[i] * snap_r[i]:
+            shapes[0] = pt_shape[a]
+            apt[0] = a
+            lam[0] = 1.0
+            if _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off, alias_shape,
+                         alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best):
+                snapped = dd
+    n_contain[i] = found
+    if snapped >= 0:
+        # On a dataset point (a pruned shape's position): inside the data, not a projection.
+        status[i] = CONTAINED
+        proj[i] = np.sqrt(snapped)
+    elif found > 0:
+        status[i] = CONTAINED if off2 <= dist_tol * dist_tol else PROJECTED
+        proj[i] = np.sqrt(off2)
+    else:
+        # Project onto the hull: the n_project nearest facets, then the simplices containing each
+        # projected point; scored with the bundle's own distance included.
+        nh = hull_off[i + 1] - hull_off[i]
+        dists = np.empty(nh)
+        for f in range(nh):
+            hf = hull_off[i] + f
+            if d == 3:
+                dists[f] = _closest_on_triangle(y, pts[hull[hf, 0]], pts[hull[hf, 1]], pts[hull[hf, 2]], tmp)
+            elif d == 2:
+                dists[f] = _closest_on_segment(y, pts[hull[hf, 0]], pts[hull[hf, 1]], d, tmp)
+            else:
+                dists[f] = (y[0] - pts[hull[hf, 0], 0]) ** 2
+        order = np.argsort(dists)
+        best_proj = 1e300
+        for rank in range(min(n_project, nh)):
+            hf = hull_off[i] + order[rank]
+            if d == 3:
+                d2 = _closest_on_triangle(y, pts[hull[hf, 0]], pts[hull[hf, 1]], pts[hull[hf, 2]], q)
+            elif d == 2:
+                d2 = _closest_on_segment(y, pts[hull[hf, 0]], pts[hull[hf, 1]], d, q)
+            else:
+                q[0] = pts[hull[hf, 0], 0]
+                d2 = (y[0] - q[0]) ** 2
+            cell = _cell(q, i, lo, h, dims, cell_off, d)
+            if cell < 0:
+                continue
+            tried = 0
+            for e in range(cell_start[cell], cell_start[cell + 1]):
+                if tried >= top_k:
+                    break
+                s = items[e]
+                _bary(q, s, sx, tinv, pts, d, lam)
+                inside = True
+                for c in range(d + 1):
+                    if lam[c] < -1e-6:
+                        inside = False
+                if not inside:
                     continue
-                for e in range(cell_start[cell], cell_start[cell + 1]):
-                    s = items[e]
-                    _bary(q, s, sx, tinv, pts, d, lam)
-                    inside = True
-                    for c in range(d + 1):
-                        if lam[c] < -1e-6:
-                            inside = False
-                    if not inside:
-                        continue
-                    tot = 0.0
-                    for c in range(d + 1):
-                        lam[c] = max(lam[c], 0.0)
-                        tot += lam[c]
-                    for c in range(d + 1):
-                        lam[c] /= tot
-                        apt[c] = sx[s, c]
-                        shapes[c] = pt_shape[sx[s, c]]
-                    before = best[0]
-                    _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2 + d2 + 1e-300, apt,
-                              alias_off, class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts,
-                                 best)
-                    if best[0] < before:
-                        best_proj = d2
-            if best[0] >= 1e299:
-                # Numerically no simplex contains the hull point: fall back to the nearest point.
-                bestp = pt_off[i]
-                bd = 1e300
-                for a in range(pt_off[i], pt_off[i + 1]):
-                    dd = 0.0
-                    for k in range(d):
-                        dd += (y[k] - pts[a, k]) ** 2
-                    if dd < bd:
-                        bd = dd
-                        bestp = a
-                shapes[0] = pt_shape[bestp]
-                apt[0] = bestp
-                lam[0] = 1.0
-                _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2 + bd + 1e-300, apt, alias_off,
-                          class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
-                best_proj = bd
-            status[i] = PROJECTED
-            proj[i] = np.sqrt(off2 + best_proj)
-        # Second pass: a natural neighbour's first-pass mixture, scored with this bundle's own distance.
-        # A bundle that barely moves, or sits where its cloud has no combination of the shapes its
-        # neighbours show, cannot tell those shapes apart; its neighbours can.
-        borrowed = -1.0
-        if nu > 0:
-            for e in range(nb_off[i], nb_off[i + 1]):
-                j = nb_idx[e]
-                if not seen[j]:
-                    continue
+                tried += 1
+                _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
+                if _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2 + d2 + 1e-300, apt,
+                             alias_off, class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts,
+                             best):
+                    best_proj = d2
+        if best[0] >= 1e299:
+            # Numerically no simplex contains the hull point: fall back to the nearest point.
+            bestp = pt_off[i]
+            bd = 1e300
+            for a in range(pt_off[i], pt_off[i + 1]):
                 dd = 0.0
-                for k in range(3):
-                    acc = -p[i, k]
-                    for c in range(4):
-                        acc += first_lam[j, c] * ptab[first_shapes[j, c], i, k]
-                    dd += acc * acc
-                nzj = 0
+                for k in range(d):
+                    dd += (y[k] - pts[a, k]) ** 2
+                if dd < bd:
+                    bd = dd
+                    bestp = a
+            shapes[0] = pt_shape[bestp]
+            apt[0] = bestp
+            lam[0] = 1.0
+            _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2 + bd + 1e-300, apt, alias_off,
+                      class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+            best_proj = bd
+        status[i] = PROJECTED
+        proj[i] = np.sqrt(off2 + best_proj)
+
+    # Second pass: a natural neighbour's first-pass mixture, scored with this bundle's own distance.
+    # A bundle that barely moves, or sits where its cloud has no combination of the shapes its
+    # neighbours show, cannot tell those shapes apart; its neighbours can.
+    if nu > 0:
+        for e in range(nb_off[i], nb_off[i + 1]):
+            j = nb_idx[e]
+            if not seen[j]:
+                continue
+            dd = 0.0
+            for k in range(3):
+                acc = -p[i, k]
                 for c in range(4):
-                    if first_lam[j, c] > 0:
-                        shapes[nzj] = first_shapes[j, c]
-                        lam[nzj] = first_lam[j, c]
-                        apt[nzj] = -1
-                        nzj += 1
-                if _consider(i, shapes, lam, nzj, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off,
-                             alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best):
-                    borrowed = dd
-        if borrowed >= 0:
-            status[i] = BORROWED
-            proj[i] = np.sqrt(borrowed)
-        score[i] = best[0]
-        for c in range(4):
-            out_shapes[i, c] = bshapes[c]
-            out_lam[i, c] = blam[c]
-            out_pts[i, c] = bpts[c]
-    return out_shapes, out_lam, out_pts, n_contain, status, proj, score
+                    acc += first_lam[j, c] * ptab[first_shapes[j, c], i, k]
+                dd += acc * acc
+            nzj = 0
+            for c in range(4):
+                if first_lam[j, c] > 0:
+                    shapes[nzj] = first_shapes[j, c]
+                    lam[nzj] = first_lam[j, c]
+                    apt[nzj] = -1
+                    nzj += 1
+            if _consider(i, shapes, lam, nzj, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off,
+                         alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best):
+                status[i] = BORROWED
+                proj[i] = np.sqrt(dd)
+    score[i] = best[0]
+    for c in range(4):
+        out_shapes[i, c] = bshapes[c]
+        out_lam[i, c] = blam[c]
+        out_pts[i, c] = bpts[c]
 
 
 @nb.njit(parallel=True, cache=True)
-def blend(x0, deltas_vm, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma: no cover - compiled
-    """out[v] = x0[v] + sum_i w[v, i] sum_c lam[i, c] deltas_vm[v, shapes[i, c]]."""
+def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, tinv,
+                  hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
+                  agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
+                  cand_in):  # pragma: no cover - compiled
+    """Choose every bundle's simplex and barycentric weights for one frame (bundles in parallel).
+
+    ``cand_in`` (M, top_k): a first pass's candidates to reuse (rows of -2 mean scan the grid).
+
+    Returns shapes (M,4) int64 (extended shape indices), lam (M,4), points (M,4) (cloud points of the
+    corners, -1 unused), n_contain (M,), status (M,), proj_dist (M,) cm, score (M,) cm, and the
+    distinct best containing simplices (M, top_k) (-1 padded) for a second pass.
+    """
+    m = p.shape[0]
+    cand_out = np.full((m, top_k), -1, np.int64)
+    out_shapes = np.zeros((m, 4), np.int64)
+    out_lam = np.zeros((m, 4))
+    out_pts = np.full((m, 4), -1, np.int64)
+    n_contain = np.zeros(m, np.int64)
+    status = np.full(m, MISSING, np.int64)
+    proj = np.zeros(m)
+    score = np.full(m, np.nan)
+    for i in nb.prange(m):
+        if seen[i]:
+            _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx,
+                       tinv, hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r,
+                       prev, mu, agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
+                       cand_in, out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out)
+    return out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out
+
+
+@nb.njit(parallel=True, cache=True)
+def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma: no cover - compiled
+    """out[v] = x0[v] + sum_i w[v, i] sum_c lam[i, c] deltas[shapes[i, c], v] (deltas shape-major)."""
     n_v = x0.shape[0]
     for v in nb.prange(n_v):
         a0 = x0[v, 0]
@@ -476,9 +550,9 @@ def blend(x0, deltas_vm, w_indptr, w_indices, w_data, shapes, lam, out):  # prag
                 if lc != 0.0:
                     k = shapes[i, c]
                     f = w * lc
-                    a0 += f * deltas_vm[v, k, 0]
-                    a1 += f * deltas_vm[v, k, 1]
-                    a2 += f * deltas_vm[v, k, 2]
+                    a0 += f * deltas[k, v, 0]
+                    a1 += f * deltas[k, v, 1]
+                    a2 += f * deltas[k, v, 2]
         out[v, 0] = a0
         out[v, 1] = a1
         out[v, 2] = a2
@@ -521,3 +595,21 @@ def agreement(points, lam, seen, alias_off, class_off, alias_shape, nb_off, nb_i
             # Relative to the best-supported shape, so that the leader scores 1.
             out[i, s] = 0.5 * (local[s] / lmax + glob[s] / gmax)
     return out
+
+
+@nb.njit(cache=True)
+def add_correction(x, c_indptr, c_indices, c_data, fix, resid):  # pragma: no cover - compiled
+    """x[v] += sum_f resid[f] * corr[fix[f], v], the correction basis stored as sparse rows (one per
+    bundle): the smooth field carrying the residuals of the bundles in ``fix``. A plain loop, not BLAS:
+    BLAS worker threads left spinning after a call would compete with the solver's threads."""
+    for f in range(fix.shape[0]):
+        b = fix[f]
+        r0 = resid[f, 0]
+        r1 = resid[f, 1]
+        r2 = resid[f, 2]
+        for e in range(c_indptr[b], c_indptr[b + 1]):
+            v = c_indices[e]
+            w = c_data[e]
+            x[v, 0] += w * r0
+            x[v, 1] += w * r1
+            x[v, 2] += w * r2

@@ -234,7 +234,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
     bad = table.rms_mm > args.tolerance
     with np.printoptions(suppress=True):
         print(table.to_string(index=False, float_format=lambda v: f"{v:.5f}"))
-    print(f"{len(table)} shapes: worst RMS {table.rms_mm.max():.5f} mm ({table.shape.iloc[table.rms_mm.argmax()]}), "
+    print(f"{len(table)} shapes: worst RMS {table.rms_mm.max():.5f} mm ({table["shape"].iloc[int(table.rms_mm.argmax())]}), "
           f"worst max {table.max_mm.max():.4f} mm, largest bundle residual {table.residual_mm.max():.2e} mm; "
           f"tolerance {args.tolerance} mm RMS: {'FAILED for ' + str(int(bad.sum())) if bad.any() else 'passed'}")
     return 1 if bad.any() else 0
@@ -337,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     g = s.add_argument_group("simplices")
     g.add_argument("--subsets", type=int, default=4, metavar="N", help="extra Delaunay tessellations of subsets (4)")
     g.add_argument("--subset-fraction", type=float, default=0.6, metavar="F", help="subset size (0.6)")
-    g.add_argument("--knn", type=int, default=6, metavar="K", help="k of the nearest-neighbour fans (6, 0 = none)")
+    g.add_argument("--knn", type=int, default=0, metavar="K", help="k of the nearest-neighbour fans (0 = none)")
     g.add_argument("--min-quality", type=float, default=0.02, metavar="Q", help="drop slivers below Q (0.02)")
     g.add_argument("--max-edge-rel", type=float, default=0.6, metavar="E",
                    help="drop extra simplices longer than E x the cloud's extent (0.6)")

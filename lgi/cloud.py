@@ -46,7 +46,7 @@ class CloudOptions:
     flat_tol: float = 1e-4
     n_subsets: int = 4
     subset_fraction: float = 0.6
-    knn: int = 6
+    knn: int = 0
     min_quality: float = 0.02
     max_edge_rel: float = 0.6
     budget: int = 20000

@@ -5,7 +5,7 @@ Saved as a directory (see ``docs/indexing.md``)::
     manifest.json   format, source dataset hash, layout, options, counts, build figures
     index.npz       flattened per-bundle clouds, simplices, grids, hull facets, natural-neighbour
                     weights, neighbours, bundle table, correction basis, neutral mesh
-    deltas_vm.npy   (V, S + 1, 3) float32 shape displacements, vertex-major, column 0 the neutral (zeros)
+    deltas.npy      (S + 1, V, 3) float32 shape displacements, row 0 the neutral (zeros)
     pruning.csv     per bundle and shape: kept, dropped (barely moves the bundle) or merged, and motion
     bundles.csv     per bundle: points before/after, dimension, simplices by kind, natural neighbours
 """
@@ -40,12 +40,16 @@ FORMAT_VERSION = 1
 
 @dataclass
 class IndexOptions:
-    """Build options: pruning and simplices (:class:`CloudOptions`), natural neighbours, correction."""
+    """Build options: pruning and simplices (:class:`CloudOptions`), natural neighbours, search grid,
+    alias classes (shapes of one cloud point that also lie within ``class_tol`` of each other at every
+    natural neighbour share one misfit evaluation), correction stiffness."""
 
     cloud: CloudOptions = field(default_factory=CloudOptions)
     region_radius: float = 3.0
     nn_subdivisions: int = 3
     grid_target: float = 4.0
+    grid_max_cells: int = 64
+    class_tol: float = 1e-3
     ks: float = 1.0
     kb: float = 100.0
 
@@ -73,7 +77,7 @@ class LGIIndex:
 
     manifest: dict[str, Any]
     arrays: dict[str, np.ndarray]
-    deltas_vm: np.ndarray
+    deltas: np.ndarray
 
     # --------------------------------------------------------------- convenience views
     @property
@@ -106,7 +110,7 @@ class LGIIndex:
         directory = Path(directory)
         with atomic_dir(directory) as tmp:
             np.savez(tmp / "index.npz", **self.arrays)
-            np.save(tmp / "deltas_vm.npy", self.deltas_vm)
+            np.save(tmp / "deltas.npy", self.deltas)
             for name, df in (reports or {}).items():
                 df.to_csv(tmp / name, index=False, float_format="%.6g")
             (tmp / "manifest.json").write_text(json.dumps(self.manifest, indent=1))
@@ -126,8 +130,8 @@ class LGIIndex:
                              path=mpath)
         with np.load(directory / "index.npz") as z:
             arrays = {k: z[k] for k in z.files}
-        deltas_vm = np.load(directory / "deltas_vm.npy", mmap_mode="r" if mmap else None)
-        return cls(manifest, arrays, deltas_vm)
+        deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None)
+        return cls(manifest, arrays, deltas)
 
 
 def _alias_classes(aliases: np.ndarray, tab: np.ndarray, neighbours: np.ndarray, tol: float) -> list[list[int]]:
@@ -239,12 +243,12 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
                                    opts.nn_subdivisions)
     timings["natural_neighbours_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    flat = _flatten(clouds, tab, nn.neighbours, opts.cloud.merge_tol)
+    flat = _flatten(clouds, tab, nn.neighbours, opts.class_tol)
     timings["flatten_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
     lo, h, dims, cell_off, cell_start, items = K.build_grids(
-        flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target))
+        flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target), opts.grid_max_cells)
     timings["grid_s"] = time.perf_counter() - t
 
     nb_off = np.zeros(len(layout) + 1, np.int64)
@@ -254,13 +258,19 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
     t = time.perf_counter()
     smooth = SmoothInterpolator(dataset.neutral, dataset.triangles, layout.vertices, layout.weights, opts.ks,
                                 opts.kb)
-    correction = smooth.basis().astype(np.float32)
+    # Each bundle's field decays away from it (all other bundles are held at zero): keep it sparse,
+    # one row per bundle. Entries below 1e-3 of the unit residual are dropped; the solver applies the
+    # correction again to what that leaves, which shrinks geometrically.
+    basis = smooth.basis().T
+    basis[np.abs(basis) < 1e-3] = 0.0
+    correction = sp.csr_matrix(basis)
     timings["correction_basis_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    dvm = np.zeros((dataset.n_vertices, dataset.n_shapes + 1, 3), np.float32)
-    dvm[:, 1:] = np.transpose(deltas, (1, 0, 2))
-    timings["vertex_major_s"] = time.perf_counter() - t
+    # Shape-major: neighbouring vertices blending the same shapes read neighbouring memory.
+    ext = np.zeros((dataset.n_shapes + 1, dataset.n_vertices, 3), np.float32)
+    ext[1:] = deltas
+    timings["extended_deltas_s"] = time.perf_counter() - t
 
     w = nn.weights.tocsr()
     w.sort_indices()
@@ -269,7 +279,9 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
         "cell_items": items, "ptab": tab.astype(np.float64), "nb_off": nb_off, "nb_idx": nb_idx,
         "w_indptr": w.indptr.astype(np.int64), "w_indices": w.indices.astype(np.int64),
         "w_data": w.data.astype(np.float64), "nn_distance": nn.distance, "nn_owner": nn.owner,
-        "nn_region": nn.region, "correction": correction, "neutral": dataset.neutral,
+        "nn_region": nn.region, "corr_indptr": correction.indptr.astype(np.int64),
+        "corr_indices": correction.indices.astype(np.int64), "corr_data": correction.data,
+        "neutral": dataset.neutral,
         "face_vertices": dataset.face_vertices, "face_offsets": dataset.face_offsets,
         "marker_triangle": layout.triangles, "marker_vertices": layout.vertices, "marker_weights": layout.weights,
     }
@@ -323,4 +335,4 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
         },
         "nn_conflicts": nn.conflicts, "uv_scale_cm": nn.uv_scale, "timings": timings,
     }
-    return LGIIndex(manifest, arrays, dvm), {"pruning.csv": pruning, "bundles.csv": per_bundle}
+    return LGIIndex(manifest, arrays, ext), {"pruning.csv": pruning, "bundles.csv": per_bundle}

@@ -94,6 +94,9 @@ class LGISolver:
         Barycentric tolerance of the containment test.
     n_project : int
         Hull facets tried when projecting a bundle.
+    top_k : int
+        Containing simplices are pre-screened by their neighbour misfit; this many distinct ones get the
+        full score (alias sweep, temporal and agreement terms).
     spatial_weight : float, mm
         Weight of a second pass preferring shapes chosen by the bundle's natural neighbours and by the
         whole frame in the first pass; the second pass also lets a bundle take a neighbour's first-pass
@@ -105,7 +108,7 @@ class LGISolver:
 
     def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.1,
                  correct_residuals: bool = True, tolerance: float = 1e-9, n_project: int = 3,
-                 spatial_weight: float = 1e-3) -> None:
+                 spatial_weight: float = 1e-3, top_k: int = 4) -> None:
         self.index = index
         a = index.arrays
         self._a = a
@@ -115,14 +118,15 @@ class LGISolver:
         self.tolerance = float(tolerance)
         self.n_project = int(n_project)
         self.spatial_weight = float(spatial_weight)
+        self.top_k = int(top_k)
         self._n_ext = len(index.manifest["shapes"]) + 1
         self._no_agree = np.zeros((1, 1))
         self._no_shapes = np.zeros((index.n_markers, 4), np.int64)
         self._no_lam = np.zeros((index.n_markers, 4))
+        self._scan = np.full((index.n_markers, self.top_k), -2, np.int64)
         self.layout = index.layout()
         self._x0 = np.asarray(a["neutral"], np.float64)
-        self._dvm = np.asarray(index.deltas_vm)  # read once: the blend touches all of it every frame
-        self._correction = np.asarray(a["correction"], np.float64)
+        self._deltas = np.asarray(index.deltas)  # read once: the blend touches all of it every frame
         nb_off, nb_idx = a["nb_off"], a["nb_idx"]
         self._neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(index.n_markers)]
         self._rest = a["ptab"][0]
@@ -149,27 +153,32 @@ class LGISolver:
         prev = previous.shapes if previous is not None else np.full((len(p), 4), -1, np.int64)
         mu = self.temporal_weight / 10.0 if previous is not None else 0.0
         args = (pk, seen, a["dim"], a["origin"], a["basis"], a["pts"], a["pt_off"], a["pt_shape"], a["alias_off"],
-                a["class_off"], a["alias_shape"], a["sx"], a["sx_off"], a["tinv"], a["hull"], a["hull_off"], a["grid_lo"],
+                a["class_off"], a["alias_shape"], a["sx"], a["tinv"], a["hull"], a["hull_off"], a["grid_lo"],
                 a["grid_h"], a["grid_dims"], a["cell_off"], a["cell_start"], a["cell_items"], a["ptab"],
                 a["nb_off"], a["nb_idx"], a["snap_radius"], prev, mu)
-        tail = (self.alias_min_weight, self.tolerance, self._dist_tol, self.n_project)
-        shapes, lam, pts, n_contain, status, proj, score = K.solve_bundles(*args, self._no_agree, 0.0, self._no_shapes,
-                                                                           self._no_lam, *tail)
+        tail = (self.alias_min_weight, self.tolerance, self._dist_tol, self.n_project, self.top_k)
+        shapes, lam, pts, n_contain, status, proj, score, cand = K.solve_bundles(
+            *args, self._no_agree, 0.0, self._no_shapes, self._no_lam, *tail, self._scan)
         if self.spatial_weight > 0:
             # Second pass: break near-ties toward the shapes the neighbours and the frame agree on.
             agree = K.agreement(pts, lam, seen, a["alias_off"], a["class_off"], a["alias_shape"], a["nb_off"], a["nb_idx"],
                                 self._n_ext)
-            shapes, lam, pts, n_contain, status, proj, score = K.solve_bundles(
-                *args, agree, self.spatial_weight / 10, shapes, lam, *tail)
+            # Bundles with no containing simplex in the first pass scan again (their projection).
+            cand[cand[:, 0] < 0] = -2
+            shapes, lam, pts, n_contain, status, proj, score, _ = K.solve_bundles(
+                *args, agree, self.spatial_weight / 10, shapes, lam, *tail, cand)
         fallback = self._fill_missing(seen, shapes, lam, previous)
         x = np.empty_like(self._x0)
-        K.blend(self._x0, self._dvm, a["w_indptr"], a["w_indices"], a["w_data"], shapes, lam, x)
+        K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, lam, x)
         on_surface = self.layout.evaluate(x)
         resid_vec = np.where(seen[:, None], p - on_surface, 0.0)
         if self.correct_residuals:
-            fix = np.flatnonzero(np.linalg.norm(resid_vec, axis=1) > 1e-9)
-            if fix.size:
-                x += self._correction[:, fix] @ resid_vec[fix]
+            for _ in range(3):  # the stored basis is truncated: reapplying it removes what is left
+                # 1e-7 cm is a hundredth of the 1e-4 mm a bundle may be off the surface.
+                fix = np.flatnonzero(np.abs(resid_vec).max(axis=1) > 1e-7)
+                if not fix.size:
+                    break
+                K.add_correction(x, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, resid_vec[fix])
                 resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
         residual = np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
         return FrameResult(x.astype(np.float32), shapes, lam, n_contain, status, proj, score, residual, fallback)

@@ -38,7 +38,7 @@ def verify_index(index: LGIIndex, solver: LGISolver | None = None, shapes: str |
     x0 = np.asarray(index.arrays["neutral"], np.float64)
     rows = []
     for k in progress(pick, "verifying", disable=not show_progress):
-        truth = x0 + np.asarray(index.deltas_vm[:, k + 1], np.float64)
+        truth = x0 + np.asarray(index.deltas[k + 1], np.float64)
         r = solver.solve_frame(index.arrays["ptab"][k + 1])
         err = np.linalg.norm(r.vertices.astype(np.float64) - truth, axis=1) * 10
         rows.append((names[k], float(np.sqrt(np.mean(err**2))), float(err.max()), float(np.nanmax(r.residual)) * 10,
