@@ -248,7 +248,8 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
 
     t = time.perf_counter()
     lo, h, dims, cell_off, cell_start, items = K.build_grids(
-        flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target), opts.grid_max_cells)
+        flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target),
+        opts.grid_max_cells)
     timings["grid_s"] = time.perf_counter() - t
 
     nb_off = np.zeros(len(layout) + 1, np.int64)

@@ -231,7 +231,8 @@ def natural_neighbour_weights(
         owner_s = np.where(better, j[:, None], owner_s)
     if tri_uv is not None:
         uvt = uvs[tri_uv[rt]]
-        area = 0.5 * np.abs(np.cross(uvt[:, 1] - uvt[:, 0], uvt[:, 2] - uvt[:, 0])) * scale**2
+        e1, e2 = uvt[:, 1] - uvt[:, 0], uvt[:, 2] - uvt[:, 0]
+        area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) * scale**2
     else:
         p = vertices[rtri]
         area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)

@@ -161,8 +161,8 @@ class LGISolver:
             *args, self._no_agree, 0.0, self._no_shapes, self._no_lam, *tail, self._scan)
         if self.spatial_weight > 0:
             # Second pass: break near-ties toward the shapes the neighbours and the frame agree on.
-            agree = K.agreement(pts, lam, seen, a["alias_off"], a["class_off"], a["alias_shape"], a["nb_off"], a["nb_idx"],
-                                self._n_ext)
+            agree = K.agreement(pts, lam, seen, a["alias_off"], a["class_off"], a["alias_shape"], a["nb_off"],
+                                a["nb_idx"], self._n_ext)
             # Bundles with no containing simplex in the first pass scan again (their projection).
             cand[cand[:, 0] < 0] = -2
             shapes, lam, pts, n_contain, status, proj, score, _ = K.solve_bundles(

@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from lgi.bundles import read_bundles
@@ -148,3 +149,37 @@ def test_delta_import_matches_full_import(tmp_path: Path, obj_folder: Path, with
     delta = ShapeDataset.load(tmp_path / "d")
     assert delta.names == full.names
     np.testing.assert_allclose(delta.deltas, full.deltas, atol=2e-6)
+
+
+def test_build_reconstruct_verify(tmp_path: Path) -> None:
+    s = tmp_path / "s"
+    assert main(["synth", "--out", str(s), "--vertices", "2500", "--frames", "15", "-q"]) == 0
+    assert main(["build", str(s / "dataset"), "--markers", str(s / "markers.csv"), "--out", str(tmp_path / "idx"),
+                 "-q"]) == 0
+    r = run("verify", str(tmp_path / "idx"), "-q")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "passed" in r.stdout and "jaw_open+smile_L" in r.stdout
+    r = run("verify", str(tmp_path / "idx"), "-q", "--tolerance", "1e-12")
+    assert r.returncode == 1 and "FAILED" in r.stdout
+    out = tmp_path / "rec"
+    assert main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(s / "bundles.csv"), "--out", str(out),
+                 "--obj", "-q"]) == 0
+    m = np.load(out / "meshes.npz")
+    truth = np.load(s / "truth.npz")["vertices"]
+    assert m["vertices"].shape == truth.shape and m["frames"].tolist() == list(range(15))
+    assert np.sqrt(np.mean(np.sum((m["vertices"] - truth) ** 2, axis=2))) < 0.05  # cm
+    diag = pd.read_csv(out / "diagnostics.csv")
+    assert len(diag) == 15 * len(read_layout(s / "markers.csv")) and diag.residual_mm.max() < 1e-4
+    assert set(diag.status) <= {"contained", "projected", "neighbour", "missing"}
+    assert len(list((out / "obj").glob("frame_*.obj"))) == 15
+
+
+def test_reconstruct_bad_bundles_leave_nothing(tmp_path: Path) -> None:
+    s = tmp_path / "s"
+    main(["synth", "--out", str(s), "--vertices", "2500", "--frames", "3", "-q"])
+    main(["build", str(s / "dataset"), "--markers", str(s / "markers.csv"), "--out", str(tmp_path / "idx"), "-q"])
+    bad = tmp_path / "bad.csv"
+    bad.write_text((s / "bundles.csv").read_text() + "2,no_such_marker,1,2,3\n")
+    out = tmp_path / "rec"
+    _expect_failure(["reconstruct", str(tmp_path / "idx"), "--bundles", str(bad), "--out", str(out)], out,
+                    "frame 2", "no_such_marker", "unknown marker")
