@@ -207,7 +207,8 @@ def _penalty(i, shapes, lam, nz, prev, mu, agree, nu):  # pragma: no cover - com
 
 @nb.njit(cache=True)
 def _consider(i, shapes_in, lam_in, nz, p, seen, ptab, nb_off, nb_idx, own2, alias_pt, alias_off, class_off,
-              alias_shape, alias_min_w, prev, mu, agree, nu, best_shapes, best_lam, best_pts, best):  # pragma: no cover
+              alias_shape, alias_min_w, prev, mu, agree, nu, best_shapes, best_lam, best_pts, best,
+              last):  # pragma: no cover
     """Score one candidate and keep it if it is the best so far; returns True if it is.
 
     Every corner with weight >= alias_min_w (heaviest first) tries the shapes merged into its cloud
@@ -259,6 +260,7 @@ def _consider(i, shapes_in, lam_in, nz, p, seen, ptab, nb_off, nb_idx, own2, ali
         shapes[c] = keep
     sc = _misfit(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2) + _penalty(i, shapes, lam, nz, prev, mu,
                                                                                       agree, nu)
+    last[0] = sc
     if sc < best[0]:
         best[0] = sc
         for c in range(4):
@@ -286,7 +288,8 @@ def _take_simplex(s, lam, sx, pt_shape, d, shapes, apt):  # pragma: no cover - c
 def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, tinv,
                hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
                agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k, cand_in,
-               out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out):  # pragma: no cover
+               cand_score_in, first_score, out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out,
+               cand_score_out):  # pragma: no cover
     d = dim[i]
     y = np.zeros(3)
     q = np.zeros(3)
@@ -298,6 +301,7 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
     bshapes = np.zeros(4, np.int64)
     blam = np.zeros(4)
     bpts = np.full(4, -1, np.int64)
+    last = np.zeros(1)
     off2 = 0.0
     for k in range(d):
         acc = 0.0
@@ -316,20 +320,24 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
         apt[0] = pt_off[i]
         lam[0] = 1.0
         _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off, alias_shape,
-                  alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+                  alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
         found = 1
     else:
         if cand_in[i, 0] >= -1:
-            # Second pass: the first pass's distinct best containing simplices, no grid scan.
+            # Second pass: the first pass's distinct best containing simplices, no grid scan. The
+            # agreement term adds at most nu and the sweep only raises a first-pass score, so a
+            # candidate more than nu behind the first-pass winner cannot win: skip it.
             for r in range(top_k):
                 s = cand_in[i, r]
                 if s < 0:
                     break
                 found += 1
+                if cand_score_in[i, r] > first_score[i] + nu + 1e-15:
+                    continue
                 _bary(y, s, sx, tinv, pts, d, lam)
                 _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
                 _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off,
-                          alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+                          alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
         else:
             cell = _cell(y, i, lo, h, dims, cell_off, d)
             if cell >= 0:
@@ -379,10 +387,11 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
                     for c in range(d + 1):
                         kept_shapes[n_kept, c] = shapes[c]
                         kept_lam[n_kept, c] = lam[c]
-                    cand_out[i, n_kept] = s
-                    n_kept += 1
                     _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off,
-                              class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+                              class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
+                    cand_out[i, n_kept] = s
+                    cand_score_out[i, n_kept] = last[0]
+                    n_kept += 1
 
     # Points within the snap radius: their dropped and merged shapes lie there, so try each point
     # alone (with its aliases), the bundle's own distance counted in the score.
@@ -396,7 +405,7 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
             apt[0] = a
             lam[0] = 1.0
             if _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off, alias_shape,
-                         alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best):
+                         alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last):
                 snapped = dd
     n_contain[i] = found
     if snapped >= 0:
@@ -449,7 +458,7 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
                 _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
                 if _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2 + d2 + 1e-300, apt,
                              alias_off, class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts,
-                             best):
+                             best, last):
                     best_proj = d2
         if best[0] >= 1e299:
             # Numerically no simplex contains the hull point: fall back to the nearest point.
@@ -466,7 +475,7 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
             apt[0] = bestp
             lam[0] = 1.0
             _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2 + bd + 1e-300, apt, alias_off,
-                      class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best)
+                      class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
             best_proj = bd
         status[i] = PROJECTED
         proj[i] = np.sqrt(off2 + best_proj)
@@ -493,7 +502,7 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
                     apt[nzj] = -1
                     nzj += 1
             if _consider(i, shapes, lam, nzj, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off,
-                         alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best):
+                         alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last):
                 status[i] = BORROWED
                 proj[i] = np.sqrt(dd)
     score[i] = best[0]
@@ -507,17 +516,19 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
 def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, tinv,
                   hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
                   agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
-                  cand_in):  # pragma: no cover - compiled
+                  cand_in, cand_score_in, first_score):  # pragma: no cover - compiled
     """Choose every bundle's simplex and barycentric weights for one frame (bundles in parallel).
 
-    ``cand_in`` (M, top_k): a first pass's candidates to reuse (rows of -2 mean scan the grid).
+    ``cand_in`` (M, top_k): a first pass's candidates to reuse (rows of -2 mean scan the grid), with
+    their first-pass scores ``cand_score_in`` and each bundle's first-pass best ``first_score``.
 
     Returns shapes (M,4) int64 (extended shape indices), lam (M,4), points (M,4) (cloud points of the
     corners, -1 unused), n_contain (M,), status (M,), proj_dist (M,) cm, score (M,) cm, and the
-    distinct best containing simplices (M, top_k) (-1 padded) for a second pass.
+    distinct best containing simplices (M, top_k) (-1 padded) with their scores, for a second pass.
     """
     m = p.shape[0]
     cand_out = np.full((m, top_k), -1, np.int64)
+    cand_score_out = np.full((m, top_k), np.inf)
     out_shapes = np.zeros((m, 4), np.int64)
     out_lam = np.zeros((m, 4))
     out_pts = np.full((m, 4), -1, np.int64)
@@ -530,8 +541,9 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
             _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx,
                        tinv, hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r,
                        prev, mu, agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
-                       cand_in, out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out)
-    return out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out
+                       cand_in, cand_score_in, first_score, out_shapes, out_lam, out_pts, n_contain, status, proj,
+                       score, cand_out, cand_score_out)
+    return out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out
 
 
 @nb.njit(parallel=True, cache=True)

@@ -124,6 +124,8 @@ class LGISolver:
         self._no_shapes = np.zeros((index.n_markers, 4), np.int64)
         self._no_lam = np.zeros((index.n_markers, 4))
         self._scan = np.full((index.n_markers, self.top_k), -2, np.int64)
+        self._no_scores = np.zeros((index.n_markers, self.top_k))
+        self._no_first = np.zeros(index.n_markers)
         self.layout = index.layout()
         self._x0 = np.asarray(a["neutral"], np.float64)
         self._deltas = np.asarray(index.deltas)  # read once: the blend touches all of it every frame
@@ -157,16 +159,18 @@ class LGISolver:
                 a["grid_h"], a["grid_dims"], a["cell_off"], a["cell_start"], a["cell_items"], a["ptab"],
                 a["nb_off"], a["nb_idx"], a["snap_radius"], prev, mu)
         tail = (self.alias_min_weight, self.tolerance, self._dist_tol, self.n_project, self.top_k)
-        shapes, lam, pts, n_contain, status, proj, score, cand = K.solve_bundles(
-            *args, self._no_agree, 0.0, self._no_shapes, self._no_lam, *tail, self._scan)
+        shapes, lam, pts, n_contain, status, proj, score, cand, cand_score = K.solve_bundles(
+            *args, self._no_agree, 0.0, self._no_shapes, self._no_lam, *tail, self._scan, self._no_scores,
+            self._no_first)
         if self.spatial_weight > 0:
             # Second pass: break near-ties toward the shapes the neighbours and the frame agree on.
             agree = K.agreement(pts, lam, seen, a["alias_off"], a["class_off"], a["alias_shape"], a["nb_off"],
                                 a["nb_idx"], self._n_ext)
             # Bundles with no containing simplex in the first pass scan again (their projection).
             cand[cand[:, 0] < 0] = -2
-            shapes, lam, pts, n_contain, status, proj, score, _ = K.solve_bundles(
-                *args, agree, self.spatial_weight / 10, shapes, lam, *tail, cand)
+            shapes, lam, pts, n_contain, status, proj, score, _, _ = K.solve_bundles(
+                *args, agree, self.spatial_weight / 10, shapes, lam, *tail, cand, cand_score,
+                np.nan_to_num(score, nan=np.inf))
         fallback = self._fill_missing(seen, shapes, lam, previous)
         x = np.empty_like(self._x0)
         K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, lam, x)
