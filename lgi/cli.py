@@ -246,6 +246,41 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 1 if bad.any() else 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import format_table, ict_benchmark, synthetic_benchmark
+    from .paths import shared_data
+    from .render import heatmap_row
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    table, maps, actor, truth_jitter = synthetic_benchmark(args.frames, args.noise)
+    table.to_csv(out / "bench_synthetic.csv", index=False, float_format="%.6g")
+    png = heatmap_row(out / "heatmaps_synthetic.png", actor.neutral, actor.triangles, maps,
+                      title=f"synthetic held-out performance ({args.frames} frames): mean vertex error")
+    print(f"synthetic actor, {args.frames} held-out frames (noise for jitter: {args.noise} mm; the truth's own "
+          f"jitter is {truth_jitter:.4f} mm^2):")
+    print(format_table(table))
+    print(f"heat maps: {png}")
+    ict = Path(args.ict) if args.ict else shared_data("ict-facekit")
+    if args.no_ict:
+        pass
+    elif not (ict / "generic_neutral_mesh.obj").is_file():
+        print(f"ICT FaceKit not found at {ict}: ICT comparison skipped")
+    else:
+        table, maps, ds = ict_benchmark(ict)
+        table.to_csv(out / "bench_ict.csv", index=False, float_format="%.6g")
+        mask = np.zeros(ds.n_vertices, bool)
+        mask[:9409] = True
+        png = heatmap_row(out / "heatmaps_ict.png", ds.neutral, ds.triangles, maps, mask=mask,
+                          title="ICT held-out shapes and mixes: mean vertex error")
+        print("\nICT, held-out shapes and mixes (dataset built without them), face area:")
+        print(format_table(table))
+        print(f"heat maps: {png}")
+    print(f"({time.perf_counter() - t0:.0f} s; tables and pictures in {out.resolve()})")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from . import synth
 
@@ -376,6 +411,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_verify)
+
+    s = sub.add_parser("bench", help="compare LGI with the baselines on the same frames",
+                       description="Run LGI, RBF weights + smooth, blendshape fits and smooth interpolation on the "
+                                   "synthetic held-out performance (and on ICT held-out shapes when ../shared/data "
+                                   "has them); print one table per test set and write heat maps (PNG).")
+    s.add_argument("--out", default="lgi-bench", metavar="DIR", help="tables and pictures (default ./lgi-bench)")
+    s.add_argument("--frames", type=int, default=300, metavar="F", help="synthetic performance length (300)")
+    s.add_argument("--noise", type=float, default=0.3, metavar="MM", help="bundle noise for the jitter column (0.3)")
+    s.add_argument("--ict", metavar="DIR", help="ICT FaceKit folder (default ../shared/data/ict-facekit)")
+    s.add_argument("--no-ict", action="store_true", help="synthetic only")
+    s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("demo", help="run the main job end to end on the built-in synthetic actor",
                        description="Build the synthetic actor and run the pipeline on its performance; "

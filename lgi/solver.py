@@ -136,15 +136,14 @@ class LGISolver:
         self._dist_tol = float(index.manifest["options"]["cloud"]["flat_tol"])
 
     # ---------------------------------------------------------------------------------- frames
-    def solve_frame(self, bundles: np.ndarray, previous: FrameResult | None = None) -> FrameResult:
-        """Reconstruct one frame.
+    def select(self, bundles: np.ndarray, previous: FrameResult | None = None):
+        """Choose each bundle's shapes and weights (no blending).
 
-        Parameters
-        ----------
-        bundles : (M, 3) float, cm
-            Bundle positions in layout order; rows of NaN are missing markers.
-        previous
-            The previous frame's result (temporal preference and missing-marker fallback).
+        Returns
+        -------
+        tuple
+            ``(p, seen, shapes, weights, n_containing, status, projection, score, fallback)`` as in
+            :class:`FrameResult`, ``p`` the bundles as float64 and ``seen`` (M,) bool.
         """
         a = self._a
         p = np.asarray(bundles, np.float64)
@@ -172,10 +171,12 @@ class LGISolver:
                 *args, agree, self.spatial_weight / 10, shapes, lam, *tail, cand, cand_score,
                 np.nan_to_num(score, nan=np.inf))
         fallback = self._fill_missing(seen, shapes, lam, previous)
-        x = np.empty_like(self._x0)
-        K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, lam, x)
-        on_surface = self.layout.evaluate(x)
-        resid_vec = np.where(seen[:, None], p - on_surface, 0.0)
+        return p, seen, shapes, lam, n_contain, status, proj, score, fallback
+
+    def correct(self, x: np.ndarray, p: np.ndarray, seen: np.ndarray) -> np.ndarray:
+        """Take surface ``x`` (V, 3) through the seen bundles (in place); returns the residuals (M,) cm."""
+        a = self._a
+        resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
         if self.correct_residuals:
             for _ in range(3):  # the stored basis is truncated: reapplying it removes what is left
                 # 1e-7 cm is a hundredth of the 1e-4 mm a bundle may be off the surface.
@@ -184,7 +185,23 @@ class LGISolver:
                     break
                 K.add_correction(x, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, resid_vec[fix])
                 resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
-        residual = np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
+        return np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
+
+    def solve_frame(self, bundles: np.ndarray, previous: FrameResult | None = None) -> FrameResult:
+        """Reconstruct one frame.
+
+        Parameters
+        ----------
+        bundles : (M, 3) float, cm
+            Bundle positions in layout order; rows of NaN are missing markers.
+        previous
+            The previous frame's result (temporal preference and missing-marker fallback).
+        """
+        a = self._a
+        p, seen, shapes, lam, n_contain, status, proj, score, fallback = self.select(bundles, previous)
+        x = np.empty_like(self._x0)
+        K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, lam, x)
+        residual = self.correct(x, p, seen)
         return FrameResult(x.astype(np.float32), shapes, lam, n_contain, status, proj, score, residual, fallback)
 
     def _fill_missing(self, seen: np.ndarray, shapes: np.ndarray, lam: np.ndarray,
