@@ -43,12 +43,9 @@ if cfg["kind"] == "ict":
     base = import_obj_folder(cfg["ict"], rigid_vertices="none", show_progress=False)
     layout = read_layout(shipped("markers_ict.csv"), base.triangles)
 else:
-    import pandas as pd
     actor = synth.make_actor(cfg["vertices"])
     base = synth.make_dataset(actor)
-    xyz = pd.read_csv(shipped("markers_synth.csv"))[["x", "y", "z"]].to_numpy()
-    layout, _ = layout_from_points(read_layout(shipped("markers_synth.csv")).names, xyz, actor.neutral,
-                                   actor.triangles)
+    layout, _ = synth.default_layout(actor)
 ds = linear_combinations(base, cfg["shapes"] - base.n_shapes, seed=0) if cfg["shapes"] > base.n_shapes else \
     base.take(range(cfg["shapes"]))
 rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -76,21 +73,16 @@ print(json.dumps({"build_s": build_s, "peak_rss_mib": peak / 1024, "before_build
 
 
 def synthetic_heldout(frames: int) -> None:
-    import pandas as pd
     from scipy.spatial import Delaunay
 
     from lgi import synth
     from lgi.index import build_index
-    from lgi.markers import layout_from_points, read_layout
-    from lgi.paths import shipped
     from lgi.solver import LGISolver
     from lgi.verify import verify_index
 
     actor = synth.make_actor()
     ds = synth.make_dataset(actor)
-    xyz = pd.read_csv(shipped("markers_synth.csv"))[["x", "y", "z"]].to_numpy()
-    layout, _ = layout_from_points(read_layout(shipped("markers_synth.csv")).names, xyz, actor.neutral,
-                                   actor.triangles)
+    layout, _ = synth.default_layout(actor)
     t = time.perf_counter()
     index, _ = build_index(ds, layout, show_progress=False)
     build_s = time.perf_counter() - t

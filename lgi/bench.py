@@ -89,14 +89,10 @@ def synthetic_benchmark(frames: int = 300, noise_mm: float = 0.3, seed: int = 1)
     """The synthetic held-out comparison. Returns (table, heat maps, actor, truth jitter)."""
     from . import synth
     from .index import build_index
-    from .markers import layout_from_points, read_layout
-    from .paths import shipped
 
     actor = synth.make_actor()
     ds = synth.make_dataset(actor)
-    xyz = pd.read_csv(shipped("markers_synth.csv"))[["x", "y", "z"]].to_numpy()
-    layout, _ = layout_from_points(read_layout(shipped("markers_synth.csv")).names, xyz, actor.neutral,
-                                   actor.triangles)
+    layout, _ = synth.default_layout(actor)
     index, _ = build_index(ds, layout, show_progress=False)
     truth = actor.evaluate_many(synth.random_performance(frames, seed=seed)).astype(np.float64)
     bundles = layout.evaluate(truth)

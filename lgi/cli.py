@@ -81,16 +81,11 @@ def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet:
 
     from . import synth
     from .bundles import Bundles, write_bundles
-    from .markers import layout_from_points, read_layout, write_layout
-    from .paths import shipped
+    from .markers import write_layout
 
     actor = synth.make_actor(n_vertices)
     ds = synth.make_dataset(actor)
-    shipped_layout = read_layout(shipped("markers_synth.csv"))
-    import pandas as pd
-
-    xyz = pd.read_csv(shipped("markers_synth.csv"))[["x", "y", "z"]].to_numpy(float)
-    layout, dist = layout_from_points(shipped_layout.names, xyz, actor.neutral, actor.triangles)
+    layout, dist = synth.default_layout(actor)
     acts = synth.random_performance(n_frames, seed=seed)
     truth = actor.evaluate_many(acts)
     bundles = Bundles(frames=np.arange(n_frames), markers=layout.names,

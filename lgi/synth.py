@@ -407,3 +407,25 @@ def nonlinearity(actor: SyntheticActor, activations: np.ndarray, mask: np.ndarra
             d = d[mask]
         out[i] = 10 * np.sqrt(np.mean(d**2)), 10 * d.max()
     return out
+
+
+def default_layout(actor: SyntheticActor):
+    """The shipped synthetic marker layout (``data/markers_synth.csv``) attached to this actor.
+
+    The file's neutral positions are snapped to the closest points of the actor's surface, so the layout
+    fits an actor of any resolution.
+
+    Returns
+    -------
+    layout : MarkerLayout
+    distance : (M,) float64, cm
+        How far each shipped position was from this actor's surface.
+    """
+    import pandas as pd
+
+    from .markers import layout_from_points, read_layout
+    from .paths import shipped
+
+    path = shipped("markers_synth.csv")
+    xyz = pd.read_csv(path)[["x", "y", "z"]].to_numpy(float)
+    return layout_from_points(read_layout(path).names, xyz, actor.neutral, actor.triangles)

@@ -1,15 +1,12 @@
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from lgi import synth
 from lgi.baselines import BlendshapeSolver, RBFSolver, SmoothSolver
 from lgi.bench import format_table, run_methods
 from lgi.index import build_index
-from lgi.markers import layout_from_points, read_layout
-from lgi.paths import shipped
 from lgi.render import heatmap_row
 
 
@@ -17,8 +14,7 @@ from lgi.render import heatmap_row
 def setup(small_actor):
     a = small_actor
     ds = synth.make_dataset(a)
-    xyz = pd.read_csv(shipped("markers_synth.csv"))[["x", "y", "z"]].to_numpy()
-    layout, _ = layout_from_points(read_layout(shipped("markers_synth.csv")).names, xyz, a.neutral, a.triangles)
+    layout, _ = synth.default_layout(a)
     index, _ = build_index(ds, layout, show_progress=False)
     return a, ds, layout, index
 

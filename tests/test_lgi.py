@@ -1,13 +1,10 @@
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from lgi import synth
 from lgi.index import LGIIndex, build_index
-from lgi.markers import layout_from_points, read_layout
-from lgi.paths import shipped
 from lgi.solver import LGISolver
 from lgi.verify import verify_index
 
@@ -16,8 +13,7 @@ from lgi.verify import verify_index
 def synth_index(small_actor):
     a = small_actor
     ds = synth.make_dataset(a)
-    xyz = pd.read_csv(shipped("markers_synth.csv"))[["x", "y", "z"]].to_numpy()
-    layout, _ = layout_from_points(read_layout(shipped("markers_synth.csv")).names, xyz, a.neutral, a.triangles)
+    layout, _ = synth.default_layout(a)
     index, reports = build_index(ds, layout, show_progress=False)
     return a, ds, layout, index, reports
 
