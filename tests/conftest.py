@@ -46,3 +46,14 @@ def obj_folder(tmp_path: Path, small_actor: synth.SyntheticActor) -> Path:
         write_obj(folder / f"{name}.obj", a.evaluate(eye[synth.C[name]]), a.face_vertices, a.face_offsets,
                   a.uvs, a.face_uvs)
     return folder
+
+
+@pytest.fixture(scope="session")
+def small_index(small_actor):
+    """(actor, dataset, layout, index, reports) for the small synthetic actor."""
+    from lgi.index import build_index
+
+    ds = synth.make_dataset(small_actor)
+    layout, _ = synth.default_layout(small_actor)
+    index, reports = build_index(ds, layout, show_progress=False)
+    return small_actor, ds, layout, index, reports

@@ -6,17 +6,12 @@ import pytest
 from lgi import synth
 from lgi.baselines import BlendshapeSolver, RBFSolver, SmoothSolver
 from lgi.bench import format_table, run_methods
-from lgi.index import build_index
 from lgi.render import heatmap_row
 
 
 @pytest.fixture(scope="module")
-def setup(small_actor):
-    a = small_actor
-    ds = synth.make_dataset(a)
-    layout, _ = synth.default_layout(a)
-    index, _ = build_index(ds, layout, show_progress=False)
-    return a, ds, layout, index
+def setup(small_index):
+    return small_index[:4]
 
 
 def test_smooth_interpolates_bundles_and_keeps_translations(setup) -> None:

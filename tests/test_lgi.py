@@ -4,18 +4,14 @@ import numpy as np
 import pytest
 
 from lgi import synth
-from lgi.index import LGIIndex, build_index
+from lgi.index import LGIIndex
 from lgi.solver import LGISolver
 from lgi.verify import verify_index
 
 
 @pytest.fixture(scope="module")
-def synth_index(small_actor):
-    a = small_actor
-    ds = synth.make_dataset(a)
-    layout, _ = synth.default_layout(a)
-    index, reports = build_index(ds, layout, show_progress=False)
-    return a, ds, layout, index, reports
+def synth_index(small_index):
+    return small_index
 
 
 def test_verification_reproduces_every_shape(synth_index) -> None:
