@@ -548,7 +548,8 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
 
 @nb.njit(parallel=True, cache=True)
 def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma: no cover - compiled
-    """out[v] = x0[v] + sum_i w[v, i] sum_c lam[i, c] deltas[shapes[i, c], v] (deltas shape-major)."""
+    """out[v] = x0[v] + sum_i w[v, i] sum_c lam[i, c] deltas[shapes[i, c], v] (deltas shape-major; any
+    number of slots c per bundle)."""
     n_v = x0.shape[0]
     for v in nb.prange(n_v):
         a0 = x0[v, 0]
@@ -557,7 +558,7 @@ def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma:
         for e in range(w_indptr[v], w_indptr[v + 1]):
             i = w_indices[e]
             w = w_data[e]
-            for c in range(4):
+            for c in range(shapes.shape[1]):
                 lc = lam[i, c]
                 if lc != 0.0:
                     k = shapes[i, c]

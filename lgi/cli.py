@@ -95,6 +95,7 @@ def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet:
         ds.save(stage / "dataset")
         write_layout(stage / "markers.csv", layout, neutral=actor.neutral)
         write_bundles(stage / "bundles.csv", bundles)
+        synth.jaw_rig(actor).save(stage / "jaw_rig.npz")
         np.savez(stage / "truth.npz", vertices=truth, activations=acts.astype(np.float32),
                  controls=np.asarray(synth.CONTROLS), jaw=actor.jaw_parameters(acts).astype(np.float32),
                  frames=np.arange(n_frames))
@@ -111,7 +112,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     r = write_synthetic(out, args.vertices, args.frames, args.seed, args.quiet)
     print(f"synthetic actor: {r['actor'].n_vertices} vertices, {r['dataset'].n_shapes} shapes, "
           f"{len(r['layout'])} markers, {args.frames} frames (seed {args.seed})")
-    for name in ("dataset", "markers.csv", "bundles.csv", "truth.npz"):
+    for name in ("dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz"):
         print(f"  {out / name}")
     return 0
 

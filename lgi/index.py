@@ -29,6 +29,7 @@ from .atomic import atomic_dir
 from .cloud import BundleCloud, CloudOptions, barycentric_inverse, build_cloud
 from .dataset import ShapeDataset
 from .errors import InputError
+from .jaw import JawRig, fit_shape_parameters, unskin_deltas
 from .markers import MarkerLayout
 from .natural import natural_neighbour_weights
 from .progress import progress
@@ -100,6 +101,11 @@ class LGIIndex:
     def layout(self) -> MarkerLayout:
         a = self.arrays
         return MarkerLayout(self.marker_names, a["marker_triangle"], a["marker_vertices"], a["marker_weights"])
+
+    def jaw_rig(self) -> JawRig | None:
+        """The jaw rig the shapes were unskinned with, if any."""
+        a = self.arrays
+        return JawRig(a["jaw_pivot"], a["jaw_weights"]) if "jaw_pivot" in a else None
 
     def nn_weights(self) -> sp.csr_matrix:
         a = self.arrays
@@ -202,7 +208,7 @@ def _flatten(clouds: list[BundleCloud], tab: np.ndarray, neighbours: list[np.nda
 
 
 def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptions | None = None,
-                show_progress: bool = True) -> tuple[LGIIndex, dict[str, pd.DataFrame]]:
+                show_progress: bool = True, jaw_rig: JawRig | None = None) -> tuple[LGIIndex, dict[str, pd.DataFrame]]:
     """Build the index of a dataset for a marker layout.
 
     Parameters
@@ -213,6 +219,9 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
         M markers on the neutral (checked against the dataset's triangles).
     options
         See :class:`IndexOptions`.
+    jaw_rig
+        With a rig, every shape's jaw parameters are fitted and the shapes are stored unskinned; the
+        solver then unskins each frame's bundles, indexes them and skins the result (paper section 6).
 
     Returns
     -------
@@ -224,8 +233,16 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
     t0 = time.perf_counter()
     layout.check_mesh(dataset.triangles)
     timings: dict[str, float] = {}
-    # Bundle table: every bundle's position on the neutral (row 0) and on every shape.
     deltas = np.asarray(dataset.deltas, np.float32)
+    jaw_params = None
+    if jaw_rig is not None:
+        if jaw_rig.weights.shape != (dataset.n_vertices,):
+            raise InputError(f"jaw rig has {jaw_rig.weights.shape[0]} weights, the dataset {dataset.n_vertices} "
+                             "vertices")
+        jaw_params = fit_shape_parameters(jaw_rig, dataset.neutral, deltas)
+        deltas = unskin_deltas(jaw_rig, dataset.neutral, deltas, jaw_params)
+        timings["jaw_unskin_s"] = time.perf_counter() - t0
+    # Bundle table: every bundle's position on the neutral (row 0) and on every shape.
     tab = np.empty((dataset.n_shapes + 1, len(layout), 3))
     tab[0] = layout.evaluate(dataset.neutral)
     tab[1:] = tab[0][None] + layout.evaluate(deltas).astype(np.float64)
@@ -286,6 +303,10 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
         "face_vertices": dataset.face_vertices, "face_offsets": dataset.face_offsets,
         "marker_triangle": layout.triangles, "marker_vertices": layout.vertices, "marker_weights": layout.weights,
     }
+    if jaw_rig is not None:
+        arrays["jaw_pivot"] = jaw_rig.pivot
+        arrays["jaw_weights"] = jaw_rig.weights
+        arrays["jaw_shape_params"] = jaw_params
     if dataset.uvs is not None:
         arrays["uvs"] = dataset.uvs
         arrays["face_uvs"] = dataset.face_uvs
@@ -335,5 +356,6 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
             "grid_entries": int(len(items)), "nn_region_vertices": int(nn.region.sum()),
         },
         "nn_conflicts": nn.conflicts, "uv_scale_cm": nn.uv_scale, "timings": timings,
+        "jaw": jaw_rig is not None,
     }
     return LGIIndex(manifest, arrays, ext), {"pruning.csv": pruning, "bundles.csv": per_bundle}

@@ -54,6 +54,10 @@ class FrameResult:
         Distance from each seen bundle to the reconstructed surface point (NaN if missing).
     fallback : list of str
         For missing bundles: where their choice came from.
+    jaw : (4,) float64 or None
+        Jaw parameters of the frame (open, yaw, roll in degrees; forward in cm) when the index has a rig.
+    bundles : (M, 3) float64 or None
+        The bundle positions the frame was solved for.
     """
 
     vertices: np.ndarray
@@ -65,6 +69,8 @@ class FrameResult:
     score: np.ndarray
     residual: np.ndarray
     fallback: list[str]
+    jaw: np.ndarray | None = None
+    bundles: np.ndarray | None = None
 
 
 @dataclass
@@ -97,6 +103,10 @@ class LGISolver:
     top_k : int
         Containing simplices are pre-screened by their neighbour misfit; this many distinct ones get the
         full score (alias sweep, temporal and agreement terms).
+    jaw : "auto" or "none"
+        With an index built with a jaw rig: "auto" estimates each frame's jaw parameters from the bundles
+        that move with the jaw (or takes them from ``solve_frame(jaw=...)``); "none" is refused for such
+        an index (its shapes are unskinned).
     spatial_weight : float, mm
         Weight of a second pass preferring shapes chosen by the bundle's natural neighbours and by the
         whole frame in the first pass; the second pass also lets a bundle take a neighbour's first-pass
@@ -108,7 +118,7 @@ class LGISolver:
 
     def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.1,
                  correct_residuals: bool = True, tolerance: float = 1e-9, n_project: int = 3,
-                 spatial_weight: float = 1e-3, top_k: int = 4) -> None:
+                 spatial_weight: float = 1e-3, top_k: int = 4, jaw: str = "auto") -> None:
         self.index = index
         a = index.arrays
         self._a = a
@@ -132,6 +142,13 @@ class LGISolver:
         nb_off, nb_idx = a["nb_off"], a["nb_idx"]
         self._neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(index.n_markers)]
         self._rest = a["ptab"][0]
+        self.rig = index.jaw_rig()
+        if self.rig is not None and jaw == "none":
+            raise InputError("the index was built with a jaw rig (its shapes are unskinned): use jaw 'auto' or "
+                             "given parameters, or rebuild the index without a rig")
+        if self.rig is not None:
+            self._bundle_w = self.layout.evaluate(self.rig.weights[:, None])[:, 0]
+            self._jaw_bundles = np.flatnonzero(self._bundle_w >= 0.9)
         # A bundle off a flat cloud's plane by less than the flatness tolerance is still inside it.
         self._dist_tol = float(index.manifest["options"]["cloud"]["flat_tol"])
 
@@ -187,7 +204,16 @@ class LGISolver:
                 resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
         return np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
 
-    def solve_frame(self, bundles: np.ndarray, previous: FrameResult | None = None) -> FrameResult:
+    def estimate_jaw(self, bundles: np.ndarray, init: np.ndarray | None = None) -> np.ndarray:
+        """(4,) jaw parameters fitted to the seen bundles that move with the jaw (weight >= 0.9)."""
+        p = np.asarray(bundles, np.float64)
+        jb = self._jaw_bundles[np.all(np.isfinite(p[self._jaw_bundles]), axis=1)]
+        if jb.size < 3:
+            return np.zeros(4) if init is None else np.asarray(init, np.float64)
+        return self.rig.fit(self._rest[jb], p[jb], self._bundle_w[jb], init)
+
+    def solve_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,
+                    jaw: np.ndarray | None = None) -> FrameResult:
         """Reconstruct one frame.
 
         Parameters
@@ -196,13 +222,45 @@ class LGISolver:
             Bundle positions in layout order; rows of NaN are missing markers.
         previous
             The previous frame's result (temporal preference and missing-marker fallback).
+        jaw : (4,) float, optional
+            The frame's jaw parameters when known (tracked jaw); estimated from the bundles otherwise.
+            Used only with an index built with a jaw rig.
+        """
+        sel = self.select_frame(bundles, previous, jaw)
+        return self.blend_frame(sel, sel.shapes, sel.weights, sel.jaw)
+
+    def select_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,
+                     jaw: np.ndarray | None = None) -> FrameResult:
+        """Choose shapes and weights (unskinning the bundles first with a jaw rig); no vertices yet."""
+        p = np.asarray(bundles, np.float64)
+        theta = None
+        q = p
+        if self.rig is not None:
+            init = previous.jaw if previous is not None and previous.jaw is not None else None
+            theta = np.asarray(jaw, np.float64) if jaw is not None else self.estimate_jaw(p, init)
+            seen = np.all(np.isfinite(p), axis=1)
+            q = p.copy()
+            q[seen] = self.rig.unskin(p[seen], theta, self._bundle_w[seen])
+        q, seen, shapes, lam, n_contain, status, proj, score, fallback = self.select(q, previous)
+        return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, n_contain, status, proj, score,
+                           np.where(seen, 0.0, np.nan), fallback, theta, p)
+
+    def blend_frame(self, sel: FrameResult, shapes: np.ndarray, weights: np.ndarray,
+                    jaw: np.ndarray | None, bundles: np.ndarray | None = None) -> FrameResult:
+        """Vertices for chosen (possibly smoothed) shapes and weights, skinned and taken through the bundles.
+
+        ``bundles`` are the positions to pass through (default: those the selection was made for).
         """
         a = self._a
-        p, seen, shapes, lam, n_contain, status, proj, score, fallback = self.select(bundles, previous)
         x = np.empty_like(self._x0)
-        K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, lam, x)
+        K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, weights, x)
+        if self.rig is not None:
+            x = self.rig.skin(x, jaw)
+        p = sel.bundles if bundles is None else np.asarray(bundles, np.float64)
+        seen = np.all(np.isfinite(p), axis=1)
         residual = self.correct(x, p, seen)
-        return FrameResult(x.astype(np.float32), shapes, lam, n_contain, status, proj, score, residual, fallback)
+        return FrameResult(x.astype(np.float32), sel.shapes, sel.weights, sel.n_containing, sel.status,
+                           sel.projection, sel.score, residual, sel.fallback, jaw, p)
 
     def _fill_missing(self, seen: np.ndarray, shapes: np.ndarray, lam: np.ndarray,
                       previous: FrameResult | None) -> list[str]:

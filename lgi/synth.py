@@ -409,6 +409,13 @@ def nonlinearity(actor: SyntheticActor, activations: np.ndarray, mask: np.ndarra
     return out
 
 
+def jaw_rig(actor: SyntheticActor):
+    """The actor's true jaw rig (:class:`lgi.jaw.JawRig`): its hinge and skinning weights."""
+    from .jaw import JawRig
+
+    return JawRig(JAW_PIVOT.copy(), actor.jaw_weights.copy())
+
+
 def default_layout(actor: SyntheticActor):
     """The shipped synthetic marker layout (``data/markers_synth.csv``) attached to this actor.
 
