@@ -159,7 +159,12 @@ def cmd_build(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     ds = ShapeDataset.load(args.dataset_dir)
     layout = read_layout(args.markers, ds.triangles)
-    index, reports = build_index(ds, layout, _index_options(args), show_progress=not args.quiet)
+    rig = None
+    if args.jaw_rig:
+        from .jaw import JawRig
+
+        rig = JawRig.load(args.jaw_rig, ds.n_vertices)
+    index, reports = build_index(ds, layout, _index_options(args), show_progress=not args.quiet, jaw_rig=rig)
     index.save(args.out, reports)
     c = index.manifest["counts"]
     per = reports["bundles.csv"]
@@ -176,8 +181,34 @@ def cmd_build(args: argparse.Namespace) -> int:
 def _solver(index, args: argparse.Namespace):
     from .solver import LGISolver
 
+    jaw = getattr(args, "jaw", "auto")
     return LGISolver(index, temporal_weight=getattr(args, "temporal_weight", 0.0),
-                     spatial_weight=args.spatial_weight)
+                     spatial_weight=args.spatial_weight, jaw="none" if jaw == "none" else "auto")
+
+
+def _read_jaw_file(path: str, frames: np.ndarray) -> np.ndarray:
+    """(F, 4) jaw parameters for ``frames`` from a CSV with columns frame, open_deg, yaw_deg, roll_deg,
+    forward_cm."""
+    import pandas as pd
+
+    from .jaw import PARAM_NAMES
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("jaw parameter file not found", path=p)
+    df = pd.read_csv(p)
+    missing = [c for c in ["frame", *PARAM_NAMES] if c not in df.columns]
+    if missing:
+        raise InputError(f"missing columns {missing}", path=p)
+    df = df.set_index("frame")
+    absent = [int(f) for f in frames if int(f) not in df.index]
+    if absent:
+        raise InputError(f"no jaw parameters for {len(absent)} frames", path=p, frame=absent[0])
+    vals = df.loc[[int(f) for f in frames], PARAM_NAMES].to_numpy(float)
+    if not np.all(np.isfinite(vals)):
+        r = int(np.flatnonzero(~np.all(np.isfinite(vals), axis=1))[0])
+        raise InputError("non-finite jaw parameter", path=p, frame=int(frames[r]))
+    return vals
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -190,14 +221,27 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     index = LGIIndex.load(args.index_dir)
     bundles = read_bundles(args.bundles, index.marker_names)
+    if args.jaw not in ("auto", "none") and index.jaw_rig() is None:
+        raise InputError("--jaw FILE needs an index built with --jaw-rig", path=args.index_dir)
+    jaw = None if args.jaw in ("auto", "none") else _read_jaw_file(args.jaw, bundles.frames)
+    if args.bilateral:
+        from .temporal import bilateral_filter
+
+        try:
+            st, sr = (float(v) for v in args.bilateral.split(":"))
+        except ValueError:
+            raise InputError(f"--bilateral takes SIGMA_FRAMES:SIGMA_MM, got {args.bilateral!r}") from None
+        bundles.positions = bilateral_filter(bundles.positions, st, sr / 10)
     solver = _solver(index, args)
     t1 = time.perf_counter()
-    res = solver.solve_sequence(bundles, show_progress=not args.quiet)
+    res = solver.solve_sequence(bundles, show_progress=not args.quiet, smooth=args.smooth,
+                                jaw_smooth=args.jaw_smooth, jaw=jaw, max_gap=args.max_gap)
     t2 = time.perf_counter()
     out = Path(args.out)
     stage = _stage(out)
     try:
-        np.savez(stage / "meshes.npz", vertices=res.vertices, frames=res.frames)
+        extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
+        np.savez(stage / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
         res.diagnostics.to_csv(stage / "diagnostics.csv", index=False, float_format="%.6g")
         if args.obj:
             a = index.arrays
@@ -295,9 +339,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from .solver import LGISolver
 
     t = time.perf_counter()
-    index, reports = build_index(r["dataset"], r["layout"], show_progress=not args.quiet)
+    index, reports = build_index(r["dataset"], r["layout"], show_progress=not args.quiet,
+                                 jaw_rig=synth.jaw_rig(r["actor"]))
     index.save(out / "index", reports)
-    print(f"[3/4] LGI index: {index.manifest['counts']['simplices']} simplices over {len(r['layout'])} bundles "
+    print(f"[3/4] LGI index (jaw rig, unskinned shapes): {index.manifest['counts']['simplices']} simplices over "
+          f"{len(r['layout'])} bundles "
           f"({time.perf_counter() - t:.1f} s)")
     from .bundles import read_bundles
 
@@ -382,6 +428,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--region-radius", type=float, default=3.0, metavar="R",
                    help="natural-neighbour region: within R (cm-equivalent) of a bundle (3.0)")
     g.add_argument("--seed", type=int, default=0)
+    s.add_argument("--jaw-rig", metavar="RIG_NPZ",
+                   help="jaw rig (npz with 'pivot' (3,) cm and 'weights' (V,)): shapes are stored unskinned and "
+                        "frames unskinned, indexed and skinned back (lgi synth writes the synthetic actor's)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_build)
 
@@ -396,6 +445,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="preference for the previous frame's shapes, in mm of neighbour misfit (0.02; 0 = none)")
     s.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
                    help="tie-break toward shapes the neighbours agree on, in mm (1e-3; 0 = none)")
+    s.add_argument("--smooth", type=int, default=1, metavar="WINDOW",
+                   help="central moving average of each bundle's shape weights over WINDOW frames (1 = none)")
+    s.add_argument("--jaw-smooth", type=int, default=None, metavar="WINDOW",
+                   help="moving average of the jaw parameters (default: --smooth)")
+    s.add_argument("--jaw", default="auto", metavar="auto|none|FILE",
+                   help="with a jaw-rigged index: estimate the jaw per frame (auto) or read it from a CSV "
+                        "(frame, open_deg, yaw_deg, roll_deg, forward_cm); 'none' needs an index without a rig")
+    s.add_argument("--max-gap", type=int, default=10, metavar="N",
+                   help="bridge a marker's missing runs of up to N frames from the frames around (10; 0 = off)")
+    s.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM",
+                   help="temporal bilateral filter of the bundles before solving (e.g. 1.5:0.5)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_reconstruct)
 

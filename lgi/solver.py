@@ -58,6 +58,9 @@ class FrameResult:
         Jaw parameters of the frame (open, yaw, roll in degrees; forward in cm) when the index has a rig.
     bundles : (M, 3) float64 or None
         The bundle positions the frame was solved for.
+    residual_before : (M,) float64 or None, cm
+        Distance from each bundle to the blended (and, with a rig, skinned) surface before the smooth
+        correction: what temporal smoothing or a projection left to correct.
     """
 
     vertices: np.ndarray
@@ -71,15 +74,18 @@ class FrameResult:
     fallback: list[str]
     jaw: np.ndarray | None = None
     bundles: np.ndarray | None = None
+    residual_before: np.ndarray | None = None
 
 
 @dataclass
 class SequenceResult:
-    """A reconstructed sequence: vertices (F, V, 3) float32 cm, frame numbers, per-bundle diagnostics."""
+    """A reconstructed sequence: vertices (F, V, 3) float32 cm, frame numbers, per-bundle diagnostics,
+    and the jaw parameters used (F, 4) when the index has a rig."""
 
     frames: np.ndarray
     vertices: np.ndarray
     diagnostics: pd.DataFrame
+    jaw: np.ndarray | None = None
 
 
 class LGISolver:
@@ -258,9 +264,10 @@ class LGISolver:
             x = self.rig.skin(x, jaw)
         p = sel.bundles if bundles is None else np.asarray(bundles, np.float64)
         seen = np.all(np.isfinite(p), axis=1)
+        before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - self.layout.evaluate(x), axis=1), np.nan)
         residual = self.correct(x, p, seen)
         return FrameResult(x.astype(np.float32), sel.shapes, sel.weights, sel.n_containing, sel.status,
-                           sel.projection, sel.score, residual, sel.fallback, jaw, p)
+                           sel.projection, sel.score, residual, sel.fallback, jaw, p, before)
 
     def _fill_missing(self, seen: np.ndarray, shapes: np.ndarray, lam: np.ndarray,
                       previous: FrameResult | None) -> list[str]:
@@ -288,7 +295,8 @@ class LGISolver:
 
     # ---------------------------------------------------------------------------------- sequences
     def solve_sequence(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
-                       show_progress: bool = False) -> SequenceResult:
+                       show_progress: bool = False, smooth: int = 1, jaw_smooth: int | None = None,
+                       jaw: np.ndarray | None = None, max_gap: int = 0) -> SequenceResult:
         """Reconstruct frames in order, carrying each frame's choice into the next.
 
         Parameters
@@ -297,36 +305,69 @@ class LGISolver:
             A :class:`~lgi.bundles.Bundles` (markers matched by name) or an (F, M, 3) array in layout order.
         frames
             Frame numbers for an array input (default 0..F-1).
+        smooth : int
+            Window (frames, odd) of the central moving average of each bundle's shape weights (paper 7.5);
+            1 = none. With a jaw rig the weights are those of the unskinned shapes, so the jaw is not
+            smoothed with them.
+        jaw_smooth : int, optional
+            Window of the moving average of the jaw parameters (default: ``smooth``).
+        jaw : (F, 4) float, optional
+            Given jaw parameters per frame (a tracked jaw) instead of estimating them.
+        max_gap : int
+            Missing runs of a marker up to this many frames are bridged by interpolating its trajectory.
         """
+        from .temporal import bridge_gaps, window_slots
+
         if isinstance(bundles, Bundles):
             pos = self.align(bundles)
             frames = bundles.frames
         else:
             pos = np.asarray(bundles, np.float64)
             frames = np.arange(len(pos)) if frames is None else np.asarray(frames)
-        out = np.empty((len(pos), self.index.n_vertices, 3), np.float32)
-        rows = []
+        if jaw is not None and len(jaw) != len(pos):
+            raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
+        pos, bridged = bridge_gaps(pos, max_gap)
+        sels = []
         prev = None
-        names = self.index.marker_names
-        shape_names = self.index.shape_names
-        for f in progress(range(len(pos)), "reconstructing", disable=not show_progress):
+        for f in progress(range(len(pos)), "choosing shapes", disable=not show_progress):
             try:
-                r = self.solve_frame(pos[f], prev)
+                prev = self.select_frame(pos[f], prev, None if jaw is None else jaw[f])
             except InputError as exc:
                 raise InputError(exc.message, frame=int(frames[f])) from None
+            sels.append(prev)
+        shapes = np.stack([r.shapes for r in sels])
+        lam = np.stack([r.weights for r in sels])
+        thetas = None
+        if self.rig is not None:
+            from .jaw import smooth_parameters
+
+            thetas = smooth_parameters(np.stack([r.jaw for r in sels]), smooth if jaw_smooth is None else jaw_smooth)
+        if smooth > 1:
+            shapes, lam = window_slots(shapes, lam, smooth)
+        out = np.empty((len(pos), self.index.n_vertices, 3), np.float32)
+        rows = []
+        names = self.index.marker_names
+        shape_names = self.index.shape_names
+        for f in progress(range(len(pos)), "blending", disable=not show_progress):
+            r = self.blend_frame(sels[f], shapes[f], lam[f], None if thetas is None else thetas[f])
             out[f] = r.vertices
-            prev = r
+            sel = sels[f]
             for i in range(len(names)):
-                nz = r.weights[i] > 0
+                nz = sel.weights[i] > 0
+                status = STATUS[int(sel.status[i])] if not sel.fallback[i] else "missing"
+                note = sel.fallback[i]
+                if bridged[f, i]:
+                    status, note = "bridged", "interpolated between the frames around the gap"
                 rows.append((
-                    int(frames[f]), names[i], STATUS[int(r.status[i])] if not r.fallback[i] else "missing",
-                    int(r.n_containing[i]), ";".join(shape_names[k] for k in r.shapes[i][nz]),
-                    " ".join(f"{w:.4f}" for w in r.weights[i][nz]), r.projection[i] * 10, r.score[i] * 10,
-                    r.residual[i] * 10, r.fallback[i],
+                    int(frames[f]), names[i], status, int(sel.n_containing[i]),
+                    ";".join(shape_names[k] for k in sel.shapes[i][nz]),
+                    " ".join(f"{w:.4f}" for w in sel.weights[i][nz]), sel.projection[i] * 10, sel.score[i] * 10,
+                    r.residual_before[i] * 10, r.residual[i] * 10, note,
                 ))
         diag = pd.DataFrame(rows, columns=["frame", "marker", "status", "n_containing", "shapes", "weights",
-                                           "projection_mm", "score_mm", "residual_mm", "fallback"])
-        return SequenceResult(np.asarray(frames), out, diag)
+                                           "projection_mm", "score_mm", "residual_before_mm", "residual_mm",
+                                           "fallback"])
+        return SequenceResult(np.asarray(frames), out, diag, thetas)
 
     def align(self, bundles: Bundles) -> np.ndarray:
         """(F, M, 3) positions of a bundles file in this index's marker order (unknown markers rejected)."""
