@@ -251,17 +251,20 @@ class LGISolver:
         return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, n_contain, status, proj, score,
                            np.where(seen, 0.0, np.nan), fallback, theta, p)
 
+    def surface(self, shapes: np.ndarray, weights: np.ndarray, jaw: np.ndarray | None) -> np.ndarray:
+        """(V, 3) float64: the natural-neighbour blend of the bundles' shapes, skinned when there is a rig."""
+        a = self._a
+        x = np.empty_like(self._x0)
+        K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, weights, x)
+        return x if self.rig is None else self.rig.skin(x, jaw)
+
     def blend_frame(self, sel: FrameResult, shapes: np.ndarray, weights: np.ndarray,
                     jaw: np.ndarray | None, bundles: np.ndarray | None = None) -> FrameResult:
         """Vertices for chosen (possibly smoothed) shapes and weights, skinned and taken through the bundles.
 
         ``bundles`` are the positions to pass through (default: those the selection was made for).
         """
-        a = self._a
-        x = np.empty_like(self._x0)
-        K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, weights, x)
-        if self.rig is not None:
-            x = self.rig.skin(x, jaw)
+        x = self.surface(shapes, weights, jaw)
         p = sel.bundles if bundles is None else np.asarray(bundles, np.float64)
         seen = np.all(np.isfinite(p), axis=1)
         before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - self.layout.evaluate(x), axis=1), np.nan)
@@ -308,7 +311,10 @@ class LGISolver:
         smooth : int
             Window (frames, odd) of the central moving average of each bundle's shape weights (paper 7.5);
             1 = none. With a jaw rig the weights are those of the unskinned shapes, so the jaw is not
-            smoothed with them.
+            smoothed with them. The residual correction is averaged over the same window: each frame's
+            blend is moved by the averaged bundle residuals, so bundle noise is not put straight back
+            (the diagnostics' ``residual_mm`` says how far the result is from the raw bundles;
+            ``residual_before_mm`` is the blend's distance before correction).
         jaw_smooth : int, optional
             Window of the moving average of the jaw parameters (default: ``smooth``).
         jaw : (F, 4) float, optional
@@ -345,12 +351,29 @@ class LGISolver:
         if smooth > 1:
             shapes, lam = window_slots(shapes, lam, smooth)
         out = np.empty((len(pos), self.index.n_vertices, 3), np.float32)
+        surfaces = []
+        resid = np.zeros_like(pos)
+        for f in progress(range(len(pos)), "blending", disable=not show_progress):
+            x = self.surface(shapes[f], lam[f], None if thetas is None else thetas[f])
+            surfaces.append(x)
+            resid[f] = pos[f] - self.layout.evaluate(x)  # NaN where missing
+        before = np.linalg.norm(resid, axis=2)
+        if smooth > 1:
+            # The correction follows the same moving average: corrected to each frame's raw residuals,
+            # the surface would carry the bundles' noise straight back.
+            from .temporal import moving_average
+
+            resid = moving_average(resid, smooth)
         rows = []
         names = self.index.marker_names
         shape_names = self.index.shape_names
-        for f in progress(range(len(pos)), "blending", disable=not show_progress):
-            r = self.blend_frame(sels[f], shapes[f], lam[f], None if thetas is None else thetas[f])
-            out[f] = r.vertices
+        for f in range(len(pos)):
+            x = surfaces[f]
+            seen = np.all(np.isfinite(pos[f]), axis=1)
+            target = np.where(seen[:, None], self.layout.evaluate(x) + np.nan_to_num(resid[f]), np.nan)
+            self.correct(x, target, seen)
+            out[f] = x
+            r_final = np.where(seen, np.linalg.norm(np.nan_to_num(pos[f]) - self.layout.evaluate(x), axis=1), np.nan)
             sel = sels[f]
             for i in range(len(names)):
                 nz = sel.weights[i] > 0
@@ -362,7 +385,7 @@ class LGISolver:
                     int(frames[f]), names[i], status, int(sel.n_containing[i]),
                     ";".join(shape_names[k] for k in sel.shapes[i][nz]),
                     " ".join(f"{w:.4f}" for w in sel.weights[i][nz]), sel.projection[i] * 10, sel.score[i] * 10,
-                    r.residual_before[i] * 10, r.residual[i] * 10, note,
+                    before[f, i] * 10, r_final[i] * 10, note,
                 ))
         diag = pd.DataFrame(rows, columns=["frame", "marker", "status", "n_containing", "shapes", "weights",
                                            "projection_mm", "score_mm", "residual_before_mm", "residual_mm",

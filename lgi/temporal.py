@@ -109,3 +109,26 @@ def window_slots(shapes: np.ndarray, weights: np.ndarray, window: int) -> tuple[
         out_s[f, :, : s.shape[1]] = s
         out_w[f, :, : w.shape[1]] = w
     return out_s, out_w
+
+
+def moving_average(values: np.ndarray, window: int) -> np.ndarray:
+    """Central moving average along axis 0 over ``window`` frames, ignoring NaN (which stays NaN).
+
+    Parameters
+    ----------
+    values : (F, ...) float
+    window : int
+        Odd; at the ends the frames available are used.
+    """
+    v = np.asarray(values, np.float64)
+    h = window // 2
+    ok = np.isfinite(v)
+    z = np.where(ok, v, 0.0)
+    cs = np.concatenate([np.zeros_like(z[:1]), np.cumsum(z, axis=0)])
+    cn = np.concatenate([np.zeros_like(z[:1]), np.cumsum(ok, axis=0)])
+    idx = np.arange(len(v))
+    lo, hi = np.maximum(0, idx - h), np.minimum(len(v), idx + h + 1)
+    s = cs[hi] - cs[lo]
+    n = cn[hi] - cn[lo]
+    out = np.divide(s, n, out=np.full_like(s, np.nan), where=n > 0)
+    return np.where(ok, out, np.nan)
