@@ -286,6 +286,40 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 1 if bad.any() else 0
 
 
+def cmd_rig(args: argparse.Namespace) -> int:
+    from .dataset import ShapeDataset
+    from .jaw import PARAM_NAMES, fit_rig
+
+    ds = ShapeDataset.load(args.dataset_dir)
+    spec = args.jaw_vertices
+    if ":" in spec and not Path(spec).exists():
+        try:
+            lo, hi = (int(v) for v in spec.split(":"))
+        except ValueError:
+            raise InputError(f"--jaw-vertices takes FIRST:LAST or a file, got {spec!r}") from None
+        jv = np.arange(lo, hi + 1)
+        if lo < 0 or hi >= ds.n_vertices or hi < lo:
+            raise InputError(f"--jaw-vertices {spec}: out of range for {ds.n_vertices} vertices")
+    else:
+        from .importers import load_vertex_indices
+
+        jv = load_vertex_indices(spec, ds.n_vertices)
+    sel = ds.select(include=args.shapes)
+    if sel.n_shapes == 0:
+        raise InputError(f"no shape matches {args.shapes!r}", path=args.dataset_dir)
+    rig, params = fit_rig(ds.neutral, sel.deltas, jv, ds.triangles)
+    rig.save(args.out)
+    print(f"jaw rig from {sel.n_shapes} shapes and {len(jv)} jaw vertices: pivot {np.round(rig.pivot, 3).tolist()} "
+          f"{ds.units}; {int((rig.weights > 0.5).sum())} vertices with weight > 0.5")
+    for name, th in zip(sel.names, params, strict=True):
+        fit = rig.skin(ds.neutral, th) - ds.neutral
+        err = np.linalg.norm(fit - sel.deltas[sel.index(name)], axis=1)[rig.weights > 0.5]
+        vals = ", ".join(f"{n} {v:.3g}" for n, v in zip(PARAM_NAMES, th, strict=True))
+        print(f"  {name}: {vals}; skinning reproduces it to {np.sqrt(np.mean(err**2)) * 10:.2f} mm RMS on the jaw")
+    print(f"rig: {Path(args.out).resolve()}")
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from .bench import format_table, ict_benchmark, synthetic_benchmark
     from .paths import shared_data
@@ -467,6 +501,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_verify)
+
+    s = sub.add_parser("rig", help="fit a jaw rig (hinge and skinning weights) from a dataset's jaw shapes",
+                       description="Fit the jaw hinge and linear-blend-skinning weights from shapes in which given "
+                                   "vertices move rigidly with the jaw (ICT: the lower teeth 19247:21450). Writes "
+                                   "an npz for lgi build --jaw-rig.")
+    s.add_argument("dataset_dir", metavar="DATASET_DIR")
+    s.add_argument("--jaw-vertices", required=True, metavar="FIRST:LAST|FILE",
+                   help="vertices moving rigidly with the jaw: an inclusive range or an index file")
+    s.add_argument("--shapes", default="jaw*", metavar="PATTERN", help="the jaw shapes (default 'jaw*')")
+    s.add_argument("--out", required=True, metavar="RIG_NPZ")
+    s.set_defaults(func=cmd_rig)
 
     s = sub.add_parser("bench", help="compare LGI with the baselines on the same frames",
                        description="Run LGI, RBF weights + smooth, blendshape fits and smooth interpolation on the "

@@ -129,3 +129,102 @@ def smooth_parameters(params: np.ndarray, window: int) -> np.ndarray:
     for f in range(len(p)):
         out[f] = p[max(0, f - h): f + h + 1].mean(0)
     return out
+
+
+def _euler(r: np.ndarray) -> tuple[float, float, float]:
+    """(open, yaw, roll) degrees of ``r = Ry(yaw) Rz(roll) Rx(open)``."""
+    roll = np.arcsin(np.clip(r[1, 0], -1, 1))
+    yaw = np.arctan2(-r[2, 0], r[0, 0])
+    op = np.arctan2(-r[1, 2], r[1, 1])
+    return float(np.degrees(op)), float(np.degrees(yaw)), float(np.degrees(roll))
+
+
+def _two_sizes_about_one_axis(rotations: list[np.ndarray], angles: np.ndarray) -> bool:
+    """Whether two rotations share an axis (within ~8 degrees) but differ in angle by more than 10 %."""
+    axes = []
+    for r in rotations:
+        ax = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+        axes.append(ax / max(np.linalg.norm(ax), 1e-12))
+    for i in range(len(axes)):
+        for j in range(i + 1, len(axes)):
+            same_axis = abs(axes[i] @ axes[j]) > 0.99
+            if same_axis and abs(angles[i] - angles[j]) > 0.1 * max(angles[i], angles[j]):
+                return True
+    return False
+
+
+def fit_rig(neutral: np.ndarray, deltas: np.ndarray, jaw_vertices: np.ndarray, triangles: np.ndarray,
+            smoothing: int = 10) -> tuple[JawRig, np.ndarray]:
+    """Fit a jaw rig from shapes in which a set of vertices moves rigidly with the jaw.
+
+    Parameters
+    ----------
+    neutral : (V, 3) cm
+    deltas : (S, V, 3)
+        The jaw shapes (e.g. ICT's jawOpen, jawLeft, jawRight, jawForward).
+    jaw_vertices : (K,) int
+        Vertices that move rigidly with the jaw (ICT: the lower teeth, 19247-21450).
+    triangles : (T, 3) int
+        For smoothing the weights over the mesh.
+    smoothing : int
+        Averaging passes of the weights over mesh neighbours (the jaw vertices stay at 1).
+
+    Returns
+    -------
+    rig : JawRig
+        Pivot: the hinge, solved by least squares jointly with each rotating shape's forward slide
+        (``(I - R_k) p + f_k z = t_k``) when openings of different sizes make that well posed, as a pure
+        rotation's fixed point otherwise. Weights: how much of each
+        vertex's displacement in the widest-opening shape follows the jaw's motion, in [0, 1], smoothed.
+    params : (S, 4)
+        Each shape's jaw parameters (Euler angles of its rotation; forward = the translation left along z).
+    """
+    from .stabilize import rigid_fit
+
+    x0 = np.asarray(neutral, np.float64)
+    jv = np.asarray(jaw_vertices)
+    fits = [rigid_fit(x0[jv], x0[jv] + np.asarray(d, np.float64)[jv]) for d in deltas]
+    rot = [f.rotation for f in fits]
+    angles = np.array([np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))) for r in rot])
+    use = np.flatnonzero(angles > 1.0)
+    if use.size == 0:
+        raise InputError("no jaw shape rotates the jaw vertices by more than 1 degree: cannot place the hinge")
+    # A rotation about p followed by a forward slide f along z: (I - R) p + f z = t. Solved jointly for
+    # p and every rotating shape's f (openings of different sizes separate the slide from the pivot).
+    # The slides are only separable from the pivot with several openings of different sizes; with
+    # one (ICT has a single jawOpen) they trade off exactly, and a pure rotation is fitted instead.
+    a = np.zeros((3 * len(use), 3 + len(use)))
+    for r, k in enumerate(use):
+        a[3 * r:3 * r + 3, :3] = np.eye(3) - rot[k]
+        a[3 * r + 2, 3 + r] = 1.0
+    b = np.concatenate([fits[k].translation for k in use])
+    if _two_sizes_about_one_axis([rot[k] for k in use], angles[use]):
+        pivot = np.linalg.lstsq(a, b, rcond=None)[0][:3]
+    else:
+        pivot = np.linalg.lstsq(a[:, :3], b, rcond=None)[0]
+    params = np.zeros((len(deltas), 4))
+    for k, f in enumerate(fits):
+        op, yaw, roll = _euler(f.rotation)
+        rest = f.translation - (pivot - f.rotation @ pivot)
+        params[k] = [op, yaw, roll, rest[2]]
+    widest = int(np.argmax(angles))
+    rig = JawRig(pivot, np.zeros(len(x0)))
+    move = rig.skin(x0, params[widest], np.ones(len(x0))) - x0
+    d = np.asarray(deltas[widest], np.float64)
+    norm2 = np.sum(move**2, axis=1)
+    w = np.where(norm2 > 1e-8, np.sum(d * move, axis=1) / np.maximum(norm2, 1e-12), 0.0)
+    w = np.clip(w, 0.0, 1.0)
+    w[jv] = 1.0
+    import scipy.sparse as sp
+
+    t = np.asarray(triangles)
+    n = len(x0)
+    adj = sp.coo_matrix((np.ones(6 * len(t)), (t[:, [0, 1, 2, 1, 2, 0]].ravel(), t[:, [1, 2, 0, 0, 1, 2]].ravel())),
+                        shape=(n, n)).tocsr()
+    adj.data[:] = 1.0
+    deg = np.maximum(np.asarray(adj.sum(1)).ravel(), 1)
+    for _ in range(smoothing):
+        w = 0.5 * w + 0.5 * (adj @ w) / deg
+        w[jv] = 1.0
+    rig.weights = np.clip(w, 0.0, 1.0)
+    return rig, params

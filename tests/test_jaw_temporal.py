@@ -148,3 +148,31 @@ def test_reconstruct_smoothing_jaw_file_and_occlusion(tmp_path: Path) -> None:
                      str(tmp_path / f"rec{w}"), "--smooth", w, "-q"]) == 0
         jit[w] = jitter(np.load(tmp_path / f"rec{w}" / "meshes.npz")["vertices"])
     assert jit["5"] < 0.5 * jit["1"]
+
+
+def test_fit_rig_recovers_the_synthetic_hinge(small_actor) -> None:
+    from lgi.jaw import fit_rig
+
+    a = small_actor
+    ds = synth.make_dataset(a)
+    names = ["jaw_open", "jaw_left", "jaw_right", "jaw_forward", "jaw_open_50"]
+    jv = np.flatnonzero(a.jaw_weights > 0.999)
+    rig, params = fit_rig(a.neutral, ds.deltas[[ds.index(n) for n in names]], jv, a.triangles)
+    np.testing.assert_allclose(rig.pivot, synth.JAW_PIVOT, atol=1e-3)
+    np.testing.assert_allclose(params, [ds.shape_meta[ds.index(n)].extra["jaw"] for n in names], atol=1e-3)
+    assert np.abs(rig.weights - a.jaw_weights).mean() < 0.02
+
+
+def test_fit_rig_on_ict(tmp_path: Path, ict_dir: Path) -> None:
+    from lgi.dataset import ShapeDataset
+
+    assert main(["import", str(ict_dir), "--out", str(tmp_path / "ict"), "--include", "jaw*",
+                 "--rigid-vertices", "none", "-q"]) == 0
+    assert main(["rig", str(tmp_path / "ict"), "--jaw-vertices", "19247:21450", "--out",
+                 str(tmp_path / "rig.npz")]) == 0
+    ds = ShapeDataset.load(tmp_path / "ict")
+    rig = JawRig.load(tmp_path / "rig.npz", ds.n_vertices)
+    # A hinge near the ears (ICT: ear height y ~ 0-3 cm, behind the teeth at z ~ 8 cm).
+    assert abs(rig.pivot[0]) < 0.5 and -3 < rig.pivot[1] < 4 and -3 < rig.pivot[2] < 4
+    assert (rig.weights[19247:21451] == 1).all() and rig.weights[:9409].max() > 0.9
+    assert rig.weights[9409:11248].mean() < 0.5  # most of the head and neck does not follow the jaw
