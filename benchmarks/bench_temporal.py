@@ -51,10 +51,17 @@ def main() -> None:
         ("weights window 5 (+ pref 0.1)", dict(temporal_weight=0.1), 5, None),
         ("weights window 9 (+ pref 0.1)", dict(temporal_weight=0.1), 9, None),
         ("bilateral 1.5 fr / 0.5 mm + window 5", dict(temporal_weight=0.1), 5, (1.5, 0.05)),
+        ("bilateral 1.5 fr / 0.5 mm / 10 mm space + w 5", dict(temporal_weight=0.1), 5, (1.5, 0.05, 1.0)),
         ("clean bundles, window 5 (reference)", dict(temporal_weight=0.1), 5, "clean"),
     ]
     for label, kw, window, bil in configs:
-        b = clean if bil == "clean" else (noisy if bil is None else bilateral_filter(noisy, *bil))
+        rest = layout.evaluate(actor.neutral)
+        if bil == "clean":
+            b = clean
+        elif bil is None:
+            b = noisy
+        else:
+            b = bilateral_filter(noisy, bil[0], bil[1], rest, bil[2] if len(bil) > 2 else None)
         sol = LGISolver(index, **kw)
         t = time.perf_counter()
         res = sol.solve_sequence(b, smooth=window)

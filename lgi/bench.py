@@ -3,7 +3,8 @@
 Test sets:
 
 * synthetic: the built-in actor's dataset (47 shapes) and a random performance whose frames are not in
-  it; also run with bundle noise (Gaussian, ``noise_mm`` per coordinate) for the jitter measure;
+  it; also run with bundle noise (Gaussian, ``noise_mm`` per coordinate) for the jitter measure. LGI
+  runs twice: with the actor's jaw rig ("LGI + jaw", shapes unskinned) and without;
 * ICT (when the data is there): the dataset is ICT without ``ICT_HELD_OUT`` plus linear combinations
   of the remaining shapes; the test frames are the held-out shapes and mixes of 2-3 shapes that involve
   at least one of them. Errors over the face area (vertices 0-9408).
@@ -27,8 +28,10 @@ from .evaluate import jitter, normal_angle_errors, vertex_errors
 ICT_HELD_OUT = ["mouthFunnel", "mouthSmile_L", "browInnerUp_R", "cheekPuff_R", "noseSneer_L", "jawLeft"]
 
 
-def _methods(dataset, layout, index) -> list:
+def _methods(dataset, layout, index, jaw_index=None) -> list:
+    lgi_jaw = [] if jaw_index is None else [LGIMethod(jaw_index, temporal_weight=0.02)]
     return [
+        *lgi_jaw,
         LGIMethod(index, temporal_weight=0.02),
         RBFSolver(index),
         BlendshapeSolver(dataset, layout),
@@ -40,6 +43,8 @@ def _methods(dataset, layout, index) -> list:
 def _label(m) -> str:
     if isinstance(m, BlendshapeSolver) and m.l2 > 0:
         return f"blendshape (L2 {m.l2:g})"
+    if isinstance(m, LGIMethod) and m.solver.rig is not None:
+        return "LGI + jaw"
     return {"lgi": "LGI", "rbf": "RBF weights + smooth", "blendshape": "blendshape fit",
             "smooth": "smooth (shell)"}[m.name]
 
@@ -94,11 +99,12 @@ def synthetic_benchmark(frames: int = 300, noise_mm: float = 0.3, seed: int = 1)
     ds = synth.make_dataset(actor)
     layout, _ = synth.default_layout(actor)
     index, _ = build_index(ds, layout, show_progress=False)
+    jaw_index, _ = build_index(ds, layout, show_progress=False, jaw_rig=synth.jaw_rig(actor))
     truth = actor.evaluate_many(synth.random_performance(frames, seed=seed)).astype(np.float64)
     bundles = layout.evaluate(truth)
     rng = np.random.default_rng(seed)
     noisy = bundles + rng.normal(scale=noise_mm / 10, size=bundles.shape)
-    table, maps = run_methods(_methods(ds, layout, index), truth, bundles, actor.triangles, noisy=noisy)
+    table, maps = run_methods(_methods(ds, layout, index, jaw_index), truth, bundles, actor.triangles, noisy=noisy)
     return table, maps, actor, jitter(truth)
 
 

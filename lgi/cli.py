@@ -228,10 +228,15 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         from .temporal import bilateral_filter
 
         try:
-            st, sr = (float(v) for v in args.bilateral.split(":"))
+            vals = [float(v) for v in args.bilateral.split(":")]
+            if len(vals) not in (2, 3):
+                raise ValueError
         except ValueError:
-            raise InputError(f"--bilateral takes SIGMA_FRAMES:SIGMA_MM, got {args.bilateral!r}") from None
-        bundles.positions = bilateral_filter(bundles.positions, st, sr / 10)
+            raise InputError("--bilateral takes SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM], "
+                             f"got {args.bilateral!r}") from None
+        rest = index.layout().evaluate(index.arrays["neutral"])
+        bundles.positions = bilateral_filter(bundles.positions, vals[0], vals[1] / 10, rest,
+                                             vals[2] / 10 if len(vals) == 3 else None)
     solver = _solver(index, args)
     t1 = time.perf_counter()
     res = solver.solve_sequence(bundles, show_progress=not args.quiet, smooth=args.smooth,
@@ -488,8 +493,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(frame, open_deg, yaw_deg, roll_deg, forward_cm); 'none' needs an index without a rig")
     s.add_argument("--max-gap", type=int, default=10, metavar="N",
                    help="bridge a marker's missing runs of up to N frames from the frames around (10; 0 = off)")
-    s.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM",
-                   help="temporal bilateral filter of the bundles before solving (e.g. 1.5:0.5)")
+    s.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]",
+                   help="bilateral filter of the bundles before solving: in time, and with the third value also "
+                        "over the nearest markers (e.g. 1.5:0.5:10)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_reconstruct)
 

@@ -47,37 +47,56 @@ def bridge_gaps(positions: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.nda
     return pos, bridged
 
 
-def bilateral_filter(positions: np.ndarray, sigma_t: float = 1.5, sigma_r: float = 0.05) -> np.ndarray:
-    """Temporal bilateral filter of each marker's trajectory (Bickel et al. 2007, section 3).
+def bilateral_filter(positions: np.ndarray, sigma_t: float = 1.5, sigma_r: float = 0.05,
+                     rest: np.ndarray | None = None, sigma_s: float | None = None, k: int = 6) -> np.ndarray:
+    """Spatio-temporal bilateral filter of bundle trajectories (Bickel et al. 2007, section 3).
 
-    Each position becomes a weighted mean of the marker's positions in nearby frames, with weights
-    ``exp(-dt^2 / 2 sigma_t^2) * exp(-|p(t') - p(t)|^2 / 2 sigma_r^2)``: where the marker moves fast, far
-    positions weigh little, so motion is smoothed less than noise.
+    A marker's displacement from its rest position becomes a weighted mean of its own and its nearest
+    markers' displacements in nearby frames, with weights
+    ``exp(-dt^2 / 2 sigma_t^2) exp(-ds^2 / 2 sigma_s^2) exp(-|d' - d|^2 / 2 sigma_r^2)``: where the skin
+    moves fast or differently from its neighbours, far displacements weigh little, so motion is smoothed
+    less than noise.
 
     Parameters
     ----------
     positions : (F, M, 3) float, cm
-        NaN where missing (kept missing, and ignored by neighbours).
+        NaN where missing (kept missing, and ignored by the others).
     sigma_t : float, frames
     sigma_r : float, cm
+        Range scale: displacement differences much larger than this are not averaged.
+    rest : (M, 3) float, cm, optional
+        Rest positions; with ``sigma_s`` the ``k`` nearest markers (at rest) join the average.
+    sigma_s : float, cm, optional
+        Spatial scale; without it (or ``rest``) the filter is temporal only.
     """
     pos = np.asarray(positions, np.float64)
-    n_f = len(pos)
-    h = max(1, int(np.ceil(3 * sigma_t)))
-    out = np.full_like(pos, np.nan)
-    acc = np.zeros_like(pos)
-    wsum = np.zeros(pos.shape[:2])
-    base = np.nan_to_num(pos)
+    n_f, n_m = pos.shape[:2]
+    origin = np.zeros((n_m, 3)) if rest is None else np.asarray(rest, np.float64)
+    if rest is not None and sigma_s:
+        from scipy.spatial import cKDTree
+
+        dist, nbr = cKDTree(origin).query(origin, k=min(k, n_m))
+        ws = np.exp(-(dist**2) / (2 * sigma_s**2))
+    else:
+        nbr, ws = np.arange(n_m)[:, None], np.ones((n_m, 1))
+    disp = pos - origin[None]
     valid = np.all(np.isfinite(pos), axis=2)
+    base = np.nan_to_num(disp)
+    h = max(1, int(np.ceil(3 * sigma_t)))
+    acc = np.zeros_like(base)
+    wsum = np.zeros((n_f, n_m))
     for dt in range(-h, h + 1):
         lo, hi = max(0, -dt), min(n_f, n_f - dt)
-        other = base[lo + dt:hi + dt]
-        d2 = np.sum((other - base[lo:hi]) ** 2, axis=2)
-        w = np.exp(-(dt**2) / (2 * sigma_t**2)) * np.exp(-d2 / (2 * sigma_r**2)) * valid[lo + dt:hi + dt]
-        acc[lo:hi] += w[..., None] * other
-        wsum[lo:hi] += w
+        wt = np.exp(-(dt**2) / (2 * sigma_t**2))
+        for j in range(nbr.shape[1]):
+            other = base[lo + dt:hi + dt][:, nbr[:, j]]
+            d2 = np.sum((other - base[lo:hi]) ** 2, axis=2)
+            w = wt * ws[None, :, j] * np.exp(-d2 / (2 * sigma_r**2)) * valid[lo + dt:hi + dt][:, nbr[:, j]]
+            acc[lo:hi] += w[..., None] * other
+            wsum[lo:hi] += w
+    out = np.full_like(pos, np.nan)
     ok = valid & (wsum > 0)
-    out[ok] = acc[ok] / wsum[ok][:, None]
+    out[ok] = origin[None].repeat(n_f, 0)[ok] + acc[ok] / wsum[ok][:, None]
     return out
 
 

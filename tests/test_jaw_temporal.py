@@ -176,3 +176,18 @@ def test_fit_rig_on_ict(tmp_path: Path, ict_dir: Path) -> None:
     assert abs(rig.pivot[0]) < 0.5 and -3 < rig.pivot[1] < 4 and -3 < rig.pivot[2] < 4
     assert (rig.weights[19247:21451] == 1).all() and rig.weights[:9409].max() > 0.9
     assert rig.weights[9409:11248].mean() < 0.5  # most of the head and neck does not follow the jaw
+
+
+def test_spatial_bilateral_uses_neighbours() -> None:
+    rng = np.random.default_rng(1)
+    rest = np.stack([np.arange(8.0), np.zeros(8), np.zeros(8)], 1)  # markers 1 cm apart in a row
+    f = 120
+    motion = np.zeros((f, 8, 3))
+    motion[:, :, 1] = np.sin(np.arange(f) / 20.0)[:, None] * 0.5  # all move together
+    clean = rest[None] + motion
+    noisy = clean + rng.normal(scale=0.003, size=clean.shape)
+    temporal = bilateral_filter(noisy, 1.5, 0.02)
+    spatial = bilateral_filter(noisy, 1.5, 0.02, rest, sigma_s=1.0, k=4)
+    err_t = np.sqrt(np.mean((temporal - clean)[5:-5] ** 2))
+    err_s = np.sqrt(np.mean((spatial - clean)[5:-5] ** 2))
+    assert err_s < err_t  # neighbours moving alike add evidence
