@@ -291,6 +291,40 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 1 if bad.any() else 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    from .atomic import atomic_dir
+    from .export import displacement_map, write_exr, write_usd
+    from .index import LGIIndex
+    from .progress import progress
+
+    src = Path(args.recon_dir) / "meshes.npz"
+    if not src.is_file():
+        raise InputError("no meshes.npz (run lgi reconstruct first)", path=args.recon_dir)
+    with np.load(src) as z:
+        vertices, frames = z["vertices"], z["frames"]
+    index = LGIIndex.load(args.index)
+    a = index.arrays
+    if vertices.shape[1] != index.n_vertices:
+        raise InputError(f"meshes have {vertices.shape[1]} vertices, the index {index.n_vertices}", path=src)
+    if not (args.usd or args.exr):
+        raise InputError("nothing to export: give --usd FILE and/or --exr DIR")
+    if args.usd:
+        write_usd(args.usd, vertices, a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"),
+                  frames, fps=args.fps)
+        print(f"USD: {Path(args.usd).resolve()} ({len(frames)} time samples at {args.fps:g} fps)")
+    if args.exr:
+        if "uvs" not in a:
+            raise InputError("the mesh has no texture coordinates: no displacement maps", path=args.index)
+        x0 = np.asarray(a["neutral"], np.float64)
+        with atomic_dir(args.exr) as tmp:
+            for f, v in progress(list(zip(frames, vertices, strict=True)), "displacement maps", disable=args.quiet):
+                img, _ = displacement_map(v - x0, a["face_vertices"], a["face_offsets"], a["uvs"], a["face_uvs"],
+                                          args.exr_size)
+                write_exr(tmp / f"frame_{int(f):05d}.exr", img)
+        print(f"displacement maps: {Path(args.exr).resolve()} ({len(frames)} x {args.exr_size}^2 RGB float32, cm)")
+    return 0
+
+
 def cmd_rig(args: argparse.Namespace) -> int:
     from .dataset import ShapeDataset
     from .jaw import PARAM_NAMES, fit_rig
@@ -518,6 +552,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--shapes", default="jaw*", metavar="PATTERN", help="the jaw shapes (default 'jaw*')")
     s.add_argument("--out", required=True, metavar="RIG_NPZ")
     s.set_defaults(func=cmd_rig)
+
+    s = sub.add_parser("export", help="export a reconstruction as USD and/or OpenEXR displacement maps",
+                       description="Write RECON_DIR/meshes.npz as an animated USD mesh (time samples, UVs) and/or "
+                                   "per-frame displacement maps in UV space (OpenEXR, float32, RGB = xyz, cm).")
+    s.add_argument("recon_dir", metavar="RECON_DIR")
+    s.add_argument("--index", required=True, metavar="INDEX_DIR", help="the index it was reconstructed with")
+    s.add_argument("--usd", metavar="FILE", help=".usdc (binary) or .usda (text)")
+    s.add_argument("--exr", metavar="DIR", help="one frame_NNNNN.exr per frame")
+    s.add_argument("--exr-size", type=int, default=512, metavar="N", help="map width and height (512)")
+    s.add_argument("--fps", type=float, default=30.0, help="USD time codes per second (30)")
+    s.add_argument("-q", "--quiet", action="store_true")
+    s.set_defaults(func=cmd_export)
 
     s = sub.add_parser("bench", help="compare LGI with the baselines on the same frames",
                        description="Run LGI, RBF weights + smooth, blendshape fits and smooth interpolation on the "
