@@ -11,6 +11,7 @@ import numpy as np
 
 from . import __version__
 from .errors import InputError, LgiError
+from .npz import save_npz
 
 
 def _identity_weights(text: str | None) -> dict[str, float] | None:
@@ -96,7 +97,7 @@ def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet:
         write_layout(stage / "markers.csv", layout, neutral=actor.neutral)
         write_bundles(stage / "bundles.csv", bundles)
         synth.jaw_rig(actor).save(stage / "jaw_rig.npz")
-        np.savez(stage / "truth.npz", vertices=truth, activations=acts.astype(np.float32),
+        save_npz(stage / "truth.npz", vertices=truth, activations=acts.astype(np.float32),
                  controls=np.asarray(synth.CONTROLS), jaw=actor.jaw_parameters(acts).astype(np.float32),
                  frames=np.arange(n_frames))
         _commit(stage, out)
@@ -246,7 +247,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     stage = _stage(out)
     try:
         extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
-        np.savez(stage / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
+        save_npz(stage / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
         res.diagnostics.to_csv(stage / "diagnostics.csv", index=False, float_format="%.6g")
         if args.obj:
             a = index.arrays
@@ -424,7 +425,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     res = LGISolver(index, temporal_weight=0.02).solve_sequence(bundles, show_progress=not args.quiet)
     dt = time.perf_counter() - t
-    np.savez(out / "meshes.npz", vertices=res.vertices, frames=res.frames)
+    save_npz(out / "meshes.npz", vertices=res.vertices, frames=res.frames)
     res.diagnostics.to_csv(out / "diagnostics.csv", index=False, float_format="%.6g")
     err = np.linalg.norm(res.vertices - r["truth"], axis=2) * 10
     print(f"[4/4] reconstructed the {args.frames}-frame performance (frames not in the dataset) at "

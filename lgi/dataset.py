@@ -26,6 +26,7 @@ import numpy as np
 from .atomic import atomic_dir
 from .errors import InputError
 from .mesh import triangulate
+from .npz import save_npz
 
 FORMAT = "lgi-shape-dataset"
 FORMAT_VERSION = 1
@@ -212,7 +213,7 @@ class ShapeDataset:
                 arrays["face_uvs"] = np.asarray(self.face_uvs, np.int32)
             if self.face_material is not None:
                 arrays["face_material"] = np.asarray(self.face_material, np.int16)
-            np.savez(tmp / "mesh.npz", **arrays)
+            save_npz(tmp / "mesh.npz", **arrays)
             np.save(tmp / "deltas.npy", np.ascontiguousarray(self.deltas, np.float32))
             manifest = {
                 "format": FORMAT,

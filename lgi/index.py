@@ -2,7 +2,8 @@
 
 Saved as a directory (see ``docs/indexing.md``)::
 
-    manifest.json   format, source dataset hash, layout, options, counts, build figures
+    manifest.json   format, source dataset hash, layout, options, counts
+    build.json      build timings (the only file that differs between two builds of the same inputs)
     index.npz       flattened per-bundle clouds, simplices, grids, hull facets, natural-neighbour
                     weights, neighbours, bundle table, correction basis, neutral mesh
     deltas.npy      (S + 1, V, 3) float32 shape displacements, row 0 the neutral (zeros)
@@ -32,6 +33,7 @@ from .errors import InputError
 from .jaw import JawRig, fit_shape_parameters, unskin_deltas
 from .markers import MarkerLayout
 from .natural import natural_neighbour_weights
+from .npz import save_npz
 from .progress import progress
 from .smooth import SmoothInterpolator
 
@@ -79,6 +81,7 @@ class LGIIndex:
     manifest: dict[str, Any]
     arrays: dict[str, np.ndarray]
     deltas: np.ndarray
+    timings: dict[str, float] = field(default_factory=dict)
 
     # --------------------------------------------------------------- convenience views
     @property
@@ -115,11 +118,14 @@ class LGIIndex:
     def save(self, directory: str | os.PathLike[str], reports: dict[str, pd.DataFrame] | None = None) -> Path:
         directory = Path(directory)
         with atomic_dir(directory) as tmp:
-            np.savez(tmp / "index.npz", **self.arrays)
+            save_npz(tmp / "index.npz", **self.arrays)
             np.save(tmp / "deltas.npy", self.deltas)
             for name, df in (reports or {}).items():
                 df.to_csv(tmp / name, index=False, float_format="%.6g")
             (tmp / "manifest.json").write_text(json.dumps(self.manifest, indent=1))
+            # Everything above is a function of the inputs (byte-identical across builds); the timings
+            # are not, so they live apart.
+            (tmp / "build.json").write_text(json.dumps({"timings_s": self.timings}, indent=1))
         return directory
 
     @classmethod
@@ -137,7 +143,9 @@ class LGIIndex:
         with np.load(directory / "index.npz") as z:
             arrays = {k: z[k] for k in z.files}
         deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None)
-        return cls(manifest, arrays, deltas)
+        build = directory / "build.json"
+        timings = json.loads(build.read_text()).get("timings_s", {}) if build.is_file() else {}
+        return cls(manifest, arrays, deltas, timings)
 
 
 def _alias_classes(aliases: np.ndarray, tab: np.ndarray, neighbours: np.ndarray, tol: float) -> list[list[int]]:
@@ -355,7 +363,7 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
             "points": int(len(flat["pts"])), "simplices": int(len(flat["sx"])),
             "grid_entries": int(len(items)), "nn_region_vertices": int(nn.region.sum()),
         },
-        "nn_conflicts": nn.conflicts, "uv_scale_cm": nn.uv_scale, "timings": timings,
+        "nn_conflicts": nn.conflicts, "uv_scale_cm": nn.uv_scale,
         "jaw": jaw_rig is not None,
     }
-    return LGIIndex(manifest, arrays, ext), {"pruning.csv": pruning, "bundles.csv": per_bundle}
+    return LGIIndex(manifest, arrays, ext, timings), {"pruning.csv": pruning, "bundles.csv": per_bundle}

@@ -20,6 +20,7 @@ from scipy.optimize import least_squares
 
 from .atomic import atomic_file
 from .errors import InputError
+from .npz import save_npz
 
 N_PARAMS = 4
 PARAM_NAMES = ["open_deg", "yaw_deg", "roll_deg", "forward_cm"]
@@ -82,7 +83,7 @@ class JawRig:
 
     def save(self, path: str | os.PathLike[str]) -> None:
         with atomic_file(path, suffix=".npz") as tmp:
-            np.savez(tmp, pivot=self.pivot, weights=self.weights)
+            save_npz(tmp, pivot=self.pivot, weights=self.weights)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], n_vertices: int | None = None) -> JawRig:
