@@ -239,49 +239,29 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
     """
     opts = options or IndexOptions()
     t0 = time.perf_counter()
+    natural = natural_stage(dataset, layout, opts)
+    t1 = time.perf_counter()
+    clouds, reports = clouds_stage(dataset, layout, opts, natural, jaw_rig, show_progress)
+    t2 = time.perf_counter()
+    index = assemble_index(dataset, layout, opts, natural, clouds, jaw_rig)
+    index.timings.update(natural_stage_s=t1 - t0, clouds_stage_s=t2 - t1, assemble_s=time.perf_counter() - t2,
+                         total_s=time.perf_counter() - t0)
+    return index, reports
+
+
+def natural_stage(dataset: ShapeDataset, layout: MarkerLayout, opts: IndexOptions) -> dict[str, np.ndarray]:
+    """Natural-neighbour weights, natural neighbours and the residual-correction basis.
+
+    Depends only on the neutral mesh, the layout and the natural-neighbour and stiffness options (not on
+    the shapes), so a pruning or simplex change never recomputes it.
+    """
     layout.check_mesh(dataset.triangles)
-    timings: dict[str, float] = {}
-    deltas = np.asarray(dataset.deltas, np.float32)
-    jaw_params = None
-    if jaw_rig is not None:
-        if jaw_rig.weights.shape != (dataset.n_vertices,):
-            raise InputError(f"jaw rig has {jaw_rig.weights.shape[0]} weights, the dataset {dataset.n_vertices} "
-                             "vertices")
-        jaw_params = fit_shape_parameters(jaw_rig, dataset.neutral, deltas)
-        deltas = unskin_deltas(jaw_rig, dataset.neutral, deltas, jaw_params)
-        timings["jaw_unskin_s"] = time.perf_counter() - t0
-    # Bundle table: every bundle's position on the neutral (row 0) and on every shape.
-    tab = np.empty((dataset.n_shapes + 1, len(layout), 3))
-    tab[0] = layout.evaluate(dataset.neutral)
-    tab[1:] = tab[0][None] + layout.evaluate(deltas).astype(np.float64)
-    timings["bundle_table_s"] = time.perf_counter() - t0
-
-    t = time.perf_counter()
-    rng = np.random.default_rng(opts.cloud.seed)
-    clouds = [build_cloud(tab[:, i], opts.cloud, rng)
-              for i in progress(range(len(layout)), "point clouds", disable=not show_progress)]
-    timings["clouds_s"] = time.perf_counter() - t
-
-    t = time.perf_counter()
     nn = natural_neighbour_weights(dataset.neutral, dataset.face_vertices, dataset.face_offsets, dataset.uvs,
                                    dataset.face_uvs, layout.triangles, layout.weights, opts.region_radius,
                                    opts.nn_subdivisions)
-    timings["natural_neighbours_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    flat = _flatten(clouds, tab, nn.neighbours, opts.class_tol)
-    timings["flatten_s"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    lo, h, dims, cell_off, cell_start, items = K.build_grids(
-        flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target),
-        opts.grid_max_cells)
-    timings["grid_s"] = time.perf_counter() - t
-
     nb_off = np.zeros(len(layout) + 1, np.int64)
     nb_off[1:] = np.cumsum([len(n) for n in nn.neighbours])
     nb_idx = np.concatenate(nn.neighbours).astype(np.int64) if nb_off[-1] else np.zeros(0, np.int64)
-
-    t = time.perf_counter()
     smooth = SmoothInterpolator(dataset.neutral, dataset.triangles, layout.vertices, layout.weights, opts.ks,
                                 opts.kb)
     # Each bundle's field decays away from it (all other bundles are held at zero): keep it sparse,
@@ -290,35 +270,56 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
     basis = smooth.basis().T
     basis[np.abs(basis) < 1e-3] = 0.0
     correction = sp.csr_matrix(basis)
-    timings["correction_basis_s"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    # Shape-major: neighbouring vertices blending the same shapes read neighbouring memory.
-    ext = np.zeros((dataset.n_shapes + 1, dataset.n_vertices, 3), np.float32)
-    ext[1:] = deltas
-    timings["extended_deltas_s"] = time.perf_counter() - t
-
     w = nn.weights.tocsr()
     w.sort_indices()
-    arrays = {
-        **flat, "grid_lo": lo, "grid_h": h, "grid_dims": dims, "cell_off": cell_off, "cell_start": cell_start,
-        "cell_items": items, "ptab": tab.astype(np.float64), "nb_off": nb_off, "nb_idx": nb_idx,
+    return {
         "w_indptr": w.indptr.astype(np.int64), "w_indices": w.indices.astype(np.int64),
         "w_data": w.data.astype(np.float64), "nn_distance": nn.distance, "nn_owner": nn.owner,
-        "nn_region": nn.region, "corr_indptr": correction.indptr.astype(np.int64),
-        "corr_indices": correction.indices.astype(np.int64), "corr_data": correction.data,
-        "neutral": dataset.neutral,
-        "face_vertices": dataset.face_vertices, "face_offsets": dataset.face_offsets,
-        "marker_triangle": layout.triangles, "marker_vertices": layout.vertices, "marker_weights": layout.weights,
+        "nn_region": nn.region, "nb_off": nb_off, "nb_idx": nb_idx,
+        "corr_indptr": correction.indptr.astype(np.int64), "corr_indices": correction.indices.astype(np.int64),
+        "corr_data": correction.data, "uv_scale": np.array(nn.uv_scale),
+        "nn_conflicts": np.array(json.dumps(nn.conflicts)),
     }
-    if jaw_rig is not None:
-        arrays["jaw_pivot"] = jaw_rig.pivot
-        arrays["jaw_weights"] = jaw_rig.weights
-        arrays["jaw_shape_params"] = jaw_params
-    if dataset.uvs is not None:
-        arrays["uvs"] = dataset.uvs
-        arrays["face_uvs"] = dataset.face_uvs
 
+
+def clouds_stage(dataset: ShapeDataset, layout: MarkerLayout, opts: IndexOptions, natural: dict[str, np.ndarray],
+                 jaw_rig: JawRig | None = None, show_progress: bool = False
+                 ) -> tuple[dict[str, np.ndarray], dict[str, pd.DataFrame]]:
+    """Point clouds (pruned), overlapping simplices and search grids of every bundle.
+
+    Returns the flattened arrays (with the bundle table ``ptab`` and, with a rig, ``jaw_shape_params``)
+    and the reports ``pruning.csv`` and ``bundles.csv``.
+    """
+    layout.check_mesh(dataset.triangles)
+    deltas = np.asarray(dataset.deltas, np.float32)
+    extra: dict[str, np.ndarray] = {}
+    if jaw_rig is not None:
+        if jaw_rig.weights.shape != (dataset.n_vertices,):
+            raise InputError(f"jaw rig has {jaw_rig.weights.shape[0]} weights, the dataset {dataset.n_vertices} "
+                             "vertices")
+        jaw_params = fit_shape_parameters(jaw_rig, dataset.neutral, deltas)
+        deltas = unskin_deltas(jaw_rig, dataset.neutral, deltas, jaw_params)
+        extra["jaw_shape_params"] = jaw_params
+    # Bundle table: every bundle's position on the neutral (row 0) and on every shape.
+    tab = np.empty((dataset.n_shapes + 1, len(layout), 3))
+    tab[0] = layout.evaluate(dataset.neutral)
+    tab[1:] = tab[0][None] + layout.evaluate(deltas).astype(np.float64)
+    rng = np.random.default_rng(opts.cloud.seed)
+    clouds = [build_cloud(tab[:, i], opts.cloud, rng)
+              for i in progress(range(len(layout)), "point clouds", disable=not show_progress)]
+    nb_off, nb_idx = natural["nb_off"], natural["nb_idx"]
+    neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(len(layout))]
+    flat = _flatten(clouds, tab, neighbours, opts.class_tol)
+    lo, h, dims, cell_off, cell_start, items = K.build_grids(
+        flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target),
+        opts.grid_max_cells)
+    arrays = {**flat, "grid_lo": lo, "grid_h": h, "grid_dims": dims, "cell_off": cell_off, "cell_start": cell_start,
+              "cell_items": items, "ptab": tab.astype(np.float64), **extra}
+    return arrays, _reports(dataset, layout, clouds, tab, neighbours)
+
+
+def _reports(dataset: ShapeDataset, layout: MarkerLayout, clouds: list[BundleCloud], tab: np.ndarray,
+             neighbours: list[np.ndarray]) -> dict[str, pd.DataFrame]:
     rows = []
     for i, c in enumerate(clouds):
         motion = np.linalg.norm(tab[1:, i] - tab[0, i], axis=1)
@@ -349,9 +350,33 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
         "subset_delaunay": [c.report["by_kind"][1] for c in clouds],
         "knn_fans": [c.report["by_kind"][2] for c in clouds],
         "filtered": [c.report["filtered"] for c in clouds],
-        "natural_neighbours": [len(n) for n in nn.neighbours],
+        "natural_neighbours": [len(n) for n in neighbours],
     })
-    timings["total_s"] = time.perf_counter() - t0
+    return {"pruning.csv": pruning, "bundles.csv": per_bundle}
+
+
+def assemble_index(dataset: ShapeDataset, layout: MarkerLayout, opts: IndexOptions, natural: dict[str, np.ndarray],
+                   clouds: dict[str, np.ndarray], jaw_rig: JawRig | None = None) -> LGIIndex:
+    """The index from the outputs of :func:`natural_stage` and :func:`clouds_stage`."""
+    deltas = np.asarray(dataset.deltas, np.float32)
+    if jaw_rig is not None:
+        deltas = unskin_deltas(jaw_rig, dataset.neutral, deltas, clouds["jaw_shape_params"])
+    # Shape-major: neighbouring vertices blending the same shapes read neighbouring memory.
+    ext = np.zeros((dataset.n_shapes + 1, dataset.n_vertices, 3), np.float32)
+    ext[1:] = deltas
+    arrays = {
+        **{k: v for k, v in clouds.items() if k != "jaw_shape_params"},
+        **{k: v for k, v in natural.items() if k not in ("uv_scale", "nn_conflicts")},
+        "neutral": dataset.neutral, "face_vertices": dataset.face_vertices, "face_offsets": dataset.face_offsets,
+        "marker_triangle": layout.triangles, "marker_vertices": layout.vertices, "marker_weights": layout.weights,
+    }
+    if jaw_rig is not None:
+        arrays["jaw_pivot"] = jaw_rig.pivot
+        arrays["jaw_weights"] = jaw_rig.weights
+        arrays["jaw_shape_params"] = clouds["jaw_shape_params"]
+    if dataset.uvs is not None:
+        arrays["uvs"] = dataset.uvs
+        arrays["face_uvs"] = dataset.face_uvs
     manifest = {
         "format": FORMAT, "format_version": FORMAT_VERSION,
         "dataset_hash": dataset.content_hash(), "layout_hash": layout_hash(layout),
@@ -360,10 +385,10 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
         "options": opts.to_json(),
         "counts": {
             "vertices": dataset.n_vertices, "shapes": dataset.n_shapes, "markers": len(layout),
-            "points": int(len(flat["pts"])), "simplices": int(len(flat["sx"])),
-            "grid_entries": int(len(items)), "nn_region_vertices": int(nn.region.sum()),
+            "points": int(len(clouds["pts"])), "simplices": int(len(clouds["sx"])),
+            "grid_entries": int(len(clouds["cell_items"])), "nn_region_vertices": int(natural["nn_region"].sum()),
         },
-        "nn_conflicts": nn.conflicts, "uv_scale_cm": nn.uv_scale,
+        "nn_conflicts": json.loads(str(natural["nn_conflicts"])), "uv_scale_cm": float(natural["uv_scale"]),
         "jaw": jaw_rig is not None,
     }
-    return LGIIndex(manifest, arrays, ext, timings), {"pruning.csv": pruning, "bundles.csv": per_bundle}
+    return LGIIndex(manifest, arrays, ext)
