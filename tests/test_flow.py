@@ -1,9 +1,12 @@
+import filecmp
 from pathlib import Path
 
 import pytest
 
+from lgi import synth
 from lgi.dataset import ShapeDataset
 from lgi.importers import import_obj_folder
+from lgi.markers import write_layout
 
 
 @pytest.fixture(scope="session")
@@ -14,10 +17,32 @@ def prefect_harness():
         yield
 
 
-def test_rebuild_dataset_flow_matches_library(prefect_harness, tmp_path: Path, obj_folder: Path) -> None:
+def _same_tree(a: Path, b: Path) -> bool:
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.name != "build.json")
+    return files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file() and p.name != "build.json") and all(
+        filecmp.cmp(a / f, b / f, shallow=False) for f in files)
+
+
+def test_rebuild_flow_caches_by_content(prefect_harness, tmp_path: Path, obj_folder: Path, small_actor) -> None:
     from flows.rebuild_dataset import rebuild_dataset
 
-    summary = rebuild_dataset(str(obj_folder), str(tmp_path / "ds"), rigid_vertices="auto")
-    ds = ShapeDataset.load(tmp_path / "ds", verify=True)
-    assert summary["n_shapes"] == 3 == ds.n_shapes
-    assert summary["content_hash"] == import_obj_folder(obj_folder, show_progress=False).content_hash()
+    layout, _ = synth.default_layout(small_actor)
+    markers = tmp_path / "markers.csv"
+    write_layout(markers, layout, small_actor.neutral)
+    cache = str(tmp_path / "cache")
+    first = rebuild_dataset(str(obj_folder), str(tmp_path / "a"), markers=str(markers), cache_dir=cache)
+    assert not any(first["stages"].values())  # everything computed
+    ds = ShapeDataset.load(tmp_path / "a" / "dataset", verify=True)
+    assert first["content_hash"] == import_obj_folder(obj_folder, show_progress=False).content_hash()
+    assert first["n_shapes"] == 3 == ds.n_shapes
+    assert first["verification"]["passed"] and (tmp_path / "a" / "index" / "manifest.json").is_file()
+
+    again = rebuild_dataset(str(obj_folder), str(tmp_path / "b"), markers=str(markers), cache_dir=cache)
+    assert all(again["stages"].values())  # nothing recomputed
+    assert _same_tree(tmp_path / "a", tmp_path / "b")
+
+    changed = rebuild_dataset(str(obj_folder), str(tmp_path / "c"), markers=str(markers), cache_dir=cache,
+                              index_options={"min_motion_rel": 0.02})
+    hits = changed["stages"]
+    assert hits["read"] and hits["stabilise"] and hits["natural"]  # upstream of the change: reused
+    assert not hits["clouds"] and not hits["index"] and not hits["verify"]  # downstream: recomputed
