@@ -85,6 +85,13 @@ class StageCache:
         out = self.path(stage, key)
         if (out / ".complete").is_file():
             return out, True
+        # A run killed midway leaves its temporary directory; it is never read, and goes now. (Two runs
+        # computing the same stage and key at the same moment are not supported.)
+        if out.parent.is_dir():
+            import shutil
+
+            for stale in out.parent.glob(f".{key}.tmp-*"):
+                shutil.rmtree(stale, ignore_errors=True)
         with atomic_dir(out) as tmp:
             make(tmp)
             (tmp / ".complete").write_text(json.dumps({"stage": stage, "inputs": inputs}, sort_keys=True,
