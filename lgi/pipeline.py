@@ -177,3 +177,117 @@ def publish(src: Path, dest: str | os.PathLike[str]) -> Path:
     with atomic_dir(dest) as tmp:
         shutil.copytree(src, tmp, dirs_exist_ok=True)
     return dest
+
+
+# ---------------------------------------------------------------------------------------------- shots
+def _shot_solver(index_dir: str, temporal_weight: float, spatial_weight: float):
+    from .solver import LGISolver
+
+    return LGISolver(LGIIndex.load(index_dir), temporal_weight=temporal_weight, spatial_weight=spatial_weight)
+
+
+def shot_frames(bundles: str) -> int:
+    """Number of frames of a bundles file."""
+    from .bundles import read_bundles
+
+    return len(read_bundles(bundles).frames)
+
+
+def select_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, temporal_weight: float = 0.02,
+                 spatial_weight: float = 1e-3, max_gap: int = 10) -> str:
+    """Choose shapes and weights for frames ``lo:hi`` of a shot; result: an npz of the choices.
+
+    Gaps are bridged on the whole shot first, so a chunk sees the same positions as a single run; each
+    chunk starts without a previous frame (the results do not depend on how chunks are scheduled).
+    """
+    from .bundles import read_bundles
+
+    solver = _shot_solver(index_dir, temporal_weight, spatial_weight)
+    pos, frames, _ = solver.prepare(read_bundles(bundles, solver.index.marker_names), None, max_gap)
+    sels = solver.select_sequence(pos[lo:hi], frames[lo:hi])
+    arrays = {k: np.stack([getattr(r, k) for r in sels]) for k in
+              ("shapes", "weights", "n_containing", "status", "projection", "score")}
+    if sels and sels[0].jaw is not None:
+        arrays["jaw"] = np.stack([r.jaw for r in sels])
+    arrays["fallback"] = np.array(json.dumps([r.fallback for r in sels]))
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    from .atomic import atomic_file
+
+    with atomic_file(out, suffix=".npz") as tmp:
+        save_npz(tmp, **arrays)
+    return out
+
+
+def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int = 1,
+                jaw_smooth: int | None = None, max_gap: int = 10, temporal_weight: float = 0.02,
+                spatial_weight: float = 1e-3, usd: bool = False) -> dict:
+    """Smooth, blend and correct every frame from the chunks' choices; write the shot's outputs.
+
+    Writes ``meshes.npz``, ``diagnostics.csv``, ``per_frame.csv`` and ``per_frame.png`` (and
+    ``shot.usdc`` with ``usd``) into ``out`` atomically; returns a JSON-friendly summary.
+    """
+    import time
+
+    from .atomic import atomic_dir
+    from .bundles import read_bundles
+    from .solver import FrameResult
+
+    t0 = time.perf_counter()
+    solver = _shot_solver(index_dir, temporal_weight, spatial_weight)
+    pos, frames, bridged = solver.prepare(read_bundles(bundles, solver.index.marker_names), None, max_gap)
+    sels = []
+    for path in chunks:
+        a = _load_npz(Path(path))
+        notes = json.loads(str(a["fallback"]))
+        for f in range(len(a["shapes"])):
+            sels.append(FrameResult(np.zeros((0, 3), np.float32), a["shapes"][f], a["weights"][f],
+                                    a["n_containing"][f], a["status"][f], a["projection"][f], a["score"][f],
+                                    np.zeros(len(notes[f])), notes[f], a["jaw"][f] if "jaw" in a else None))
+    for f, sel in enumerate(sels):
+        sel.bundles = pos[f]
+    res = solver.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth)
+    d = res.diagnostics
+    per_frame = d.groupby("frame").agg(
+        contained=("status", lambda s: float((s == "contained").mean())),
+        projected=("status", lambda s: int((s == "projected").sum())),
+        missing=("status", lambda s: int(s.isin(["missing", "bridged"]).sum())),
+        residual_before_mm=("residual_before_mm", "max"), residual_mm=("residual_mm", "max")).reset_index()
+    with atomic_dir(out) as tmp:
+        extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
+        save_npz(tmp / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
+        d.to_csv(tmp / "diagnostics.csv", index=False, float_format="%.6g")
+        per_frame.to_csv(tmp / "per_frame.csv", index=False, float_format="%.6g")
+        _plot_per_frame(per_frame, tmp / "per_frame.png")
+        if usd:
+            from .export import write_usd
+
+            a = solver.index.arrays
+            write_usd(tmp / "shot.usdc", res.vertices, a["face_vertices"], a["face_offsets"], a.get("uvs"),
+                      a.get("face_uvs"), res.frames)
+    return {
+        "out": str(Path(out).resolve()), "frames": len(res.frames), "markers": solver.index.n_markers,
+        "contained_share": float((d.status == "contained").mean()),
+        "projected_share": float((d.status == "projected").mean()),
+        "neighbour_share": float((d.status == "neighbour").mean()),
+        "missing_share": float(d.status.isin(["missing", "bridged"]).mean()),
+        "max_residual_mm": float(np.nanmax(d.residual_mm)), "finish_s": time.perf_counter() - t0,
+    }
+
+
+def _plot_per_frame(per_frame: pd.DataFrame, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(2, 1, figsize=(8, 4.5), sharex=True)
+    ax[0].plot(per_frame.frame, per_frame.residual_before_mm, label="max distance to bundles before correction")
+    ax[0].set_ylabel("mm")
+    ax[0].legend(fontsize=8)
+    ax[1].plot(per_frame.frame, per_frame.projected, label="bundles projected (outside the data)")
+    ax[1].plot(per_frame.frame, per_frame.missing, label="bundles missing or bridged")
+    ax[1].set_xlabel("frame")
+    ax[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)

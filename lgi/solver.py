@@ -322,7 +322,16 @@ class LGISolver:
         max_gap : int
             Missing runs of a marker up to this many frames are bridged by interpolating its trajectory.
         """
-        from .temporal import bridge_gaps, window_slots
+        pos, frames, bridged = self.prepare(bundles, frames, max_gap)
+        if jaw is not None and len(jaw) != len(pos):
+            raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
+        sels = self.select_sequence(pos, frames, jaw, show_progress)
+        return self.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth, show_progress)
+
+    def prepare(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
+                max_gap: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions (F, M, 3) in layout order with short gaps bridged, frame numbers, bridged mask (F, M)."""
+        from .temporal import bridge_gaps
 
         if isinstance(bundles, Bundles):
             pos = self.align(bundles)
@@ -330,9 +339,12 @@ class LGISolver:
         else:
             pos = np.asarray(bundles, np.float64)
             frames = np.arange(len(pos)) if frames is None else np.asarray(frames)
-        if jaw is not None and len(jaw) != len(pos):
-            raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
         pos, bridged = bridge_gaps(pos, max_gap)
+        return pos, np.asarray(frames), bridged
+
+    def select_sequence(self, pos: np.ndarray, frames: np.ndarray, jaw: np.ndarray | None = None,
+                        show_progress: bool = False) -> list[FrameResult]:
+        """Each frame's choice of shapes and weights, in order (the previous frame's carried into the next)."""
         sels = []
         prev = None
         for f in progress(range(len(pos)), "choosing shapes", disable=not show_progress):
@@ -341,6 +353,14 @@ class LGISolver:
             except InputError as exc:
                 raise InputError(exc.message, frame=int(frames[f])) from None
             sels.append(prev)
+        return sels
+
+    def finish_sequence(self, sels: list[FrameResult], pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
+                        smooth: int = 1, jaw_smooth: int | None = None,
+                        show_progress: bool = False) -> SequenceResult:
+        """Smooth the choices over time, blend, skin and correct every frame; diagnostics per bundle."""
+        from .temporal import window_slots
+
         shapes = np.stack([r.shapes for r in sels])
         lam = np.stack([r.weights for r in sels])
         thetas = None

@@ -57,3 +57,12 @@ def small_index(small_actor):
     layout, _ = synth.default_layout(small_actor)
     index, reports = build_index(ds, layout, show_progress=False)
     return small_actor, ds, layout, index, reports
+
+
+@pytest.fixture(scope="session")
+def prefect_harness():
+    """One temporary Prefect API for the whole session (starting one takes seconds)."""
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=180):
+        yield

@@ -1,20 +1,10 @@
 import filecmp
 from pathlib import Path
 
-import pytest
-
 from lgi import synth
 from lgi.dataset import ShapeDataset
 from lgi.importers import import_obj_folder
 from lgi.markers import write_layout
-
-
-@pytest.fixture(scope="session")
-def prefect_harness():
-    from prefect.testing.utilities import prefect_test_harness
-
-    with prefect_test_harness(server_startup_timeout=180):
-        yield
 
 
 def _same_tree(a: Path, b: Path) -> bool:

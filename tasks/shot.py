@@ -1,0 +1,26 @@
+"""Per-shot reconstruction stages as Prefect tasks: thin wrappers over :mod:`lgi.pipeline`."""
+
+from __future__ import annotations
+
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+
+from lgi import pipeline
+
+_T = {"cache_policy": NO_CACHE, "persist_result": False}
+
+
+@task(name="solve-chunk", **_T)
+def solve_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, temporal_weight: float = 0.02,
+                spatial_weight: float = 1e-3, max_gap: int = 10) -> str:
+    """Choose shapes and weights for frames lo:hi (see :func:`lgi.pipeline.select_chunk`)."""
+    return pipeline.select_chunk(index_dir, bundles, lo, hi, out, temporal_weight, spatial_weight, max_gap)
+
+
+@task(name="finish-shot", **_T)
+def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int = 1,
+                jaw_smooth: int | None = None, max_gap: int = 10, temporal_weight: float = 0.02,
+                spatial_weight: float = 1e-3, usd: bool = False) -> dict:
+    """Smooth, blend, correct and write the shot (see :func:`lgi.pipeline.finish_shot`)."""
+    return pipeline.finish_shot(index_dir, bundles, chunks, out, smooth, jaw_smooth, max_gap, temporal_weight,
+                                spatial_weight, usd)

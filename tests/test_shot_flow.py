@@ -1,0 +1,38 @@
+import filecmp
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lgi.cli import main
+
+
+@pytest.fixture(scope="module")
+def shot(tmp_path_factory):
+    t = tmp_path_factory.mktemp("shot")
+    assert main(["synth", "--out", str(t / "s"), "--vertices", "2500", "--frames", "40", "-q"]) == 0
+    assert main(["build", str(t / "s" / "dataset"), "--markers", str(t / "s" / "markers.csv"), "--out",
+                 str(t / "idx"), "-q"]) == 0
+    return t
+
+
+def test_shot_flow_thread_and_dask_agree(prefect_harness, shot: Path) -> None:
+    from prefect_dask import DaskTaskRunner
+
+    from flows.reconstruct_shot import reconstruct_shot
+
+    args = dict(index_dir=str(shot / "idx"), bundles=str(shot / "s" / "bundles.csv"), chunk_size=15, usd=True)
+    summary = reconstruct_shot(out=str(shot / "thread"), **args)
+    assert summary["frames"] == 40 and summary["max_residual_mm"] < 1e-4
+    m = np.load(shot / "thread" / "meshes.npz")
+    truth = np.load(shot / "s" / "truth.npz")["vertices"]
+    assert np.sqrt(np.mean(np.sum((m["vertices"] - truth) ** 2, axis=2))) * 10 < 0.2  # mm
+    assert (shot / "thread" / "per_frame.png").stat().st_size > 5000
+    assert len(pd.read_csv(shot / "thread" / "per_frame.csv")) == 40
+    assert not list(shot.glob(".thread.chunks/*"))
+    dask_flow = reconstruct_shot.with_options(task_runner=DaskTaskRunner(
+        cluster_kwargs={"n_workers": 2, "threads_per_worker": 1, "processes": True}))
+    dask_flow(out=str(shot / "dask"), **args)
+    for name in ("meshes.npz", "diagnostics.csv", "per_frame.csv"):
+        assert filecmp.cmp(shot / "thread" / name, shot / "dask" / name, shallow=False), name
