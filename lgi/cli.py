@@ -219,6 +219,19 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from .index import LGIIndex
     from .obj import write_obj
 
+    if args.flow:
+        unsupported = [o for o, v in (("--obj", args.obj), ("--bilateral", args.bilateral),
+                                      ("--jaw FILE", args.jaw not in ("auto", "none"))) if v]
+        if unsupported:
+            raise InputError(f"--flow does not take {', '.join(unsupported)} yet")
+        from flows.reconstruct_shot import reconstruct_shot
+
+        s = reconstruct_shot(args.index_dir, args.bundles, args.out, chunk_size=args.chunk_size, smooth=args.smooth,
+                             jaw_smooth=args.jaw_smooth, max_gap=args.max_gap, temporal_weight=args.temporal_weight,
+                             spatial_weight=args.spatial_weight)
+        print(f"reconstructed {s['frames']} frames through the reconstruct-shot flow; max bundle residual "
+              f"{s['max_residual_mm']:.2e} mm; outputs in {s['out']}")
+        return 0
     t0 = time.perf_counter()
     index = LGIIndex.load(args.index_dir)
     bundles = read_bundles(args.bundles, index.marker_names)
@@ -528,6 +541,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "(frame, open_deg, yaw_deg, roll_deg, forward_cm); 'none' needs an index without a rig")
     s.add_argument("--max-gap", type=int, default=10, metavar="N",
                    help="bridge a marker's missing runs of up to N frames from the frames around (10; 0 = off)")
+    s.add_argument("--flow", action="store_true",
+                   help="run the Prefect reconstruct-shot flow (chunks of frames as tasks, artifacts) instead "
+                        "of the plain functions")
+    s.add_argument("--chunk-size", type=int, default=60, metavar="N", help="frames per task with --flow (60)")
     s.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]",
                    help="bilateral filter of the bundles before solving: in time, and with the third value also "
                         "over the nearest markers (e.g. 1.5:0.5:10)")
