@@ -6,10 +6,13 @@ from lgi.dataset import ShapeDataset
 from lgi.importers import import_obj_folder
 from lgi.markers import write_layout
 
+# Files that describe a run (timings, which stages were cached), not the data: they may differ.
+RUN_ONLY = ("build.json", "report.md")
+
 
 def _same_tree(a: Path, b: Path) -> bool:
-    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.name != "build.json")
-    return files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file() and p.name != "build.json") and all(
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.name not in RUN_ONLY)
+    return files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file() and p.name not in RUN_ONLY) and all(
         filecmp.cmp(a / f, b / f, shallow=False) for f in files)
 
 
