@@ -30,6 +30,19 @@ def _identity_weights(text: str | None) -> dict[str, float] | None:
 def cmd_import(args: argparse.Namespace) -> int:
     from .importers import import_obj_folder
 
+    if args.flow:
+        if args.identity:
+            raise InputError("--flow does not take --identity yet")
+        from flows.rebuild_dataset import rebuild_dataset
+
+        s = rebuild_dataset(args.shapes_dir, args.out, neutral=args.neutral, include=args.include,
+                            exclude=args.exclude, rigid_vertices=args.rigid_vertices, units=args.units,
+                            deltas=args.deltas, markers=args.markers)
+        computed = [k for k, hit in s["stages"].items() if not hit]
+        print(f"rebuild-dataset flow: {s['n_shapes']} shapes -> {Path(args.out).resolve()} (dataset/"
+              f"{', index/, verification/' if args.markers else ''}); stages computed: {computed or 'none'}")
+        return 0 if "verification" not in s or s["verification"]["passed"] else 1
+
     t0 = time.perf_counter()
     rigid = args.rigid_vertices
     ds = import_obj_folder(
@@ -469,6 +482,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--units", default="cm", choices=["mm", "cm", "m", "in"], help="units of the files (default cm)")
     s.add_argument("--deltas", action="store_true", help="shape files hold displacements, not full meshes")
     s.add_argument("--identity", metavar="NAME=W,...", help="blend identity modes (identity*.obj) into the neutral")
+    s.add_argument("--flow", action="store_true",
+                   help="run the Prefect rebuild-dataset flow (cached stages, artifacts): OUT becomes a folder with "
+                        "dataset/ and, with --markers, index/ and verification/")
+    s.add_argument("--markers", metavar="MARKERS_CSV", help="with --flow: also build and verify the index")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_import)
 

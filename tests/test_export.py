@@ -54,3 +54,20 @@ def test_export_command(tmp_path: Path) -> None:
     assert (tmp_path / "p.usda").read_text().startswith("#usda")
     assert sorted(p.name for p in (tmp_path / "exr").iterdir()) == [f"frame_{i:05d}.exr" for i in range(4)]
     assert main(["export", str(tmp_path / "nothing"), "--index", str(tmp_path / "idx"), "--usd", "x.usdc"]) == 2
+
+
+def test_usd_200_frames_of_ict(tmp_path: Path, ict_dir: Path) -> None:
+    from pxr import Usd, UsdGeom
+
+    from lgi.importers import import_obj_folder
+
+    ds = import_obj_folder(ict_dir, include="jawOpen,mouthSmile_L,browInnerUp_L", rigid_vertices="none",
+                           show_progress=False)
+    w = np.abs(np.sin(np.linspace(0, 6, 200)[:, None] * np.array([1.0, 0.7, 1.3])))
+    verts = (ds.neutral[None] + np.tensordot(w, np.asarray(ds.deltas, np.float64), axes=1)).astype(np.float32)
+    write_usd(tmp_path / "ict.usdc", verts, ds.face_vertices, ds.face_offsets, ds.uvs, ds.face_uvs)
+    stage = Usd.Stage.Open(str(tmp_path / "ict.usdc"))
+    pts = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/mesh")).GetPointsAttr()
+    assert len(pts.GetTimeSamples()) == 200
+    for f in (0, 77, 199):
+        np.testing.assert_array_equal(np.asarray(pts.Get(float(f))), verts[f])

@@ -39,3 +39,15 @@ def test_rebuild_flow_caches_by_content(prefect_harness, tmp_path: Path, obj_fol
     hits = changed["stages"]
     assert hits["read"] and hits["stabilise"] and hits["natural"]  # upstream of the change: reused
     assert not hits["clouds"] and not hits["index"] and not hits["verify"]  # downstream: recomputed
+
+
+def test_import_command_runs_the_flow(prefect_harness, tmp_path: Path, obj_folder: Path, small_actor) -> None:
+    from lgi.cli import main
+
+    layout, _ = synth.default_layout(small_actor)
+    write_layout(tmp_path / "m.csv", layout, small_actor.neutral)
+    assert main(["import", str(obj_folder), "--out", str(tmp_path / "out"), "--flow", "--markers",
+                 str(tmp_path / "m.csv")]) == 0
+    assert ShapeDataset.load(tmp_path / "out" / "dataset", verify=True).n_shapes == 3
+    assert (tmp_path / "out" / "verification" / "verification.csv").is_file()
+    assert (tmp_path / "out" / "report.md").read_text().startswith("# Dataset rebuild")
