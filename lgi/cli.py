@@ -318,6 +318,24 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 1 if bad.any() else 0
 
 
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from .calibration import Board, calibrate_stereo
+
+    if args.fisheye:
+        raise InputError("--fisheye is not supported yet (pinhole and rational models only)")
+    calib = calibrate_stereo(args.images_dir, Board.parse(args.board), rational=args.rational)
+    calib.save(args.out, args.yaml)
+    print(f"stereo calibration from {len(calib.used)} image pairs ({calib.image_size[0]}x{calib.image_size[1]}, "
+          f"{calib.model}): RMS left {calib.rms_camera[0]:.3f} px, right {calib.rms_camera[1]:.3f} px, "
+          f"stereo {calib.rms_stereo:.3f} px; baseline {calib.baseline_mm:.3f} mm")
+    for name, (el, er) in calib.per_view.items():
+        print(f"  {name}: {el:.3f} / {er:.3f} px")
+    for name, why in calib.rejected.items():
+        print(f"  rejected {name}: {why}")
+    print(f"calibration: {Path(args.out).resolve()}" + (f", {Path(args.yaml).resolve()}" if args.yaml else ""))
+    return 0
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     from .atomic import atomic_dir
     from .export import displacement_map, write_exr, write_usd
@@ -587,6 +605,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--shapes", default="jaw*", metavar="PATTERN", help="the jaw shapes (default 'jaw*')")
     s.add_argument("--out", required=True, metavar="RIG_NPZ")
     s.set_defaults(func=cmd_rig)
+
+    s = sub.add_parser("calibrate", help="calibrate a stereo camera pair from chessboard images",
+                       description="Detect the board, calibrate both cameras (rejecting outlier views, saying why) "
+                                   "and the stereo extrinsics; write a documented JSON (and OpenCV YAML).")
+    s.add_argument("images_dir", metavar="IMAGES_DIR", help="left*/right* images, or cam0/ and cam1/ folders")
+    s.add_argument("--board", required=True, metavar="chessboard:COLSxROWS:SQUARE_MM")
+    s.add_argument("--out", required=True, metavar="CALIB_JSON")
+    s.add_argument("--yaml", metavar="FILE", help="also write OpenCV YAML (K0, dist0, K1, dist1, R, T)")
+    s.add_argument("--rational", action="store_true", help="OpenCV's rational distortion model (wide lenses)")
+    s.add_argument("--fisheye", action="store_true", help="fisheye model (not supported yet)")
+    s.set_defaults(func=cmd_calibrate)
 
     s = sub.add_parser("export", help="export a reconstruction as USD and/or OpenEXR displacement maps",
                        description="Write RECON_DIR/meshes.npz as an animated USD mesh (time samples, UVs) and/or "
