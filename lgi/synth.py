@@ -186,22 +186,17 @@ class SyntheticActor:
 
 
 def jaw_transform(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid jaw motion for parameters ``(open_deg, yaw_deg, roll_deg, forward_cm)`` about JAW_PIVOT.
+    """Rigid jaw motion for parameters ``(open_deg, yaw_deg, roll_deg, forward_cm)`` about JAW_PIVOT, in
+    the rig convention of :func:`lgi.jaw.jaw_matrix`.
 
     Returns
     -------
     R : (3, 3); t : (3,) such that a point ``p`` moves to ``R p + t``.
     """
-    op, yaw, roll, fwd = (float(v) for v in params)
-    ca, sa = np.cos(np.deg2rad(op)), np.sin(np.deg2rad(op))
-    rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])
-    cy, sy = np.cos(np.deg2rad(yaw)), np.sin(np.deg2rad(yaw))
-    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    cz, sz = np.cos(np.deg2rad(roll)), np.sin(np.deg2rad(roll))
-    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    r = ry @ rz @ rx
-    t = JAW_PIVOT - r @ JAW_PIVOT + np.array([0.0, 0.0, fwd])
-    return r, t
+    from .jaw import jaw_matrix
+
+    m = jaw_matrix(params, JAW_PIVOT)
+    return m[:3, :3], m[:3, 3]
 
 
 def _grid_size(n_vertices: int) -> tuple[int, int]:
