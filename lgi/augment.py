@@ -109,3 +109,37 @@ def linear_combinations(
     out.info = {**dataset.info, "augmented": {"linear_combinations": len(picks), "levels": list(levels),
                                               "orders": list(orders), "seed": seed}}
     return out
+
+
+def augmentation_report(original: ShapeDataset, augmented: ShapeDataset, layout, options=None):
+    """Per bundle: cloud points from the original shapes and from the added ones, before and after pruning.
+
+    Parameters
+    ----------
+    original, augmented
+        The dataset before and after augmentation (same neutral and topology).
+    layout : MarkerLayout
+    options : CloudOptions, optional
+        Pruning options (defaults otherwise).
+
+    Returns
+    -------
+    DataFrame with columns marker, points_original (after pruning), points_augmented (after pruning),
+    added (augmented shapes), kept (extra points the augmentation left after pruning and merging).
+    """
+    import pandas as pd
+
+    from .cloud import CloudOptions, build_cloud
+
+    opts = options or CloudOptions()
+    rows = []
+    tabs = []
+    for ds in (original, augmented):
+        rest = layout.evaluate(ds.neutral)
+        tabs.append(np.concatenate([rest[None], rest[None] + layout.evaluate(np.asarray(ds.deltas, np.float64))]))
+    rng = np.random.default_rng(opts.seed)
+    for i, name in enumerate(layout.names):
+        a = build_cloud(tabs[0][:, i], opts, rng).report["points"]
+        b = build_cloud(tabs[1][:, i], opts, rng).report["points"]
+        rows.append((name, a, b, augmented.n_shapes - original.n_shapes, b - a))
+    return pd.DataFrame(rows, columns=["marker", "points_original", "points_augmented", "added", "kept"])

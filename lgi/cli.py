@@ -318,6 +318,43 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 1 if bad.any() else 0
 
 
+def cmd_augment(args: argparse.Namespace) -> int:
+    from .augment import augmentation_report, linear_combinations
+    from .dataset import ShapeDataset
+
+    if args.simulate:
+        raise InputError("--simulate (physically simulated in-betweens) is not implemented yet; use --linear")
+    if not args.linear:
+        raise InputError("choose an augmentation: --linear")
+    try:
+        levels = tuple(float(v) for v in args.levels.split(","))
+        orders = tuple(int(v) for v in args.orders.split(","))
+    except ValueError:
+        raise InputError(f"--levels/--orders: comma-separated numbers expected ({args.levels!r}, {args.orders!r})")\
+            from None
+    requires = None
+    if args.requires:
+        requires = dict(part.split("=", 1) for part in args.requires.split(",") if "=" in part)
+    ds = ShapeDataset.load(args.dataset_dir)
+    aug = linear_combinations(ds, args.budget, levels=levels, orders=orders, seed=args.seed, requires=requires,
+                              include=args.include)
+    aug.save(args.out)
+    print(f"{aug.n_shapes - ds.n_shapes} linear in-betweens added (budget {args.budget}) -> {aug.n_shapes} shapes in "
+          f"{Path(args.out).resolve()}")
+    if args.markers:
+        from .markers import read_layout
+
+        rep = augmentation_report(ds, aug, read_layout(args.markers, ds.triangles))
+        from .atomic import atomic_file
+
+        with atomic_file(Path(args.out) / "augmentation.csv") as tmp:
+            rep.to_csv(tmp, index=False)
+        print(f"per bundle, points after pruning: {rep.points_original.median():.0f} -> "
+              f"{rep.points_augmented.median():.0f} (median); the in-betweens added {rep.kept.sum()} points over "
+              f"{len(rep)} bundles (augmentation.csv)")
+    return 0
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from .calibration import Board, calibrate_stereo
 
@@ -605,6 +642,25 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--shapes", default="jaw*", metavar="PATTERN", help="the jaw shapes (default 'jaw*')")
     s.add_argument("--out", required=True, metavar="RIG_NPZ")
     s.set_defaults(func=cmd_rig)
+
+    s = sub.add_parser("augment", help="add in-between shapes to a dataset",
+                       description="Add linear in-betweens: combinations of 2-3 compatible shapes at fixed weights, "
+                                   "tagged with their sources (opposites such as jawLeft+jawRight are skipped; "
+                                   "mouthClose only with jawOpen).")
+    s.add_argument("dataset_dir", metavar="DATASET_DIR")
+    s.add_argument("--out", required=True, metavar="DATASET_DIR2")
+    s.add_argument("--linear", action="store_true", help="linear combinations of dataset shapes")
+    s.add_argument("--simulate", action="store_true", help="physically simulated in-betweens (not implemented yet)")
+    s.add_argument("--budget", type=int, default=200, metavar="N", help="shapes to add at most (200)")
+    s.add_argument("--levels", default="0.25,0.5,0.75,1", metavar="W,...", help="weights a source may take")
+    s.add_argument("--orders", default="2,3", metavar="K,...", help="sources per combination")
+    s.add_argument("--include", metavar="PATTERN", help="only these source shapes")
+    s.add_argument("--requires", metavar="SHAPE=PARTNER,...",
+                   help="shapes that appear only with a partner (default mouthClose=jawOpen)")
+    s.add_argument("--markers", metavar="MARKERS_CSV",
+                   help="also report per bundle how many points the in-betweens added and kept (augmentation.csv)")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=cmd_augment)
 
     s = sub.add_parser("calibrate", help="calibrate a stereo camera pair from chessboard images",
                        description="Detect the board, calibrate both cameras (rejecting outlier views, saying why) "

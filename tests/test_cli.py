@@ -183,3 +183,22 @@ def test_reconstruct_bad_bundles_leave_nothing(tmp_path: Path) -> None:
     out = tmp_path / "rec"
     _expect_failure(["reconstruct", str(tmp_path / "idx"), "--bundles", str(bad), "--out", str(out)], out,
                     "frame 2", "no_such_marker", "unknown marker")
+
+
+def test_augment_linear(tmp_path: Path) -> None:
+    s = tmp_path / "s"
+    main(["synth", "--out", str(s), "--vertices", "2500", "--frames", "2", "-q"])
+    assert main(["augment", str(s / "dataset"), "--out", str(tmp_path / "aug"), "--linear", "--budget", "30",
+                 "--markers", str(s / "markers.csv")]) == 0
+    orig = ShapeDataset.load(s / "dataset")
+    aug = ShapeDataset.load(tmp_path / "aug", verify=True)
+    assert aug.n_shapes == orig.n_shapes + 30 and aug.names[: orig.n_shapes] == orig.names
+    meta = aug.shape_meta[-1]
+    assert "linear" in meta.tags and meta.extra["method"] == "linear" and len(meta.extra["sources"]) >= 2
+    # An in-between is the weighted sum of its sources' displacements.
+    expect = sum(w * np.asarray(orig.deltas[orig.index(n)], np.float64) for n, w in meta.extra["sources"].items())
+    np.testing.assert_allclose(aug.deltas[-1], expect, atol=1e-5)
+    rep = pd.read_csv(tmp_path / "aug" / "augmentation.csv")
+    assert (rep.kept >= 0).all() and (rep.points_augmented >= rep.points_original).all() and rep.kept.sum() > 0
+    assert main(["augment", str(s / "dataset"), "--out", str(tmp_path / "sim"), "--simulate"]) == 2
+    assert not (tmp_path / "sim").exists()
