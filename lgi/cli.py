@@ -390,10 +390,6 @@ def cmd_export(args: argparse.Namespace) -> int:
         raise InputError(f"meshes have {vertices.shape[1]} vertices, the index {index.n_vertices}", path=src)
     if not (args.usd or args.exr):
         raise InputError("nothing to export: give --usd FILE and/or --exr DIR")
-    if args.usd:
-        write_usd(args.usd, vertices, a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"),
-                  frames, fps=args.fps)
-        print(f"USD: {Path(args.usd).resolve()} ({len(frames)} time samples at {args.fps:g} fps)")
     if args.exr:
         if "uvs" not in a:
             raise InputError("the mesh has no texture coordinates: no displacement maps", path=args.index)
@@ -404,6 +400,11 @@ def cmd_export(args: argparse.Namespace) -> int:
                                           args.exr_size)
                 write_exr(tmp / f"frame_{int(f):05d}.exr", img)
         print(f"displacement maps: {Path(args.exr).resolve()} ({len(frames)} x {args.exr_size}^2 RGB float32, cm)")
+    if args.usd:
+        # Written last: each output is atomic on its own, and no USD appears if the maps fail.
+        write_usd(args.usd, vertices, a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"),
+                  frames, fps=args.fps)
+        print(f"USD: {Path(args.usd).resolve()} ({len(frames)} time samples at {args.fps:g} fps)")
     return 0
 
 
@@ -441,6 +442,13 @@ def cmd_rig(args: argparse.Namespace) -> int:
     return 0
 
 
+def _write_csv(df, path: Path) -> None:
+    from .atomic import atomic_file
+
+    with atomic_file(path) as tmp:
+        df.to_csv(tmp, index=False, float_format="%.6g")
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from .bench import format_table, ict_benchmark, synthetic_benchmark
     from .paths import shared_data
@@ -450,7 +458,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     table, maps, actor, truth_jitter = synthetic_benchmark(args.frames, args.noise)
-    table.to_csv(out / "bench_synthetic.csv", index=False, float_format="%.6g")
+    _write_csv(table, out / "bench_synthetic.csv")
     png = heatmap_row(out / "heatmaps_synthetic.png", actor.neutral, actor.triangles, maps,
                       title=f"synthetic held-out performance ({args.frames} frames): mean vertex error")
     print(f"synthetic actor, {args.frames} held-out frames (noise for jitter: {args.noise} mm; the truth's own "
@@ -464,7 +472,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print(f"ICT FaceKit not found at {ict}: ICT comparison skipped")
     else:
         table, maps, ds = ict_benchmark(ict)
-        table.to_csv(out / "bench_ict.csv", index=False, float_format="%.6g")
+        _write_csv(table, out / "bench_ict.csv")
         mask = np.zeros(ds.n_vertices, bool)
         mask[:9409] = True
         png = heatmap_row(out / "heatmaps_ict.png", ds.neutral, ds.triangles, maps, mask=mask,
@@ -506,8 +514,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     res = LGISolver(index, temporal_weight=0.02).solve_sequence(bundles, show_progress=not args.quiet)
     dt = time.perf_counter() - t
-    save_npz(out / "meshes.npz", vertices=res.vertices, frames=res.frames)
-    res.diagnostics.to_csv(out / "diagnostics.csv", index=False, float_format="%.6g")
+    from .atomic import atomic_file
+
+    with atomic_file(out / "meshes.npz") as tmp:
+        save_npz(tmp, vertices=res.vertices, frames=res.frames)
+    _write_csv(res.diagnostics, out / "diagnostics.csv")
     err = np.linalg.norm(res.vertices - r["truth"], axis=2) * 10
     print(f"[4/4] reconstructed the {args.frames}-frame performance (frames not in the dataset) at "
           f"{args.frames / dt:.0f} frames/s; error against the truth: RMS {np.sqrt(np.mean(err**2)):.3f} mm, "
