@@ -1,0 +1,137 @@
+"""HMC footage to bundles: read the frames, detect dots, label and track, triangulate, stabilise.
+
+Footage is a folder of frame pairs: ``cam0/`` and ``cam1/`` with the same file names, or
+``left*``/``right*`` files; frames are taken in name order and numbered from 0.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .camera import StereoRig
+from .dots import DotOptions, Dots, detect_dots
+from .errors import InputError
+from .tracking import Tracker, TrackOptions, Tracks, thumbnail
+
+
+@dataclass
+class ShotTracks:
+    """Result of :func:`track_footage`: tracks in the world frame, bundles in the head frame (mm)."""
+
+    names: list[str]
+    frames: list[str]
+    tracks: Tracks
+    head: np.ndarray  # (F, M, 3) mm, head frame
+    head_R: np.ndarray
+    head_t: np.ndarray
+    stable_weights: np.ndarray
+    n_detections: np.ndarray  # (F, 2)
+    seconds: dict[str, float]
+
+
+def _detect(path: Path, frame: int, size: tuple[int, int] | None, options: DotOptions) -> tuple[Dots, np.ndarray]:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise InputError("unreadable image", path=path, frame=frame)
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        raise InputError(f"image is {img.shape[1]}x{img.shape[0]}, the calibration is {size[0]}x{size[1]}",
+                         path=path, frame=frame)
+    return detect_dots(img, options), thumbnail(img)
+
+
+def detect_footage(folder: str | os.PathLike[str], size: tuple[int, int] | None = None,
+                   options: DotOptions | None = None, workers: int = 2
+                   ) -> tuple[list[str], list[tuple[Dots, Dots]], np.ndarray]:
+    """Detect the dots of every frame (images decoded and searched on ``workers`` threads).
+
+    Returns the frame names, the detections of cameras 0 and 1 per frame, and the camera-0 thumbnails
+    (F, P) float32.
+    """
+    from .calibration import pair_images
+
+    pairs = pair_images(folder)
+    o = options or DotOptions()
+    jobs = [(p, f, size, o) for f, (_, p0, p1) in enumerate(pairs) for p in (p0, p1)]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        res = list(pool.map(lambda a: _detect(*a), jobs))
+    dots = [(res[2 * f][0], res[2 * f + 1][0]) for f in range(len(pairs))]
+    thumbs = np.stack([res[2 * f][1] for f in range(len(pairs))])
+    return [n for n, _, _ in pairs], dots, thumbs
+
+
+def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots, Dots],
+                max_px: float = 3.0) -> np.ndarray:
+    """Reference-frame labels from a CSV ``camera,x,y,marker`` (camera 0 or 1, pixels).
+
+    Each labelled point takes the nearest detection within ``max_px``. Returns (M, 2, 2), NaN where unlabelled.
+    """
+    try:
+        df = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read the label file: {e}", path=path) from e
+    missing = {"camera", "x", "y", "marker"} - set(df.columns)
+    if missing:
+        raise InputError(f"label file needs columns camera,x,y,marker; missing {sorted(missing)}", path=path)
+    index = {n: i for i, n in enumerate(names)}
+    uv = np.full((len(names), 2, 2), np.nan)
+    for r, row in enumerate(df.itertuples(index=False), start=2):
+        if row.marker not in index:
+            raise InputError("unknown marker", path=path, line=r, marker=str(row.marker))
+        if row.camera not in (0, 1):
+            raise InputError(f"camera must be 0 or 1, not {row.camera!r}", path=path, line=r, marker=str(row.marker))
+        xy = dots[int(row.camera)].xy
+        d = np.linalg.norm(xy - [row.x, row.y], axis=1) if len(xy) else np.array([np.inf])
+        if d.min() > max_px:
+            raise InputError(f"no dot detected within {max_px} px of ({row.x}, {row.y}) in camera {row.camera}",
+                             path=path, line=r, marker=str(row.marker))
+        uv[index[row.marker], int(row.camera)] = xy[int(np.argmin(d))]
+    return uv
+
+
+def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.ndarray, names: list[str],
+                  labels: str | os.PathLike[str] | None = None, reference: int = 0,
+                  options: TrackOptions | None = None, dot_options: DotOptions | None = None,
+                  workers: int = 2) -> ShotTracks:
+    """Footage -> labelled tracks -> triangulated, head-stabilised bundles (mm). See :mod:`lgi.tracking`."""
+    from .headstab import stabilize_bundles
+
+    t0 = time.perf_counter()
+    frames, dots, thumbs = detect_footage(folder, rig.cameras[0].size, dot_options, workers)
+    t1 = time.perf_counter()
+    if not 0 <= reference < len(frames):
+        raise InputError(f"reference frame {reference} is outside the shot (0-{len(frames) - 1})", path=folder)
+    tracker = Tracker(rig, layout_mm, names, options)
+    ref_uv = read_labels(labels, names, dots[reference]) if labels else None
+    try:
+        tracks = tracker.track(dots, thumbs, reference, ref_uv)
+    except ValueError as e:
+        raise InputError(str(e), path=folder, frame=reference) from e
+    t2 = time.perf_counter()
+    head, R, t, w = stabilize_bundles(tracks.X, layout_mm)
+    t3 = time.perf_counter()
+    n_det = np.array([[len(d0), len(d1)] for d0, d1 in dots])
+    return ShotTracks(names, frames, tracks, head, R, t, w, n_det,
+                      {"detect": t1 - t0, "track": t2 - t1, "stabilise": t3 - t2})
+
+
+def tracks_table(shot: ShotTracks) -> pd.DataFrame:
+    """Long table of every 2D observation: frame, marker, camera, x, y, reprojection error (px),
+    source (forward/backward/anchor), triangulated (False: seen by this camera only, kept for later use)."""
+    tr = shot.tracks
+    F, M = tr.uv.shape[:2]
+    f, m, c = np.nonzero(np.isfinite(tr.uv[..., 0]))
+    src = np.array(["none", "forward", "backward", "anchor"])
+    return pd.DataFrame({
+        "frame": f.astype(np.int64), "marker": np.asarray(shot.names)[m], "camera": c.astype(np.int8),
+        "x": tr.uv[f, m, c, 0], "y": tr.uv[f, m, c, 1], "reprojection_px": tr.error[f, m, c],
+        "source": src[tr.source[f, m, c]], "triangulated": np.isfinite(tr.X[f, m, 0]),
+    })
