@@ -89,8 +89,13 @@ def _commit(stage: Path, out: Path) -> None:
     stage.rmdir()
 
 
-def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet: bool = False) -> dict:
-    """Write the synthetic actor's dataset, markers, performance bundles and truth into ``out``."""
+def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet: bool = False,
+                    hmc: dict | None = None) -> dict:
+    """Write the synthetic actor's dataset, markers, performance bundles and truth into ``out``.
+
+    With ``hmc`` (keyword arguments of :func:`lgi.hmc.write_footage`), also render HMC footage into
+    ``out/hmc``; the performance then starts from the neutral face (a 15-frame ramp), as a shot does.
+    """
     import shutil
 
     from . import synth
@@ -101,6 +106,8 @@ def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet:
     ds = synth.make_dataset(actor)
     layout, dist = synth.default_layout(actor)
     acts = synth.random_performance(n_frames, seed=seed)
+    if hmc is not None:
+        acts = acts * np.clip(np.arange(n_frames) / 15.0, 0.0, 1.0)[:, None]
     truth = actor.evaluate_many(acts)
     bundles = Bundles(frames=np.arange(n_frames), markers=layout.names,
                       positions=layout.evaluate(truth.astype(np.float64)))
@@ -113,6 +120,10 @@ def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet:
         save_npz(stage / "truth.npz", vertices=truth, activations=acts.astype(np.float32),
                  controls=np.asarray(synth.CONTROLS), jaw=actor.jaw_parameters(acts).astype(np.float32),
                  frames=np.arange(n_frames))
+        if hmc is not None:
+            from .hmc import write_footage
+
+            write_footage(stage / "hmc", actor, layout, acts, seed=seed, show_progress=not quiet, **hmc)
         _commit(stage, out)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
@@ -123,11 +134,83 @@ def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet:
 
 def cmd_synth(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    r = write_synthetic(out, args.vertices, args.frames, args.seed, args.quiet)
+    hmc = None
+    if args.hmc:
+        hmc = {"model": args.lens, "size": _parse_size(args.image_size), "dot_noise_px": args.dot_noise,
+               "board_views": args.board_views}
+    r = write_synthetic(out, args.vertices, args.frames, args.seed, args.quiet, hmc)
     print(f"synthetic actor: {r['actor'].n_vertices} vertices, {r['dataset'].n_shapes} shapes, "
           f"{len(r['layout'])} markers, {args.frames} frames (seed {args.seed})")
-    for name in ("dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz"):
+    names = ["dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz"]
+    if hmc:
+        names += ["hmc/cam0", "hmc/cam1", "hmc/calib", "hmc/cameras_true.json", "hmc/truth.npz"]
+    for name in names:
         print(f"  {out / name}")
+    return 0
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    import re
+
+    m = re.fullmatch(r"(\d+)x(\d+)", text.strip())
+    if not m or int(m[1]) < 64 or int(m[2]) < 64:
+        raise InputError(f"image size {text!r}: expected WIDTHxHEIGHT, at least 64x64")
+    return int(m[1]), int(m[2])
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    import pandas as pd
+
+    from .atomic import atomic_file
+    from .bundles import Bundles, write_bundles
+    from .camera import StereoRig
+    from .footage import track_footage, tracks_table
+    from .markers import read_layout
+    from .tracking import TrackOptions
+
+    rig = StereoRig.load(args.calib)
+    scale = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+    if args.dataset:
+        from .dataset import ShapeDataset
+
+        ds = ShapeDataset.load(args.dataset)
+        layout = read_layout(args.markers, ds.triangles)
+        neutral = layout.evaluate(ds.neutral[None].astype(np.float64))[0]
+        units = ds.units
+    else:
+        layout = read_layout(args.markers)
+        df = pd.read_csv(args.markers)
+        if not {"x", "y", "z"} <= set(df.columns) or df[["x", "y", "z"]].isna().any().any():
+            raise InputError("the marker file has no neutral positions (x, y, z): pass --dataset", path=args.markers)
+        neutral = df[["x", "y", "z"]].to_numpy(np.float64)
+        units = args.units
+    if units not in scale:
+        raise InputError(f"dataset units {units!r}: expected mm, cm or m")
+    mm = scale[units]
+    t0 = time.perf_counter()
+    shot = track_footage(args.footage_dir, rig, neutral * mm, layout.names, labels=args.labels,
+                         reference=args.reference_frame, options=TrackOptions(gate_px=args.gate))
+    dt = time.perf_counter() - t0
+    out = Path(args.out)
+    tracks_out = Path(args.tracks) if args.tracks else out.with_name(out.stem + ".tracks.parquet")
+    F, M = shot.head.shape[:2]
+    table = tracks_table(shot)
+    with atomic_file(tracks_out) as tmp:
+        table.to_parquet(tmp, index=False)
+    write_bundles(out, Bundles(frames=np.arange(F), markers=layout.names, positions=shot.head / mm))
+    tr = shot.tracks
+    seen = np.isfinite(shot.head[..., 0])
+    one_cam = np.isfinite(tr.uv[..., 0]).sum(axis=2) == 1
+    err = tr.error[np.isfinite(tr.error)]
+    print(f"{F} frames x {M} markers: {seen.mean():.1%} triangulated, {one_cam.sum()} observations in one camera "
+          f"only (kept in the tracks table), {len(tr.anchors)} anchor frames")
+    print(f"reprojection error: median {np.median(err):.3f} px, p95 {np.percentile(err, 95):.3f} px; rejected "
+          f"{int((tr.rejected == 1).sum())} epipolar, {int((tr.rejected == 2).sum())} neighbour inconsistencies")
+    print(f"stable markers for head stabilisation: "
+          f"{', '.join(n for n, w in zip(layout.names, shot.stable_weights, strict=True) if w > 0.5)}")
+    print(f"{F / dt:.1f} frames/s (detect {shot.seconds['detect']:.2f} s, track {shot.seconds['track']:.2f} s, "
+          f"stabilise {shot.seconds['stabilise']:.2f} s)")
+    print(f"bundles ({units}): {out.resolve()}\n2D tracks: {tracks_out.resolve()}")
     return 0
 
 
@@ -358,9 +441,7 @@ def cmd_augment(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from .calibration import Board, calibrate_stereo
 
-    if args.fisheye:
-        raise InputError("--fisheye is not supported yet (pinhole and rational models only)")
-    calib = calibrate_stereo(args.images_dir, Board.parse(args.board), rational=args.rational)
+    calib = calibrate_stereo(args.images_dir, Board.parse(args.board), rational=args.rational, fisheye=args.fisheye)
     calib.save(args.out, args.yaml)
     print(f"stereo calibration from {len(calib.used)} image pairs ({calib.image_size[0]}x{calib.image_size[1]}, "
           f"{calib.model}): RMS left {calib.rms_camera[0]:.3f} px, right {calib.rms_camera[1]:.3f} px, "
@@ -563,8 +644,33 @@ def build_parser() -> argparse.ArgumentParser:
                    help="at least this many vertices (default 20000)")
     s.add_argument("--frames", type=int, default=240, metavar="F", help="performance length (default 240)")
     s.add_argument("--seed", type=int, default=0, metavar="S", help="performance seed (default 0)")
+    s.add_argument("--hmc", action="store_true",
+                   help="also render head-mounted camera footage into DIR/hmc (frames, board views, true cameras)")
+    s.add_argument("--lens", choices=["fisheye", "pinhole"], default="fisheye", help="HMC lens model (fisheye)")
+    s.add_argument("--image-size", default="1280x1024", metavar="WxH", help="HMC image size (1280x1024)")
+    s.add_argument("--dot-noise", type=float, default=0.3, metavar="PX",
+                   help="random offset of each painted dot per camera and frame, px (0.3)")
+    s.add_argument("--board-views", type=int, default=15, metavar="N", help="calibration board views (15)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_synth)
+
+    s = sub.add_parser("track", help="track painted dots in stereo HMC footage and write bundles",
+                       description="Detect dots, label the reference frame (rigid fit of the marker layout, or "
+                                   "--labels), track with anchor frames, triangulate, remove head motion; write the "
+                                   "bundles file and a 2D tracks table (Parquet) with reprojection errors.")
+    s.add_argument("footage_dir", metavar="FOOTAGE_DIR", help="cam0/ and cam1/ frames (same names), or left*/right*")
+    s.add_argument("--calib", required=True, metavar="CALIB_JSON", help="lgi calibrate's output")
+    s.add_argument("--markers", required=True, metavar="CSV",
+                   help="marker layout; its x,y,z columns give the neutral positions unless --dataset is given")
+    s.add_argument("--out", required=True, metavar="BUNDLES", help="bundles file (.csv or .parquet)")
+    s.add_argument("--dataset", metavar="DIR", help="dataset whose neutral places the markers (and sets the units)")
+    s.add_argument("--units", default="cm", choices=["mm", "cm", "m"],
+                   help="units of the marker positions and of the output without --dataset (cm)")
+    s.add_argument("--labels", metavar="CSV", help="reference-frame labels: camera,x,y,marker")
+    s.add_argument("--reference-frame", type=int, default=0, metavar="F", help="frame to label (0)")
+    s.add_argument("--gate", type=float, default=12.0, metavar="PX", help="tracking search radius (12 px)")
+    s.add_argument("--tracks", metavar="PARQUET", help="2D tracks table (default OUT's stem + .tracks.parquet)")
+    s.set_defaults(func=cmd_track)
 
     s = sub.add_parser("bundles", help="evaluate markers on dataset shapes (one frame per shape)",
                        description="Write a bundles file with one frame per dataset shape, and OUT.shapes.csv "
@@ -673,15 +779,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_augment)
 
-    s = sub.add_parser("calibrate", help="calibrate a stereo camera pair from chessboard images",
+    s = sub.add_parser("calibrate", help="calibrate a stereo camera pair from chessboard or ChArUco images",
                        description="Detect the board, calibrate both cameras (rejecting outlier views, saying why) "
                                    "and the stereo extrinsics; write a documented JSON (and OpenCV YAML).")
     s.add_argument("images_dir", metavar="IMAGES_DIR", help="left*/right* images, or cam0/ and cam1/ folders")
-    s.add_argument("--board", required=True, metavar="chessboard:COLSxROWS:SQUARE_MM")
+    s.add_argument("--board", required=True, metavar="BOARD",
+                   help="chessboard:COLSxROWS:SQUARE_MM (inner corners) or charuco:COLSxROWS:SQUARE_MM:MARKER_MM:DICT "
+                        "(squares; e.g. charuco:7x5:15:11:DICT_5X5_100)")
     s.add_argument("--out", required=True, metavar="CALIB_JSON")
     s.add_argument("--yaml", metavar="FILE", help="also write OpenCV YAML (K0, dist0, K1, dist1, R, T)")
     s.add_argument("--rational", action="store_true", help="OpenCV's rational distortion model (wide lenses)")
-    s.add_argument("--fisheye", action="store_true", help="fisheye model (not supported yet)")
+    s.add_argument("--fisheye", action="store_true", help="fisheye (equidistant) lens model")
     s.set_defaults(func=cmd_calibrate)
 
     s = sub.add_parser("export", help="export a reconstruction as USD and/or OpenEXR displacement maps",

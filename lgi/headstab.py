@@ -49,8 +49,9 @@ def stabilize_bundles(X: np.ndarray, layout: np.ndarray, stable_fraction: float 
     if stable is None:
         R, t = fit_all(np.ones(M))
         res = np.linalg.norm(np.einsum("fij,mj->fmi", R, layout) + t[:, None] - X, axis=2)
-        r = np.sqrt(np.nanmean(np.where(seen, res**2, np.nan), axis=0))
-        r = np.where(np.isfinite(r), r, np.inf)
+        n_seen = seen.sum(axis=0)
+        r = np.sqrt(np.where(seen, res**2, 0.0).sum(axis=0) / np.maximum(n_seen, 1))
+        r = np.where((n_seen > 0) & np.isfinite(r), r, np.inf)
         k = min(max(int(round(stable_fraction * M)), min_stable), M)
         cut = np.sort(r)[k - 1]
         r0 = max(float(np.median(r[r <= cut])), 1e-6)

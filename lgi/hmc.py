@@ -236,7 +236,8 @@ def board_poses(rig: StereoRig, board, n: int, seed: int = 0, margin_px: float =
             break
         rot = Rotation.from_euler("xyz", [rng.uniform(-35, 35), rng.uniform(-35, 35), rng.uniform(-25, 25)],
                                   degrees=True).as_matrix()
-        rot = rot @ np.diag([1.0, -1.0, -1.0])  # board faces the cameras (+z of the board towards -z world)
+        # OpenCV's board frame seen unmirrored: x right, y down in the image, z away from the cameras.
+        rot = rot @ np.diag([1.0, -1.0, -1.0])
         pos = np.array([rng.uniform(-50, 50), rng.uniform(-60, 50), rng.uniform(-10, 90)])
         T = np.eye(4)
         T[:3, :3] = rot
@@ -249,7 +250,7 @@ def board_poses(rig: StereoRig, board, n: int, seed: int = 0, margin_px: float =
             ok &= bool(np.all(np.isfinite(uv)) and uv[:, 0].min() > margin_px and uv[:, 1].min() > margin_px
                        and uv[:, 0].max() < w - margin_px and uv[:, 1].max() < h - margin_px)
             normal = T[:3, :3] @ [0, 0, 1.0]
-            ok &= bool(np.dot(normal, cam.center - pts.mean(0)) > 0.35 * np.linalg.norm(cam.center - pts.mean(0)))
+            ok &= bool(np.dot(normal, pts.mean(0) - cam.center) > 0.35 * np.linalg.norm(cam.center - pts.mean(0)))
         if ok:
             out.append(T)
     if len(out) < n:

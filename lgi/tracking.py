@@ -72,8 +72,15 @@ class Tracks:
     rejected: np.ndarray
 
 
-def _assign(pred: np.ndarray, det: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+def _assign(pred: np.ndarray, det: np.ndarray, gate: float, pred_area: np.ndarray | None = None,
+            det_area: np.ndarray | None = None, max_area_ratio: float = 2.2, min_area_ratio: float = 1 / 3
+            ) -> tuple[np.ndarray, np.ndarray]:
     """One-to-one matching of predictions (M, 2) to detections (N, 2) within ``gate``.
+
+    With areas (the marker's blob area in the reference frame, and each detection's), a detection whose
+    area differs from the marker's by more than ``max_area_ratio`` cannot take it (an eye corner or a
+    brow end is not the dot beside it); a dot may shrink more (occluded in part, foreshortened) down to
+    ``min_area_ratio``.
 
     Returns the detection index per prediction (-1 if none) and the distance (inf if none).
     """
@@ -92,7 +99,11 @@ def _assign(pred: np.ndarray, det: np.ndarray, gate: float) -> tuple[np.ndarray,
     cand = np.asarray(cand)
     d = np.linalg.norm(pred[rows, None, :] - det[None, cand, :], axis=2)
     big = 1e6
-    cost = np.where(d <= gate, d, big)
+    allowed = d <= gate
+    if pred_area is not None and det_area is not None:
+        ratio = np.log(np.maximum(det_area[None, cand], 1) / np.maximum(pred_area[rows, None], 1))
+        allowed &= ~((ratio > np.log(max_area_ratio)) | (ratio < np.log(min_area_ratio)))  # NaN (unknown) allows
+    cost = np.where(allowed, d, big)
     r, c = linear_sum_assignment(cost)
     good = cost[r, c] < big
     idx[rows[r[good]]] = cand[c[good]]
@@ -126,6 +137,8 @@ class Tracker:
         self.o = options or TrackOptions()
         k = min(self.o.neighbours + 1, len(self.layout))
         self.nbrs = cKDTree(self.layout).query(self.layout, k)[1][:, 1:]
+        self.ref_area = np.full((len(self.layout), 2), np.nan)  # blob area of each marker in the reference
+        self.ref_fit: np.ndarray | None = None  # the layout fitted rigidly to the reference frame
 
     # ------------------------------------------------------------------ labelling
     def _stereo_points(self, d0: np.ndarray, d1: np.ndarray) -> np.ndarray:
@@ -174,16 +187,19 @@ class Tracker:
         if len(pts) < 4:
             raise ValueError(f"only {len(pts)} dots could be matched between the cameras in the reference frame")
         R, t, _ = self.fit_layout(pts)
+        self.ref_fit = self.layout @ R.T + t
         uv = np.full((len(self.layout), 2, 2), np.nan)
         for _ in range(3):  # label, triangulate the labelled markers, refit, relabel
             X = self.layout @ R.T + t
             for c, cam in enumerate(self.rig.cameras):
                 idx, _ = _assign(cam.project(X), dots[c].xy, self.o.label_gate_px)
                 uv[:, c] = np.where(idx[:, None] >= 0, dots[c].xy[np.maximum(idx, 0)], np.nan)
+                self.ref_area[:, c] = np.where(idx >= 0, dots[c].area[np.maximum(idx, 0)], np.nan)
             both = np.all(np.isfinite(uv[:, :, 0]), axis=1)
             Xt, err = self.rig.triangulate(uv[both, 0], uv[both, 1])
             ok = err.max(axis=1) < self.o.epipolar_px
             R, t = kabsch(self.layout[both][ok], Xt[ok])
+            self.ref_fit = self.layout @ R.T + t
         return uv
 
     # ------------------------------------------------------------------ tracking
@@ -209,7 +225,7 @@ class Tracker:
         uv = np.full((M, 2, 2), np.nan)
         cost = np.full((M, 2), np.inf)
         for c, cam in enumerate(self.rig.cameras):
-            idx, dist = _assign(cam.project(X_pred), dots[c].xy, gate)
+            idx, dist = _assign(cam.project(X_pred), dots[c].xy, gate, self.ref_area[:, c], dots[c].area)
             hit = idx >= 0
             uv[hit, c] = dots[c].xy[idx[hit]]
             cost[hit, c] = dist[hit]
@@ -277,10 +293,24 @@ class Tracker:
         reference_uv : (M, 2, 2), optional: the reference labels (else found automatically)
         """
         F, M = len(dots), len(self.layout)
-        ref_uv = self.label_reference(dots[reference]) if reference_uv is None else reference_uv
+        if reference_uv is None:
+            ref_uv = self.label_reference(dots[reference])
+        else:
+            ref_uv = reference_uv
+            for c in range(2):
+                for m in np.flatnonzero(np.isfinite(ref_uv[:, c, 0])):
+                    k = int(np.argmin(np.linalg.norm(dots[reference][c].xy - ref_uv[m, c], axis=1)))
+                    self.ref_area[m, c] = dots[reference][c].area[k]
         ref_X = np.full((M, 3), np.nan)
         both = np.all(np.isfinite(ref_uv[:, :, 0]), axis=1)
         ref_X[both] = self.rig.triangulate(ref_uv[both, 0], ref_uv[both, 1])[0]
+        if self.ref_fit is None:
+            from .stabilize import kabsch
+
+            R, t = kabsch(self.layout[both], ref_X[both])
+            self.ref_fit = self.layout @ R.T + t
+        # Markers not labelled in the reference start from the fitted layout, so they can be picked up later.
+        ref_X = np.where(np.isfinite(ref_X), ref_X, self.ref_fit)
         anchors = self.anchors(thumbs, reference)
         uv = np.full((F, M, 2, 2), np.nan)
         cost = np.full((F, M, 2), np.inf)

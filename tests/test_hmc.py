@@ -1,0 +1,184 @@
+"""Head-mounted cameras: lens models, synthetic calibration, dot detection, tracking, the footage chain."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lgi.calibration import Board, calibrate_stereo, calibrate_views
+from lgi.camera import StereoRig
+from lgi.cli import main
+from lgi.dots import detect_dots
+from lgi.errors import InputError
+from lgi.hmc import BoardRenderer, board_corner_views, board_poses, hmc_rig
+
+
+@pytest.mark.parametrize("model", ["pinhole", "fisheye"])
+def test_triangulation_is_exact_without_noise_and_reports_reprojection(model: str) -> None:
+    rig = hmc_rig(model)
+    X = np.random.default_rng(0).uniform([-60, -90, 0], [60, 80, 70], (300, 3))
+    uv0, uv1 = rig.cameras[0].project(X), rig.cameras[1].project(X)
+    Y, err = rig.triangulate(uv0, uv1)
+    assert np.abs(Y - X).max() < 1e-6 and err.max() < 1e-6
+    assert rig.epipolar_distance(uv0, uv1).max() < 1e-6
+    # A gross error in one camera shows in the reprojection error and the epipolar distance.
+    bad = uv1.copy()
+    bad[0] += [15.0, 0.0]  # across the (near-vertical) epipolar line
+    _, err = rig.triangulate(uv0, bad)
+    assert err[0].max() > 3 and np.median(err[1:]) < 1e-6
+
+
+@pytest.mark.parametrize("model", ["pinhole", "fisheye"])
+def test_synthetic_calibration_at_02px_corner_noise(model: str) -> None:
+    rig = hmc_rig(model)
+    board = Board.parse("chessboard:9x6:12")
+    views = board_corner_views(rig, board, board_poses(rig, board, 20, seed=1), noise_px=0.2, seed=1)
+    calib = calibrate_views(views, rig.cameras[0].size, model)
+    assert calib.rms_stereo <= 0.3 and max(calib.rms_camera) <= 0.3
+    for k in range(2):
+        f_true = np.diag(rig.cameras[k].K)[:2]
+        f_est = np.diag(calib.K[k])[:2]
+        assert np.all(np.abs(f_est / f_true - 1) < 0.005), (f_est, f_true)
+    assert abs(calib.baseline_mm - rig.baseline) < 0.5
+    R_true, _ = rig.relative()
+    angle = np.degrees(np.arccos(np.clip((np.trace(calib.R @ R_true.T) - 1) / 2, -1, 1)))
+    assert angle < 0.1
+
+
+def test_charuco_board_views_calibrate_with_a_second_pass(tmp_path: Path) -> None:
+    import cv2
+
+    rig = hmc_rig("pinhole", (960, 768))
+    board = Board.parse("charuco:7x5:15:11:DICT_5X5_100")
+    br = BoardRenderer(board, px_per_mm=10)
+    rng = np.random.default_rng(0)
+    for k, pose in enumerate(board_poses(rig, board, 10, seed=3)):
+        for c, side in enumerate(("left", "right")):
+            cv2.imwrite(str(tmp_path / f"{side}{k:02d}.png"), br.render(rig.cameras[c], pose, rng))
+    out = tmp_path / "calib.json"
+    assert main(["calibrate", str(tmp_path), "--board", board.spec(), "--out", str(out)]) == 0
+    got = StereoRig.load(out)
+    for k in range(2):
+        assert abs(got.cameras[k].K[0, 0] / rig.cameras[k].K[0, 0] - 1) < 0.005
+    assert abs(got.baseline - rig.baseline) < 0.5
+    # The fisheye model fits the same views too (no second pass: OpenCV's ChArUco refinement is pinhole).
+    calib = calibrate_stereo(tmp_path, board, fisheye=True)
+    assert calib.model == "fisheye" and calib.rms_stereo < 1.0
+
+
+def test_dot_detection_subpixel_and_rejections() -> None:
+    import cv2
+
+    rng = np.random.default_rng(0)
+    h, w = 240, 320
+    img = np.full((h, w), 180.0)
+    yy, xx = np.mgrid[0:h, 0:w]
+    centres = np.column_stack([rng.uniform(20, 300, 12), rng.uniform(20, 120, 12)])
+    centres = centres[np.argsort(centres[:, 0])]
+    centres[:, 0] = np.linspace(20, 300, 12) + rng.uniform(-0.5, 0.5, 12)
+    for cx, cy in centres:
+        img -= 150 * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 2.2**2))
+    img[170:200, 40:140] = 30  # a large dark region (an eye, the mouth)
+    img[150:154, 200:260] = 40  # a thin dark line (a lip line, a brow hair)
+    img = np.clip(img, 0, 255)
+    cv2.circle(img, (250, 200), 4, 255, -1)  # a specular highlight
+    cv2.circle(img, (257, 200), 3, 120, -1)  # and the darker skin at its rim
+    img = np.clip(img + rng.normal(0, 1.5, img.shape), 0, 255).astype(np.uint8)
+    dots = detect_dots(img)
+    assert len(dots) == 12, (dots.xy, dots.rejected)
+    d = np.linalg.norm(dots.xy[np.argsort(dots.xy[:, 0])] - centres, axis=1)
+    assert d.max() < 0.15
+    # The line is seen and rejected as elongated, the highlight's rim as specular; the large dark region is
+    # wider than the black-hat kernel and gives no blob at all.
+    assert dots.rejected.get("specular", 0) == 1 and dots.rejected.get("elongated", 0) == 1
+
+
+@pytest.fixture(scope="module")
+def hmc_shot(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("hmc")
+    assert main(["synth", "--out", str(out), "--frames", "30", "--vertices", "12000", "--hmc", "--board-views", "8",
+                 "-q"]) == 0
+    return out
+
+
+def test_footage_to_bundles_chain(hmc_shot: Path) -> None:
+    from lgi.bundles import read_bundles
+
+    calib = hmc_shot / "calib.json"
+    assert main(["calibrate", str(hmc_shot / "hmc" / "calib"), "--board", "chessboard:9x6:12", "--fisheye",
+                 "--out", str(calib)]) == 0
+    true = json.loads((hmc_shot / "hmc" / "cameras_true.json").read_text())
+    got = json.loads(calib.read_text())
+    assert abs(got["baseline_mm"] - true["baseline_mm"]) < 0.5
+    out = hmc_shot / "tracked.csv"
+    assert main(["track", str(hmc_shot / "hmc"), "--calib", str(calib), "--markers", str(hmc_shot / "markers.csv"),
+                 "--out", str(out)]) == 0
+    tracked, truth = read_bundles(out), read_bundles(hmc_shot / "bundles.csv")
+    idx = [truth.markers.index(m) for m in tracked.markers]
+    err_mm = 10 * np.linalg.norm(tracked.positions - truth.positions[:, idx], axis=2)
+    assert np.sqrt(np.nanmean(err_mm**2)) < 0.5
+    # No label swaps: every 2D observation lies at its own marker's true projection.
+    t2 = np.load(hmc_shot / "hmc" / "truth.npz")
+    names = list(t2["markers"])
+    table = pd.read_parquet(hmc_shot / "tracked.tracks.parquet")
+    m = np.array([names.index(n) for n in table["marker"]])
+    true_xy = t2["centers"][table["frame"], table["camera"], m]
+    assert np.linalg.norm(table[["x", "y"]].to_numpy() - true_xy, axis=1).max() < 3.0
+    # Visible dots are detected, and nearly all of them tracked.
+    from scipy.spatial import cKDTree
+
+    from lgi.footage import detect_footage
+
+    visible = t2["visible"]
+    _, dots, _ = detect_footage(hmc_shot / "hmc")
+    detected = np.array([[cKDTree(d.xy).query(t2["centers"][f, c])[0] < 2 for c, d in enumerate(pair)]
+                         for f, pair in enumerate(dots)])
+    assert (detected & visible).sum() / visible.sum() >= 0.98
+    found = np.zeros_like(visible)
+    found[table["frame"], table["camera"], m] = True
+    assert (found & visible).sum() / visible.sum() >= 0.97
+    assert {"reprojection_px", "triangulated", "source"} <= set(table.columns)
+
+
+def test_track_bad_inputs(hmc_shot: Path, tmp_path: Path) -> None:
+    import shutil
+
+    markers = str(hmc_shot / "markers.csv")
+    true_calib = hmc_shot / "hmc" / "cameras_true.json"
+    # A calibration file of the wrong shape.
+    bad = tmp_path / "bad.json"
+    doc = json.loads(true_calib.read_text())
+    doc["cameras"] = doc["cameras"][:1]
+    bad.write_text(json.dumps(doc))
+    out = tmp_path / "b.csv"
+    assert main(["track", str(hmc_shot / "hmc"), "--calib", str(bad), "--markers", markers, "--out", str(out)]) == 2
+    with pytest.raises(InputError, match="not a stereo calibration"):
+        StereoRig.load(bad)
+    doc = json.loads(true_calib.read_text())
+    doc["cameras"][0]["K"] = [[1, 0], [0, 1]]
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="not a stereo calibration"):
+        StereoRig.load(bad)
+    # An unreadable frame: the error names the file and the frame; nothing is written.
+    shot = tmp_path / "shot"
+    for c in ("cam0", "cam1"):
+        (shot / c).mkdir(parents=True)
+        for f in sorted((hmc_shot / "hmc" / c).iterdir())[:6]:
+            shutil.copy(f, shot / c)
+    (shot / "cam1" / "000003.png").write_bytes(b"broken")
+    with pytest.raises(InputError) as e:
+        from lgi.footage import detect_footage
+
+        detect_footage(shot)
+    assert "000003.png" in str(e.value) and "frame 3" in str(e.value)
+    assert main(["track", str(shot), "--calib", str(true_calib), "--markers", markers, "--out", str(out)]) == 2
+    assert not out.exists() and not out.with_name("b.tracks.parquet").exists()
+    # A label file naming an unknown marker.
+    (shot / "cam1" / "000003.png").unlink()
+    labels = tmp_path / "labels.csv"
+    labels.write_text("camera,x,y,marker\n0,10,10,no_such_marker\n")
+    assert main(["track", str(shot), "--calib", str(true_calib), "--markers", markers, "--out", str(out),
+                 "--labels", str(labels)]) == 2
+    assert not out.exists()
