@@ -249,6 +249,40 @@ class StereoRig:
                                for c, uv in zip(self.cameras, (uv0, uv1), strict=True)])
         return X, err
 
+    def refine_with_points(self, points: np.ndarray, uv0: np.ndarray, uv1: np.ndarray
+                           ) -> tuple[StereoRig, np.ndarray]:
+        """Re-estimate both cameras' poses from points fixed on the helmet (the rig may flex in a shot).
+
+        Parameters
+        ----------
+        points : (H, 3) float, known positions in the rig frame (at least 4, not all on a line)
+        uv0, uv1 : (H, 2) float, their pixels in cameras 0 and 1 (NaN where not seen)
+
+        Returns
+        -------
+        rig : the refined rig (intrinsics unchanged, world frame = the points' frame)
+        rms : (2, 2) reprojection RMS (px) of each camera, before and after
+        """
+        import cv2
+
+        points = np.asarray(points, np.float64)
+        cams, rms = [], np.zeros((2, 2))
+        for k, (cam, uv) in enumerate(zip(self.cameras, (uv0, uv1), strict=True)):
+            uv = np.asarray(uv, np.float64)
+            ok = np.all(np.isfinite(uv), axis=1)
+            if ok.sum() < 4:
+                raise ValueError(f"camera {k} sees {int(ok.sum())} helmet markers, at least 4 are needed")
+            rms[k, 0] = np.sqrt(np.mean(np.sum((cam.project(points[ok]) - uv[ok]) ** 2, axis=1)))
+            # Pose from undistorted normalised coordinates: the same for every lens model.
+            x = cam.normalized(uv[ok])
+            rvec, _ = cv2.Rodrigues(cam.R)
+            _, rvec, tvec = cv2.solvePnP(points[ok], x, np.eye(3), None, rvec.copy(), cam.t.reshape(3, 1).copy(),
+                                         True, cv2.SOLVEPNP_ITERATIVE)
+            new = cam.with_pose(cv2.Rodrigues(rvec)[0], tvec.ravel())
+            rms[k, 1] = np.sqrt(np.mean(np.sum((new.project(points[ok]) - uv[ok]) ** 2, axis=1)))
+            cams.append(new)
+        return StereoRig(cams), rms
+
     # ------------------------------------------------------------------ file
     def to_json(self) -> dict:
         return {"format": "lgi-stereo-rig", "format_version": 1, "cameras": [c.to_json() for c in self.cameras]}

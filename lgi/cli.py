@@ -137,13 +137,13 @@ def cmd_synth(args: argparse.Namespace) -> int:
     hmc = None
     if args.hmc:
         hmc = {"model": args.lens, "size": _parse_size(args.image_size), "dot_noise_px": args.dot_noise,
-               "board_views": args.board_views}
+               "board_views": args.board_views, "flex_deg": args.rig_flex}
     r = write_synthetic(out, args.vertices, args.frames, args.seed, args.quiet, hmc)
     print(f"synthetic actor: {r['actor'].n_vertices} vertices, {r['dataset'].n_shapes} shapes, "
           f"{len(r['layout'])} markers, {args.frames} frames (seed {args.seed})")
     names = ["dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz"]
     if hmc:
-        names += ["hmc/cam0", "hmc/cam1", "hmc/calib", "hmc/cameras_true.json", "hmc/truth.npz"]
+        names += ["hmc/cam0", "hmc/cam1", "hmc/calib", "hmc/cameras_true.json", "hmc/helmet.csv", "hmc/truth.npz"]
     for name in names:
         print(f"  {out / name}")
     return 0
@@ -188,8 +188,13 @@ def cmd_track(args: argparse.Namespace) -> int:
         raise InputError(f"dataset units {units!r}: expected mm, cm or m")
     mm = scale[units]
     t0 = time.perf_counter()
+    helmet = None
+    if args.helmet:
+        from .footage import read_helmet
+
+        helmet = read_helmet(args.helmet)
     shot = track_footage(args.footage_dir, rig, neutral * mm, layout.names, labels=args.labels,
-                         reference=args.reference_frame, options=TrackOptions(gate_px=args.gate))
+                         reference=args.reference_frame, options=TrackOptions(gate_px=args.gate), helmet=helmet)
     dt = time.perf_counter() - t0
     out = Path(args.out)
     tracks_out = Path(args.tracks) if args.tracks else out.with_name(out.stem + ".tracks.parquet")
@@ -206,6 +211,9 @@ def cmd_track(args: argparse.Namespace) -> int:
           f"only (kept in the tracks table), {len(tr.anchors)} anchor frames")
     print(f"reprojection error: median {np.median(err):.3f} px, p95 {np.percentile(err, 95):.3f} px; rejected "
           f"{int((tr.rejected == 1).sum())} epipolar, {int((tr.rejected == 2).sum())} neighbour inconsistencies")
+    if len(err) and np.median(err) > 0.5:
+        print(f"warning: the median reprojection error is {np.median(err):.2f} px: the rig may have moved since its "
+              "calibration" + ("" if args.helmet else " (pass --helmet to refine it from the helmet markers)"))
     print(f"stable markers for head stabilisation: "
           f"{', '.join(n for n, w in zip(layout.names, shot.stable_weights, strict=True) if w > 0.5)}")
     print(f"{F / dt:.1f} frames/s (detect {shot.seconds['detect']:.2f} s, track {shot.seconds['track']:.2f} s, "
@@ -651,6 +659,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dot-noise", type=float, default=0.3, metavar="PX",
                    help="random offset of each painted dot per camera and frame, px (0.3)")
     s.add_argument("--board-views", type=int, default=15, metavar="N", help="calibration board views (15)")
+    s.add_argument("--rig-flex", type=float, default=0.0, metavar="DEG",
+                   help="turn camera 1 by this angle during the shot, after calibration (0; see lgi track --helmet)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_synth)
 
@@ -670,6 +680,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--reference-frame", type=int, default=0, metavar="F", help="frame to label (0)")
     s.add_argument("--gate", type=float, default=12.0, metavar="PX", help="tracking search radius (12 px)")
     s.add_argument("--tracks", metavar="PARQUET", help="2D tracks table (default OUT's stem + .tracks.parquet)")
+    s.add_argument("--helmet", metavar="CSV",
+                   help="markers fixed on the helmet (name,x,y,z in mm, calibration frame): refine the extrinsics "
+                        "for this shot from them")
     s.set_defaults(func=cmd_track)
 
     s = sub.add_parser("bundles", help="evaluate markers on dataset shapes (one frame per shape)",

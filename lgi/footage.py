@@ -97,15 +97,65 @@ def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots
     return uv
 
 
+def read_helmet(path: str | os.PathLike[str]) -> np.ndarray:
+    """Helmet marker positions (H, 3), mm in the calibration's frame, from a CSV ``name,x,y,z``."""
+    try:
+        df = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read the helmet marker file: {e}", path=path) from e
+    if not {"x", "y", "z"} <= set(df.columns):
+        raise InputError("helmet marker file needs columns name,x,y,z (mm)", path=path)
+    pts = df[["x", "y", "z"]].to_numpy(np.float64)
+    bad = np.flatnonzero(~np.all(np.isfinite(pts), axis=1))
+    if len(bad):
+        raise InputError("non-numeric position", path=path, line=int(bad[0]) + 2)
+    if len(pts) < 4:
+        raise InputError(f"{len(pts)} helmet markers, at least 4 are needed", path=path)
+    return pts
+
+
+def refine_rig(rig: StereoRig, helmet: np.ndarray, dots: list[tuple[Dots, Dots]], gate_px: float = 15.0
+               ) -> tuple[StereoRig, np.ndarray]:
+    """Refine the rig's extrinsics from helmet markers seen in the shot.
+
+    Each helmet marker takes, per frame and camera, the nearest detection to its projection through the
+    calibrated rig (within ``gate_px``); the median over the frames is its observation.
+    """
+    obs = []
+    for c, cam in enumerate(rig.cameras):
+        pred = cam.project(helmet)
+        per = np.full((len(dots), len(helmet), 2), np.nan)
+        for f, pair in enumerate(dots):
+            xy = pair[c].xy
+            if len(xy) == 0:
+                continue
+            d = np.linalg.norm(pred[:, None] - xy[None], axis=2)
+            j = np.argmin(d, axis=1)
+            hit = d[np.arange(len(helmet)), j] <= gate_px
+            per[f, hit] = xy[j[hit]]
+        with np.errstate(all="ignore"):
+            obs.append(np.nanmedian(per, axis=0) if np.isfinite(per).any() else per[0])
+    return rig.refine_with_points(helmet, obs[0], obs[1])
+
+
 def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.ndarray, names: list[str],
                   labels: str | os.PathLike[str] | None = None, reference: int = 0,
                   options: TrackOptions | None = None, dot_options: DotOptions | None = None,
-                  workers: int = 2) -> ShotTracks:
-    """Footage -> labelled tracks -> triangulated, head-stabilised bundles (mm). See :mod:`lgi.tracking`."""
+                  workers: int = 2, helmet: np.ndarray | None = None) -> ShotTracks:
+    """Footage -> labelled tracks -> triangulated, head-stabilised bundles (mm). See :mod:`lgi.tracking`.
+
+    With ``helmet`` (H, 3) marker positions (mm, calibration frame), the rig's extrinsics are first
+    refined from those markers as seen in this shot (:func:`refine_rig`).
+    """
     from .headstab import stabilize_bundles
 
     t0 = time.perf_counter()
     frames, dots, thumbs = detect_footage(folder, rig.cameras[0].size, dot_options, workers)
+    if helmet is not None:
+        try:
+            rig, _ = refine_rig(rig, helmet, dots)
+        except ValueError as e:
+            raise InputError(f"helmet markers: {e}", path=folder) from e
     t1 = time.perf_counter()
     if not 0 <= reference < len(frames):
         raise InputError(f"reference frame {reference} is outside the shot (0-{len(frames) - 1})", path=folder)

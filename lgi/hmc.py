@@ -14,6 +14,7 @@ Layout written by :func:`write_footage` (``OUT/hmc``)::
     cam1/000000.png ...     lower camera
     calib/left01.png, right01.png ...   board views for ``lgi calibrate``
     cameras_true.json       the true rig in the calibration format (camera 0 frame, mm) plus the head frame
+    helmet.csv              the helmet dots (name,x,y,z; mm, calibration frame)
     truth.npz               per frame: head motion, true 2D dot centres and visibility per camera
 """
 
@@ -29,6 +30,9 @@ import numpy as np
 from .camera import Camera, StereoRig
 
 MM_PER_CM = 10.0
+# Dots fixed on the helmet (head frame, mm), beside the face: each on a light plate, seen by both cameras.
+HELMET_MM = np.array([[82.0, 60, 45], [-82, 60, 40], [88, -20, 35], [-88, -25, 38], [80, -95, 48], [-80, -92, 44]])
+HELMET_PLATE_MM = 4.0
 
 
 def look_at(center: np.ndarray, target: np.ndarray, up: tuple[float, float, float] = (0.0, 1.0, 0.0)
@@ -147,7 +151,8 @@ class Renderer:
         return np.einsum("dk,dkx->dx", self.dot_weights, vertices[self.dot_vertices])
 
     def render(self, camera: Camera, vertices_mm: np.ndarray, rng: np.random.Generator,
-               dot_jitter_px: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               dot_jitter_px: float = 0.0, helmet_mm: np.ndarray | None = None,
+               plate_towards: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Render one image.
 
         Parameters
@@ -155,6 +160,7 @@ class Renderer:
         vertices_mm : (V, 3) face in the world (helmet) frame, mm
         dot_jitter_px : random displacement of each painted dot (pixels, per axis, Gaussian): how far the
             paint's centre is from the marker's true point, as seen by this camera
+        helmet_mm : (H, 3), optional: helmet dots (world frame), drawn on light plates facing ``plate_towards``
 
         Returns
         -------
@@ -192,11 +198,37 @@ class Renderer:
         painted_px = camera.project((dc - camera.t) @ camera.R)  # jittered centres back in the world frame
         _raster.paint_dots(img, pos, dc.astype(np.float32), painted_px, self.dot_radius_mm, rpx,
                            pix.astype(np.float64), 0.08)
+        if helmet_mm is not None:
+            self._paint_helmet(img, camera, helmet_mm, plate_towards)
         img = cv2.GaussianBlur(img, (0, 0), self.blur_px)
         img = img * 255.0 + rng.normal(0, self.noise, img.shape)
         image = np.clip(np.rint(img), 0, 255).astype(np.uint8)
         visible = self._visible(camera, dots_mm, n, zbuf)
         return image, centers, visible
+
+    def _paint_helmet(self, img: np.ndarray, camera: Camera, helmet_mm: np.ndarray, towards: np.ndarray) -> None:
+        h, w = img.shape
+        for P in helmet_mm:
+            n = towards - P
+            n /= np.linalg.norm(n)
+            Pc, nc = camera.to_camera(P[None])[0], camera.R @ n
+            c = camera.project(P[None])[0]
+            r = 1.5 * HELMET_PLATE_MM * camera.K[0, 0] / Pc[2] + 2
+            x0, x1 = max(int(c[0] - r), 0), min(int(c[0] + r) + 1, w - 1)
+            y0, y1 = max(int(c[1] - r), 0), min(int(c[1] + r) + 1, h - 1)
+            if x1 <= x0 or y1 <= y0:
+                continue
+            yy, xx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+            xy = camera.normalized(np.column_stack([xx.ravel(), yy.ravel()]))
+            d = np.column_stack([xy, np.ones(len(xy))])
+            X = d * ((nc @ Pc) / (d @ nc))[:, None]
+            dist = np.linalg.norm(X - Pc, axis=1).reshape(xx.shape)
+            pix = Pc[2] / camera.K[0, 0]
+            plate = np.clip((HELMET_PLATE_MM - dist) / pix + 0.5, 0, 1)
+            dot = np.clip((self.dot_radius_mm - dist) / pix + 0.5, 0, 1)
+            win = img[y0:y1 + 1, x0:x1 + 1]
+            win[:] = win * (1 - plate) + 0.85 * plate
+            win *= 1 - 0.92 * dot
 
     def _visible(self, camera: Camera, dots_mm: np.ndarray, normals: np.ndarray, zbuf: np.ndarray) -> np.ndarray:
         w, h = camera.size
@@ -324,9 +356,13 @@ def write_json(path: str | os.PathLike[str], doc: dict) -> None:
 
 def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.ndarray, model: str = "fisheye",
                   size: tuple[int, int] = (1280, 1024), seed: int = 0, dot_noise_px: float = 0.3,
-                  board_views: int = 15, slip_deg: float = 1.0, slip_mm: float = 1.5,
+                  board_views: int = 15, slip_deg: float = 1.0, slip_mm: float = 1.5, flex_deg: float = 0.0,
                   show_progress: bool = True) -> dict:
     """Render the performance (activations (F, C)) and board views into ``out`` (see the module docstring).
+
+    ``flex_deg``: the rig flexed since its calibration: during the shot camera 1 is turned by this angle
+    (the board views are rendered with the calibrated rig). ``helmet.csv`` gives the helmet dots in the
+    calibration's frame, for ``lgi track --helmet``.
 
     Returns a summary: the rig, the head motion and per-camera visibility counts.
     """
@@ -339,6 +375,14 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     for sub in ("cam0", "cam1", "calib"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     rig = hmc_rig(model, size)
+    shot_rig = rig
+    if flex_deg:
+        from scipy.spatial.transform import Rotation
+
+        c1 = rig.cameras[1]
+        turn = Rotation.from_rotvec(np.radians(flex_deg) * np.array([0.6, -0.64, 0.48])).as_matrix()
+        shot_rig = StereoRig([rig.cameras[0], c1.with_pose(turn @ c1.R, turn @ c1.t)])  # about its own centre
+    towards = 0.5 * (rig.cameras[0].center + rig.cameras[1].center)
     rng = np.random.default_rng(seed + 11)
     renderer = Renderer(actor.triangles, actor.neutral, layout.vertices, layout.weights, seed=seed)
     F, D = len(activations), len(layout)
@@ -348,8 +392,8 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
     for f in progress(range(F), total=F, desc="HMC frames", disable=not show_progress):
         v = actor.evaluate(activations[f]) * MM_PER_CM @ R[f].T + t[f]
-        for c, cam in enumerate(rig.cameras):
-            img, ctr, vis = renderer.render(cam, v, rng, dot_noise_px)
+        for c, cam in enumerate(shot_rig.cameras):
+            img, ctr, vis = renderer.render(cam, v, rng, dot_noise_px, HELMET_MM, towards)
             centers[f, c], visible[f, c] = ctr, vis
             cv2.imwrite(str(out / f"cam{c}" / f"{f:06d}.png"), img, png)
     board = Board.parse("chessboard:9x6:12")
@@ -360,9 +404,16 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     doc = calibration_json(rig)
     doc["board"] = board.spec()
     doc["head_frame"] = {"note": "the true cameras in the head (helmet) frame, mm", **rig.to_json()}
+    doc["shot_head_frame"] = {"note": f"the cameras during the shot (camera 1 flexed by {flex_deg} deg)",
+                              **shot_rig.to_json()}
     write_json(out / "cameras_true.json", doc)
+    import pandas as pd
+
+    hc = rig.cameras[0].to_camera(HELMET_MM)
+    pd.DataFrame({"name": [f"helmet_{k + 1}" for k in range(len(hc))], "x": hc[:, 0], "y": hc[:, 1],
+                  "z": hc[:, 2]}).to_csv(out / "helmet.csv", index=False)
     from .npz import save_npz
 
     save_npz(out / "truth.npz", head_rotation=R, head_translation=t, centers=centers.astype(np.float32),
              visible=visible, markers=np.asarray(layout.names), units=np.asarray("mm"))
-    return {"rig": rig, "visible": visible, "frames": F, "board": board.spec()}
+    return {"rig": rig, "shot_rig": shot_rig, "visible": visible, "frames": F, "board": board.spec()}
