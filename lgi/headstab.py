@@ -36,14 +36,14 @@ def stabilize_bundles(X: np.ndarray, layout: np.ndarray, stable_fraction: float 
     F, M = X.shape[:2]
     seen = np.all(np.isfinite(X), axis=2)
 
-    def fit_all(w: np.ndarray):
+    def fit_all(w: np.ndarray, robust: bool = True):
         R = np.full((F, 3, 3), np.nan)
         t = np.full((F, 3), np.nan)
         for f in range(F):
             s = seen[f] & (w > 0)
             if s.sum() < 3:
                 continue
-            fit = rigid_fit(layout[s], X[f, s], weights=w[s])
+            fit = rigid_fit(layout[s], X[f, s], weights=w[s], robust=robust)
             R[f], t[f] = fit.rotation, fit.translation
         return R, t
 
@@ -52,8 +52,8 @@ def stabilize_bundles(X: np.ndarray, layout: np.ndarray, stable_fraction: float 
         # markers that move least. Starts from all markers (the robust fit discounts the moving ones).
         w = np.ones(M)
         k = min(max(int(round(stable_fraction * M)), min_stable), M)
-        for _ in range(iterations):
-            R, t = fit_all(w)
+        for it in range(iterations):
+            R, t = fit_all(w, robust=it == 0)  # later rounds fit only the (weighted) stable set
             res = np.linalg.norm(np.einsum("fij,mj->fmi", R, layout) + t[:, None] - X, axis=2)
             ok = seen & np.isfinite(res)
             n_seen = ok.sum(axis=0)

@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from .camera import StereoRig
 from .dots import Dots
+from .stabilize import rigid_fit
 
 
 @dataclass
@@ -325,6 +326,13 @@ class Tracker:
             if a == reference:
                 continue
             u, c, X, r = self._observe(ref_X, dots[a], self.o.anchor_gate_px)
+            # The head may have moved in the helmet: align the reference rigidly to this first match, then
+            # match again from the aligned reference.
+            seen = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(ref_X), axis=1)
+            if seen.sum() < 6:
+                continue
+            fit = rigid_fit(ref_X[seen], X[seen])
+            u, c, X, r = self._observe(ref_X @ fit.rotation.T + fit.translation, dots[a], self.o.anchor_gate_px / 2)
             # A candidate is an anchor only if it matches the reference closely almost everywhere.
             ok = np.isfinite(c)
             if ok.sum() < self.o.anchor_min_matched * n_ref or np.median(c[ok]) > self.o.anchor_max_median_px:
