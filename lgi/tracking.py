@@ -206,13 +206,12 @@ class Tracker:
     # ------------------------------------------------------------------ tracking
     def _neighbour_motion(self, moved: np.ndarray, seen: np.ndarray) -> np.ndarray:
         """(M, 3) median motion of each marker's seen neighbours (zero if none)."""
-        out = np.zeros_like(moved)
-        nb_seen = seen[self.nbrs]
-        for m in range(len(moved)):
-            s = self.nbrs[m][nb_seen[m]]
-            if len(s):
-                out[m] = np.median(moved[s], axis=0)
-        return out
+        mask = seen[self.nbrs]
+        nb = np.sort(np.where(mask[..., None], moved[self.nbrs], np.nan), axis=1)  # NaN sort last
+        cnt = mask.sum(axis=1)
+        lo = np.take_along_axis(nb, np.maximum((cnt - 1) // 2, 0)[:, None, None], axis=1)[:, 0]
+        hi = np.take_along_axis(nb, (cnt // 2)[:, None, None].clip(max=nb.shape[1] - 1), axis=1)[:, 0]
+        return np.where(cnt[:, None] > 0, 0.5 * (lo + hi), 0.0)
 
     def _complete(self, X: np.ndarray, ref_X: np.ndarray) -> np.ndarray:
         """Fill markers missing from ``X`` (M, 3) with the reference moved like their seen neighbours."""
