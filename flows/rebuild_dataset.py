@@ -16,7 +16,16 @@ from prefect import flow
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 
 from lgi.pipeline import options_from
-from tasks.dataset import assemble, natural_neighbours, point_clouds, publish, read_shapes, stabilise, verify
+from tasks.dataset import (
+    assemble,
+    augment,
+    natural_neighbours,
+    point_clouds,
+    publish,
+    read_shapes,
+    stabilise,
+    verify,
+)
 
 
 @flow(name="rebuild-dataset", log_prints=True)
@@ -34,8 +43,12 @@ def rebuild_dataset(
     jaw_rig: str | None = None,
     tolerance: float = 0.01,
     cache_dir: str | None = None,
+    augmentation: dict | None = None,
 ) -> dict:
     """Build ``OUT/dataset`` and, with ``markers``, ``OUT/index`` and ``OUT/verification.csv``.
+
+    ``augmentation`` (parameters of :func:`lgi.pipeline.augment_stage`, e.g. ``{"simulate": True,
+    "budget": 100}``) adds in-betweens: ``OUT/dataset_augmented``, which the index is then built from.
 
     Returns a summary: paths, the dataset's content hash, counts, verification figures, and which stages
     were cache hits (``stages``: name -> true if nothing was computed).
@@ -51,6 +64,13 @@ def rebuild_dataset(
     summary = {"path": str((out_dir / "dataset").resolve()), "content_hash": manifest["content_hash"],
                "n_shapes": manifest["n_shapes"], "n_vertices": manifest["n_vertices"],
                "stabilisation": manifest["info"].get("stabilisation", {}).get("method", "none"), "stages": stages}
+    if augmentation:
+        aug, stages["augment"] = augment(cache, dataset_dir, augmentation, jaw_rig)
+        dataset_dir = str(Path(aug) / "dataset")
+        publish(dataset_dir, str(out_dir / "dataset_augmented"))
+        aug_manifest = json.loads((Path(dataset_dir) / "manifest.json").read_text())
+        summary["augmented"] = {"path": str((out_dir / "dataset_augmented").resolve()),
+                                "n_shapes": aug_manifest["n_shapes"], **aug_manifest["info"].get("augmented", {})}
     if markers:
         opts = options_from(index_options).to_json()
         nat, stages["natural"] = natural_neighbours(cache, dataset_dir, markers, opts)

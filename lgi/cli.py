@@ -410,13 +410,11 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_augment(args: argparse.Namespace) -> int:
-    from .augment import augmentation_report, linear_combinations
+    from .augment import augmentation_report, linear_combinations, pick_combinations, simulated_combinations
     from .dataset import ShapeDataset
 
-    if args.simulate:
-        raise InputError("--simulate (physically simulated in-betweens) is not implemented yet; use --linear")
-    if not args.linear:
-        raise InputError("choose an augmentation: --linear")
+    if not (args.linear or args.simulate):
+        raise InputError("choose an augmentation: --linear and/or --simulate")
     try:
         levels = tuple(float(v) for v in args.levels.split(","))
         orders = tuple(int(v) for v in args.orders.split(","))
@@ -427,11 +425,30 @@ def cmd_augment(args: argparse.Namespace) -> int:
     if args.requires:
         requires = dict(part.split("=", 1) for part in args.requires.split(",") if "=" in part)
     ds = ShapeDataset.load(args.dataset_dir)
-    aug = linear_combinations(ds, args.budget, levels=levels, orders=orders, seed=args.seed, requires=requires,
-                              include=args.include)
+    src = ds.select(include=args.include) if args.include else ds
+    picks = pick_combinations(src.names, args.budget, levels, orders, args.seed, requires)
+    aug = ds
+    if args.linear:
+        aug = linear_combinations(aug, 0, levels, orders, args.seed, picks=picks)
+    if args.simulate:
+        from .flesh import FleshOptions
+
+        rig = None
+        if args.jaw_rig:
+            from .jaw import JawRig
+
+            rig = JawRig.load(args.jaw_rig, ds.n_vertices)
+        opts = FleshOptions(thickness=args.thickness, iterations=args.iterations)
+        t0 = time.perf_counter()
+        aug = simulated_combinations(aug, 0, levels, orders, args.seed, rig=rig, options=opts, picks=picks,
+                                     show_progress=not args.quiet)
+        dv = [abs(m.extra["volume_change"]) for m in aug.shape_meta if m.extra.get("method") == "simulated"]
+        print(f"{len(picks)} simulated in-betweens in {time.perf_counter() - t0:.1f} s; flesh volume change "
+              f"median {100 * np.median(dv):.2f} %, max {100 * np.max(dv):.2f} %"
+              + ("" if rig else " (no --jaw-rig: the jaw side is held at rest and the lips are not kept apart)"))
     aug.save(args.out)
-    print(f"{aug.n_shapes - ds.n_shapes} linear in-betweens added (budget {args.budget}) -> {aug.n_shapes} shapes in "
-          f"{Path(args.out).resolve()}")
+    print(f"{aug.n_shapes - ds.n_shapes} in-betweens added ({len(picks)} combinations, budget {args.budget}) -> "
+          f"{aug.n_shapes} shapes in {Path(args.out).resolve()}")
     if args.markers:
         from .markers import read_layout
 
@@ -774,14 +791,22 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_rig)
 
     s = sub.add_parser("augment", help="add in-between shapes to a dataset",
-                       description="Add linear in-betweens: combinations of 2-3 compatible shapes at fixed weights, "
+                       description="Add in-betweens: combinations of 2-3 compatible shapes at fixed weights, "
                                    "tagged with their sources (opposites such as jawLeft+jawRight are skipped; "
-                                   "mouthClose only with jawOpen).")
+                                   "mouthClose only with jawOpen), as linear blends and/or simulated with a "
+                                   "volume-preserving flesh model (the same combinations for both).")
     s.add_argument("dataset_dir", metavar="DATASET_DIR")
     s.add_argument("--out", required=True, metavar="DATASET_DIR2")
     s.add_argument("--linear", action="store_true", help="linear combinations of dataset shapes")
-    s.add_argument("--simulate", action="store_true", help="physically simulated in-betweens (not implemented yet)")
-    s.add_argument("--budget", type=int, default=200, metavar="N", help="shapes to add at most (200)")
+    s.add_argument("--simulate", action="store_true",
+                   help="physically simulated in-betweens (volumetric flesh, volume kept, lips kept apart)")
+    s.add_argument("--budget", type=int, default=200, metavar="N",
+                   help="combinations to add at most, per method (200)")
+    s.add_argument("--jaw-rig", metavar="RIG_NPZ", help="--simulate: the jaw carries the flesh's jaw side; lip contact")
+    s.add_argument("--thickness", type=float, default=0.8, metavar="D",
+                   help="--simulate: flesh thickness in dataset units (0.8)")
+    s.add_argument("--iterations", type=int, default=60, metavar="N", help="--simulate: solver iterations (60)")
+    s.add_argument("-q", "--quiet", action="store_true")
     s.add_argument("--levels", default="0.25,0.5,0.75,1", metavar="W,...", help="weights a source may take")
     s.add_argument("--orders", default="2,3", metavar="K,...", help="sources per combination")
     s.add_argument("--include", metavar="PATTERN", help="only these source shapes")

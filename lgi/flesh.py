@@ -22,10 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit, prange
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
-
-from numba import njit, prange
 
 from .mesh import triangle_areas, vertex_normals
 
@@ -41,7 +40,7 @@ class FleshOptions:
     rings: int = 2
     soft_fraction: float = 0.2
     strain_weight: float = 1.0
-    volume_weight: float = 100.0
+    volume_weight: float = 300.0
     target_weight: float = 1.0
     iterations: int = 60
     lip_radius: float = 0.3

@@ -83,6 +83,40 @@ def stabilise_stage(cache: StageCache, raw_dir: Path, rigid_vertices: str | None
     return cache.run("stabilise", inputs, make)
 
 
+def augment_stage(cache: StageCache, dataset_dir: Path, params: dict[str, Any],
+                  jaw_rig: str | None = None) -> tuple[Path, bool]:
+    """In-betweens (:mod:`lgi.augment`); result: a dataset directory with the captured shapes first.
+
+    ``params``: ``linear`` and/or ``simulate`` (bool), ``budget`` (combinations per method), ``levels``,
+    ``orders``, ``seed``, ``thickness`` and ``iterations`` (simulation).
+    """
+    from .augment import linear_combinations, pick_combinations, simulated_combinations
+    from .flesh import FleshOptions
+
+    p = {"linear": False, "simulate": False, "budget": 200, "levels": [0.25, 0.5, 0.75, 1.0], "orders": [2, 3],
+         "seed": 0, "thickness": 0.8, "iterations": 60, **params}
+    inputs = {"dataset": [hash_file(dataset_dir / f) for f in ("manifest.json", "mesh.npz", "deltas.npy")],
+              "params": p, "jaw_rig": hash_file(jaw_rig) if jaw_rig else None}
+
+    def make(out: Path) -> None:
+        ds = ShapeDataset.load(dataset_dir)
+        picks = pick_combinations(ds.names, int(p["budget"]), tuple(p["levels"]), tuple(p["orders"]), int(p["seed"]))
+        aug = ds
+        if p["linear"]:
+            aug = linear_combinations(aug, 0, picks=picks)
+        if p["simulate"]:
+            rig = None
+            if jaw_rig:
+                from .jaw import JawRig
+
+                rig = JawRig.load(jaw_rig, ds.n_vertices)
+            aug = simulated_combinations(aug, 0, rig=rig, picks=picks,
+                                         options=FleshOptions(thickness=p["thickness"], iterations=p["iterations"]))
+        aug.save(out / "dataset")
+
+    return cache.run("augment", inputs, make)
+
+
 def natural_stage_cached(cache: StageCache, dataset_dir: Path, markers: str,
                          opts: IndexOptions) -> tuple[Path, bool]:
     """Natural-neighbour weights and the correction basis; result: ``natural.npz``."""

@@ -33,6 +33,13 @@ def stabilise(cache_dir: str, raw_dir: str, rigid_vertices: str | None = "auto")
     return str(path), hit
 
 
+@task(name="augment", **_T)
+def augment(cache_dir: str, dataset_dir: str, params: dict, jaw_rig: str | None = None) -> tuple[str, bool]:
+    """Linear and/or simulated in-betweens (see :func:`lgi.pipeline.augment_stage`)."""
+    path, hit = pipeline.augment_stage(StageCache(cache_dir), Path(dataset_dir), params, jaw_rig)
+    return str(path), hit
+
+
 @task(name="natural-neighbours", **_T)
 def natural_neighbours(cache_dir: str, dataset_dir: str, markers: str, options: dict) -> tuple[str, bool]:
     """Geodesic Voronoi, Sibson weights and the correction basis."""

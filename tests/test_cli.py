@@ -200,5 +200,17 @@ def test_augment_linear(tmp_path: Path) -> None:
     np.testing.assert_allclose(aug.deltas[-1], expect, atol=1e-5)
     rep = pd.read_csv(tmp_path / "aug" / "augmentation.csv")
     assert (rep.kept >= 0).all() and (rep.points_augmented >= rep.points_original).all() and rep.kept.sum() > 0
-    assert main(["augment", str(s / "dataset"), "--out", str(tmp_path / "sim"), "--simulate"]) == 2
-    assert not (tmp_path / "sim").exists()
+    # Both methods on the same combinations, tagged; the report has a column pair per method.
+    assert main(["augment", str(s / "dataset"), "--out", str(tmp_path / "both"), "--linear", "--simulate", "--budget",
+                 "4", "--jaw-rig", str(s / "jaw_rig.npz"), "--markers", str(s / "markers.csv"), "-q"]) == 0
+    both = ShapeDataset.load(tmp_path / "both")
+    methods = [m.extra["method"] for m in both.shape_meta[orig.n_shapes:]]
+    assert methods == ["linear"] * 4 + ["simulated"] * 4
+    sims = both.shape_meta[orig.n_shapes + 4:]
+    assert [m.extra["sources"] for m in sims] == [m.extra["sources"] for m in both.shape_meta[orig.n_shapes:][:4]]
+    assert all(abs(m.extra["volume_change"]) < 0.05 for m in sims)
+    rep = pd.read_csv(tmp_path / "both" / "augmentation.csv")
+    assert {"kept_linear", "kept_simulated", "added_simulated"} <= set(rep.columns)
+    # Choosing no method is bad input, and leaves nothing.
+    assert main(["augment", str(s / "dataset"), "--out", str(tmp_path / "none")]) == 2
+    assert not (tmp_path / "none").exists()

@@ -51,3 +51,22 @@ def test_import_command_runs_the_flow(prefect_harness, tmp_path: Path, obj_folde
     assert ShapeDataset.load(tmp_path / "out" / "dataset", verify=True).n_shapes == 3
     assert (tmp_path / "out" / "verification" / "verification.csv").is_file()
     assert (tmp_path / "out" / "report.md").read_text().startswith("# Dataset rebuild")
+
+
+def test_rebuild_flow_augments(prefect_harness, tmp_path: Path, obj_folder: Path, small_actor) -> None:
+    from flows.rebuild_dataset import rebuild_dataset
+
+    layout, _ = synth.default_layout(small_actor)
+    markers = tmp_path / "m.csv"
+    write_layout(markers, layout, small_actor.neutral)
+    aug = {"linear": True, "simulate": True, "budget": 2, "levels": [0.5, 1.0]}
+    first = rebuild_dataset(str(obj_folder), str(tmp_path / "a"), markers=str(markers), augmentation=aug,
+                            cache_dir=str(tmp_path / "cache"))
+    assert not first["stages"]["augment"] and first["augmented"]["n_shapes"] == 3 + 2 * 2
+    ds = ShapeDataset.load(tmp_path / "a" / "dataset_augmented", verify=True)
+    assert [m.extra.get("method") for m in ds.shape_meta[3:]] == ["linear", "linear", "simulated", "simulated"]
+    assert first["verification"]["passed"]
+    again = rebuild_dataset(str(obj_folder), str(tmp_path / "b"), markers=str(markers), augmentation=aug,
+                            cache_dir=str(tmp_path / "cache"))
+    assert again["stages"]["augment"] and _same_tree(tmp_path / "a" / "dataset_augmented",
+                                                     tmp_path / "b" / "dataset_augmented")
