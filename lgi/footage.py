@@ -72,7 +72,8 @@ def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots
                 max_px: float = 3.0) -> np.ndarray:
     """Reference-frame labels from a CSV ``camera,x,y,marker`` (camera 0 or 1, pixels).
 
-    Each labelled point takes the nearest detection within ``max_px``. Returns (M, 2, 2), NaN where unlabelled.
+    Each labelled point takes the nearest detection within ``max_px``; a label with none is left out with a
+    warning, unless most are (then the file is refused). Returns (M, 2, 2), NaN where unlabelled.
     """
     try:
         df = pd.read_csv(path)
@@ -81,8 +82,11 @@ def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots
     missing = {"camera", "x", "y", "marker"} - set(df.columns)
     if missing:
         raise InputError(f"label file needs columns camera,x,y,marker; missing {sorted(missing)}", path=path)
+    import sys
+
     index = {n: i for i, n in enumerate(names)}
     uv = np.full((len(names), 2, 2), np.nan)
+    misses = []
     for r, row in enumerate(df.itertuples(index=False), start=2):
         if row.marker not in index:
             raise InputError("unknown marker", path=path, line=r, marker=str(row.marker))
@@ -91,9 +95,17 @@ def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots
         xy = dots[int(row.camera)].xy
         d = np.linalg.norm(xy - [row.x, row.y], axis=1) if len(xy) else np.array([np.inf])
         if d.min() > max_px:
-            raise InputError(f"no dot detected within {max_px} px of ({row.x}, {row.y}) in camera {row.camera}",
-                             path=path, line=r, marker=str(row.marker))
+            misses.append(InputError(f"no dot detected within {max_px} px of ({row.x}, {row.y}) in camera "
+                                     f"{row.camera}", path=path, line=r, marker=str(row.marker)))
+            continue
         uv[index[row.marker], int(row.camera)] = xy[int(np.argmin(d))]
+    # A few labels on dots the detector missed are left to the tracker; most of them missing means the
+    # labels are for another frame or another shot.
+    if misses and len(misses) > 0.5 * len(df):
+        raise InputError(f"{len(misses)} of {len(df)} labels have no detected dot near them (wrong reference frame "
+                         f"or shot?); first: {misses[0]}", path=path)
+    for m in misses:
+        print(f"warning: {m} (left unlabelled)", file=sys.stderr)
     return uv
 
 

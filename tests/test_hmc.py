@@ -215,3 +215,22 @@ def test_helmet_markers_refine_a_flexed_rig() -> None:
     err_old = np.linalg.norm(rig.triangulate(*obs)[0] - X, axis=1)
     err_new = np.linalg.norm(refined.triangulate(*obs)[0] - X, axis=1)
     assert np.median(err_new) < 0.2 * np.median(err_old) and np.median(err_new) < 0.3
+
+
+def test_track_from_a_label_file(hmc_shot: Path, tmp_path: Path) -> None:
+    from lgi.bundles import read_bundles
+
+    t2 = np.load(hmc_shot / "hmc" / "truth.npz")
+    names = list(t2["markers"])
+    rows = [(c, *t2["centers"][0, c, m], names[m]) for c in range(2) for m in range(len(names))
+            if t2["visible"][0, c, m]]
+    labels = tmp_path / "labels.csv"
+    pd.DataFrame(rows, columns=["camera", "x", "y", "marker"]).to_csv(labels, index=False)
+    out = tmp_path / "t.csv"
+    assert main(["track", str(hmc_shot / "hmc"), "--calib", str(hmc_shot / "hmc" / "cameras_true.json"),
+                 "--markers", str(hmc_shot / "markers.csv"), "--out", str(out), "--labels", str(labels),
+                 "--helmet", str(hmc_shot / "hmc" / "helmet.csv")]) == 0
+    tracked, truth = read_bundles(out), read_bundles(hmc_shot / "bundles.csv")
+    idx = [truth.markers.index(m) for m in tracked.markers]
+    err_mm = 10 * np.linalg.norm(tracked.positions - truth.positions[:, idx], axis=2)
+    assert np.sqrt(np.nanmean(err_mm**2)) < 0.5 and np.isfinite(err_mm).mean() > 0.95
