@@ -164,6 +164,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     from .atomic import atomic_file
     from .bundles import Bundles, write_bundles
     from .camera import StereoRig
+    from .dots import DotOptions
     from .footage import track_footage, tracks_table
     from .markers import read_layout
     from .tracking import TrackOptions
@@ -194,7 +195,8 @@ def cmd_track(args: argparse.Namespace) -> int:
 
         helmet = read_helmet(args.helmet)
     shot = track_footage(args.footage_dir, rig, neutral * mm, layout.names, labels=args.labels,
-                         reference=args.reference_frame, options=TrackOptions(gate_px=args.gate), helmet=helmet)
+                         reference=args.reference_frame, options=TrackOptions(gate_px=args.gate), helmet=helmet,
+                         dot_options=DotOptions.for_size(args.dot_size))
     dt = time.perf_counter() - t0
     out = Path(args.out)
     tracks_out = Path(args.tracks) if args.tracks else out.with_name(out.stem + ".tracks.parquet")
@@ -440,8 +442,11 @@ def cmd_augment(args: argparse.Namespace) -> int:
             rig = JawRig.load(args.jaw_rig, ds.n_vertices)
         opts = FleshOptions(thickness=args.thickness, iterations=args.iterations)
         t0 = time.perf_counter()
-        aug = simulated_combinations(aug, 0, levels, orders, args.seed, rig=rig, options=opts, picks=picks,
-                                     show_progress=not args.quiet)
+        try:
+            aug = simulated_combinations(aug, 0, levels, orders, args.seed, rig=rig, options=opts, picks=picks,
+                                         show_progress=not args.quiet)
+        except ValueError as e:  # e.g. a dataset in which nothing moves
+            raise InputError(f"cannot simulate in-betweens: {e}", path=args.dataset_dir) from e
         dv = [abs(m.extra["volume_change"]) for m in aug.shape_meta if m.extra.get("method") == "simulated"]
         print(f"{len(picks)} simulated in-betweens in {time.perf_counter() - t0:.1f} s; flesh volume change "
               f"median {100 * np.median(dv):.2f} %, max {100 * np.max(dv):.2f} %"
@@ -696,6 +701,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--labels", metavar="CSV", help="reference-frame labels: camera,x,y,marker")
     s.add_argument("--reference-frame", type=int, default=0, metavar="F", help="frame to label (0)")
     s.add_argument("--gate", type=float, default=12.0, metavar="PX", help="tracking search radius (12 px)")
+    s.add_argument("--dot-size", type=float, default=9.0, metavar="PX",
+                   help="typical painted dot diameter in the images (9 px): sets the detector's scale")
     s.add_argument("--tracks", metavar="PARQUET", help="2D tracks table (default OUT's stem + .tracks.parquet)")
     s.add_argument("--helmet", metavar="CSV",
                    help="markers fixed on the helmet (name,x,y,z in mm, calibration frame): refine the extrinsics "
