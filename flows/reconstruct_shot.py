@@ -21,7 +21,7 @@ from prefect.artifacts import (
 )
 
 from lgi.pipeline import shot_frames
-from tasks.shot import finish_shot, solve_chunk
+from tasks.shot import finish_shot, solve_chunk, track_footage
 
 
 @flow(name="reconstruct-shot", log_prints=True)
@@ -36,8 +36,23 @@ def reconstruct_shot(
     temporal_weight: float = 0.02,
     spatial_weight: float = 1e-3,
     usd: bool = False,
+    footage: str | None = None,
+    calib: str | None = None,
+    markers: str | None = None,
+    helmet: str | None = None,
 ) -> dict:
-    """Reconstruct a shot into ``out`` (meshes.npz, diagnostics.csv, per_frame.csv/png, shot.usdc)."""
+    """Reconstruct a shot into ``out`` (meshes.npz, diagnostics.csv, per_frame.csv/png, shot.usdc).
+
+    With ``footage`` (stereo frames), ``calib`` and ``markers``, the shot starts from the cameras: the
+    ``track-footage`` task writes ``bundles`` (and its 2D tracks table) first, with ``helmet`` dots if given.
+    """
+    tracking = None
+    if footage:
+        if not (calib and markers):
+            raise ValueError("a shot from footage needs calib and markers")
+        tracking = track_footage(footage, calib, markers, bundles, helmet=helmet)
+        create_table_artifact(table=[{k: v for k, v in tracking.items() if not isinstance(v, (list, dict))}],
+                              key="shot-tracking", description="footage to bundles: tracking summary")
     n = shot_frames(bundles)
     bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
     work = Path(out).parent / f".{Path(out).name}.chunks"
@@ -74,6 +89,8 @@ def reconstruct_shot(
         f"| {summary['missing_share']:.1%} | {summary['max_residual_mm']:.2e} mm |\n\n"
         f"Per-frame plot: [per_frame.png](file://{png})  \nDiagnostics: `diagnostics.csv`, `per_frame.csv`\n"))
     print(f"shot: {summary['frames']} frames -> {summary['out']}")
+    if tracking:
+        summary["tracking"] = tracking
     return summary
 
 

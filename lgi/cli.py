@@ -159,68 +159,24 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    import pandas as pd
+    from .footage import track_to_files
 
-    from .atomic import atomic_file
-    from .bundles import Bundles, write_bundles
-    from .camera import StereoRig
-    from .dots import DotOptions
-    from .footage import track_footage, tracks_table
-    from .markers import read_layout
-    from .tracking import TrackOptions
-
-    rig = StereoRig.load(args.calib)
-    scale = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
-    if args.dataset:
-        from .dataset import ShapeDataset
-
-        ds = ShapeDataset.load(args.dataset)
-        layout = read_layout(args.markers, ds.triangles)
-        neutral = layout.evaluate(ds.neutral[None].astype(np.float64))[0]
-        units = ds.units
-    else:
-        layout = read_layout(args.markers)
-        df = pd.read_csv(args.markers)
-        if not {"x", "y", "z"} <= set(df.columns) or df[["x", "y", "z"]].isna().any().any():
-            raise InputError("the marker file has no neutral positions (x, y, z): pass --dataset", path=args.markers)
-        neutral = df[["x", "y", "z"]].to_numpy(np.float64)
-        units = args.units
-    if units not in scale:
-        raise InputError(f"dataset units {units!r}: expected mm, cm or m")
-    mm = scale[units]
-    t0 = time.perf_counter()
-    helmet = None
-    if args.helmet:
-        from .footage import read_helmet
-
-        helmet = read_helmet(args.helmet)
-    shot = track_footage(args.footage_dir, rig, neutral * mm, layout.names, labels=args.labels,
-                         reference=args.reference_frame, options=TrackOptions(gate_px=args.gate), helmet=helmet,
-                         dot_options=DotOptions.for_size(args.dot_size))
-    dt = time.perf_counter() - t0
-    out = Path(args.out)
-    tracks_out = Path(args.tracks) if args.tracks else out.with_name(out.stem + ".tracks.parquet")
-    F, M = shot.head.shape[:2]
-    table = tracks_table(shot)
-    with atomic_file(tracks_out) as tmp:
-        table.to_parquet(tmp, index=False)
-    write_bundles(out, Bundles(frames=np.arange(F), markers=layout.names, positions=shot.head / mm))
-    tr = shot.tracks
-    seen = np.isfinite(shot.head[..., 0])
-    one_cam = np.isfinite(tr.uv[..., 0]).sum(axis=2) == 1
-    err = tr.error[np.isfinite(tr.error)]
-    print(f"{F} frames x {M} markers: {seen.mean():.1%} triangulated, {one_cam.sum()} observations in one camera "
-          f"only (kept in the tracks table), {len(tr.anchors)} anchor frames")
-    print(f"reprojection error: median {np.median(err):.3f} px, p95 {np.percentile(err, 95):.3f} px; rejected "
-          f"{int((tr.rejected == 1).sum())} epipolar, {int((tr.rejected == 2).sum())} neighbour inconsistencies")
-    if len(err) and np.median(err) > 0.5:
-        print(f"warning: the median reprojection error is {np.median(err):.2f} px: the rig may have moved since its "
-              "calibration" + ("" if args.helmet else " (pass --helmet to refine it from the helmet markers)"))
-    print(f"stable markers for head stabilisation: "
-          f"{', '.join(n for n, w in zip(layout.names, shot.stable_weights, strict=True) if w > 0.5)}")
-    print(f"{F / dt:.1f} frames/s (detect {shot.seconds['detect']:.2f} s, track {shot.seconds['track']:.2f} s, "
-          f"stabilise {shot.seconds['stabilise']:.2f} s)")
-    print(f"bundles ({units}): {out.resolve()}\n2D tracks: {tracks_out.resolve()}")
+    _, r = track_to_files(args.footage_dir, args.calib, args.markers, args.out, args.tracks, args.dataset, args.units,
+                          args.labels, args.reference_frame, args.helmet, args.gate, args.dot_size)
+    print(f"{r['frames']} frames x {r['markers']} markers: {r['triangulated_share']:.1%} triangulated, "
+          f"{r['one_camera_observations']} observations in one camera only (kept in the tracks table), "
+          f"{r['anchors']} anchor frames")
+    print(f"reprojection error: median {r['reprojection_median_px']:.3f} px, p95 {r['reprojection_p95_px']:.3f} px; "
+          f"rejected {r['rejected_epipolar']} epipolar, {r['rejected_neighbour']} neighbour inconsistencies")
+    if r["reprojection_median_px"] > 0.5:
+        print(f"warning: the median reprojection error is {r['reprojection_median_px']:.2f} px: the rig may have "
+              "moved since its calibration"
+              + ("" if args.helmet else " (pass --helmet to refine it from the helmet markers)"))
+    print(f"stable markers for head stabilisation: {', '.join(r['stable_markers'])}")
+    sec = r["seconds"]
+    print(f"{r['frames_per_second']:.1f} frames/s (detect {sec['detect']:.2f} s, track {sec['track']:.2f} s, "
+          f"stabilise {sec['stabilise']:.2f} s)")
+    print(f"bundles ({r['units']}): {r['bundles']}\n2D tracks: {r['tracks']}")
     return 0
 
 

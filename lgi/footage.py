@@ -197,3 +197,69 @@ def tracks_table(shot: ShotTracks) -> pd.DataFrame:
         "x": tr.uv[f, m, c, 0], "y": tr.uv[f, m, c, 1], "reprojection_px": tr.error[f, m, c],
         "source": src[tr.source[f, m, c]], "triangulated": np.isfinite(tr.X[f, m, 0]),
     })
+
+
+def neutral_layout(markers: str | os.PathLike[str], dataset: str | os.PathLike[str] | None = None,
+                   units: str = "cm") -> tuple[list[str], np.ndarray, str]:
+    """Marker names, neutral positions (M, 3) and their units: from ``dataset``'s neutral if given, else the
+    marker file's ``x, y, z`` columns (in ``units``)."""
+    from .markers import read_layout
+
+    if dataset:
+        from .dataset import ShapeDataset
+
+        ds = ShapeDataset.load(dataset)
+        layout = read_layout(markers, ds.triangles)
+        return layout.names, layout.evaluate(ds.neutral[None].astype(np.float64))[0], ds.units
+    layout = read_layout(markers)
+    df = pd.read_csv(markers)
+    if not {"x", "y", "z"} <= set(df.columns) or df[["x", "y", "z"]].isna().any().any():
+        raise InputError("the marker file has no neutral positions (x, y, z): pass a dataset", path=markers)
+    return layout.names, df[["x", "y", "z"]].to_numpy(np.float64), units
+
+
+MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+
+
+def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str], markers: str | os.PathLike[str],
+                   out: str | os.PathLike[str], tracks: str | os.PathLike[str] | None = None,
+                   dataset: str | os.PathLike[str] | None = None, units: str = "cm",
+                   labels: str | os.PathLike[str] | None = None, reference: int = 0,
+                   helmet: str | os.PathLike[str] | None = None, gate_px: float = 12.0, dot_size: float = 9.0
+                   ) -> tuple[ShotTracks, dict]:
+    """``lgi track``: footage to the bundles file (dataset units) and the 2D tracks table (Parquet).
+
+    Returns the tracks and a summary (counts, reprojection error, anchors, rejections, speed, paths).
+    """
+    from .atomic import atomic_file
+    from .bundles import Bundles, write_bundles
+
+    rig = StereoRig.load(calib)
+    names, neutral, units = neutral_layout(markers, dataset, units)
+    if units not in MM_PER_UNIT:
+        raise InputError(f"dataset units {units!r}: expected mm, cm or m")
+    mm = MM_PER_UNIT[units]
+    t0 = time.perf_counter()
+    shot = track_footage(footage, rig, neutral * mm, names, labels=labels, reference=reference,
+                         options=TrackOptions(gate_px=gate_px), helmet=read_helmet(helmet) if helmet else None,
+                         dot_options=DotOptions.for_size(dot_size))
+    dt = time.perf_counter() - t0
+    out = Path(out)
+    tracks_out = Path(tracks) if tracks else out.with_name(out.stem + ".tracks.parquet")
+    F, M = shot.head.shape[:2]
+    with atomic_file(tracks_out) as tmp:
+        tracks_table(shot).to_parquet(tmp, index=False)
+    write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / mm))
+    tr = shot.tracks
+    err = tr.error[np.isfinite(tr.error)]
+    summary = {
+        "frames": F, "markers": M, "triangulated_share": float(np.isfinite(shot.head[..., 0]).mean()),
+        "one_camera_observations": int((np.isfinite(tr.uv[..., 0]).sum(axis=2) == 1).sum()),
+        "anchors": len(tr.anchors), "reprojection_median_px": float(np.median(err)) if len(err) else float("nan"),
+        "reprojection_p95_px": float(np.percentile(err, 95)) if len(err) else float("nan"),
+        "rejected_epipolar": int((tr.rejected == 1).sum()), "rejected_neighbour": int((tr.rejected == 2).sum()),
+        "stable_markers": [n for n, w in zip(names, shot.stable_weights, strict=True) if w > 0.5],
+        "frames_per_second": F / dt, "seconds": shot.seconds, "units": units,
+        "bundles": str(out.resolve()), "tracks": str(tracks_out.resolve()),
+    }
+    return shot, summary

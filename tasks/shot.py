@@ -10,6 +10,17 @@ from lgi import pipeline
 _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
 
+@task(name="track-footage", **_T)
+def track_footage(footage: str, calib: str, markers: str, bundles: str, dataset: str | None = None,
+                  units: str = "cm", helmet: str | None = None, labels: str | None = None, reference: int = 0) -> dict:
+    """Stereo footage to the bundles file and the 2D tracks table (see :func:`lgi.footage.track_to_files`)."""
+    from lgi.footage import track_to_files
+
+    _, summary = track_to_files(footage, calib, markers, bundles, dataset=dataset, units=units, labels=labels,
+                                reference=reference, helmet=helmet)
+    return summary
+
+
 @task(name="solve-chunk", **_T)
 def solve_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, temporal_weight: float = 0.02,
                 spatial_weight: float = 1e-3, max_gap: int = 10) -> str:

@@ -46,3 +46,22 @@ def test_reconstruct_command_runs_the_flow(prefect_harness, shot: Path) -> None:
     a = np.load(shot / "via_flow" / "meshes.npz")["vertices"]
     b = np.load(shot / "plain" / "meshes.npz")["vertices"]
     np.testing.assert_array_equal(a, b)  # one chunk: the flow and the plain functions agree exactly
+
+
+def test_shot_flow_from_footage(prefect_harness, tmp_path: Path) -> None:
+    from flows.reconstruct_shot import reconstruct_shot
+
+    s = tmp_path / "s"
+    assert main(["synth", "--out", str(s), "--vertices", "8000", "--frames", "12", "--hmc", "--board-views", "5",
+                 "-q"]) == 0
+    assert main(["build", str(s / "dataset"), "--markers", str(s / "markers.csv"), "--jaw-rig", str(s / "jaw_rig.npz"),
+                 "--out", str(tmp_path / "idx"), "-q"]) == 0
+    summary = reconstruct_shot(index_dir=str(tmp_path / "idx"), bundles=str(tmp_path / "tracked.csv"),
+                               out=str(tmp_path / "rec"), footage=str(s / "hmc"),
+                               calib=str(s / "hmc" / "cameras_true.json"), markers=str(s / "markers.csv"),
+                               helmet=str(s / "hmc" / "helmet.csv"))
+    assert summary["frames"] == 12 and summary["tracking"]["triangulated_share"] > 0.95
+    assert (tmp_path / "tracked.tracks.parquet").is_file()
+    m = np.load(tmp_path / "rec" / "meshes.npz")["vertices"]
+    truth = np.load(s / "truth.npz")["vertices"]
+    assert np.sqrt(np.mean(np.sum((m - truth) ** 2, axis=2))) * 10 < 1.0  # mm, footage to meshes
