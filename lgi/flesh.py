@@ -72,6 +72,40 @@ def _adjacency(n: int, triangles: np.ndarray) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(len(i), bool), (i, j)), shape=(n, n))
 
 
+def _moving_region(triangles: np.ndarray, motion: np.ndarray, threshold: float, rings: int) -> np.ndarray:
+    """(V,) bool: vertices moving more than ``threshold`` on the component that moves most, grown by
+    ``rings`` rings of neighbours."""
+    adj = _adjacency(len(motion), triangles)
+    _, comp = connected_components(adj, directed=False)
+    moving = motion > threshold
+    if not moving.any():
+        raise ValueError("no vertex moves more than the motion threshold: nothing to simulate")
+    main = comp == np.bincount(comp[moving]).argmax()
+    region = moving & main
+    for _ in range(rings):
+        region = (region | ((adj @ region.astype(np.int64)) > 0)) & main
+    return region
+
+
+def _cut_vertices(triangles: np.ndarray, sub: np.ndarray) -> np.ndarray:
+    """Vertices on edges that border the sub-mesh ``sub`` but are inside the full mesh (shared by two of its
+    triangles there): where the simulated region is cut out of the face."""
+    def edges(t: np.ndarray) -> np.ndarray:
+        return np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+
+    full_e, full_n = np.unique(edges(triangles), axis=0, return_counts=True)
+    sub_e, sub_n = np.unique(edges(sub), axis=0, return_counts=True)
+    once = sub_e[sub_n == 1]
+    inner_full = full_e[full_n > 1]
+    base = int(triangles.max()) + 1
+
+    def key(e: np.ndarray) -> np.ndarray:
+        return e[:, 0] * base + e[:, 1]
+
+    cut = once[np.isin(key(once), key(inner_full))]
+    return np.unique(cut)
+
+
 def prism_tets(triangles: np.ndarray, n_outer: int) -> np.ndarray:
     """(3T, 4) tetrahedra filling the prisms between triangles (T, 3) and their inner copies (index + n).
 
@@ -190,16 +224,7 @@ class FleshModel:
             soft_motion = np.zeros(V)
             for d in unskin_deltas(rig, neutral, deltas, params):
                 soft_motion = np.maximum(soft_motion, np.linalg.norm(d, axis=1))
-        # Region: the moving vertices of the component that moves most, grown by a few rings.
-        adj = _adjacency(V, triangles)
-        _, comp = connected_components(adj, directed=False)
-        moving = motion > o.motion_threshold
-        if not moving.any():
-            raise ValueError("no vertex moves more than the motion threshold: nothing to simulate")
-        main = np.bincount(comp[moving]).argmax()
-        region = moving & (comp == main)
-        for _ in range(o.rings):
-            region = region | ((adj @ region.astype(np.int64)) > 0) & (comp == main)
+        region = _moving_region(triangles, motion, o.motion_threshold, o.rings)
         tri = triangles[np.all(region[triangles], axis=1)]
         verts = np.unique(tri)
         local = np.full(V, -1)
@@ -209,19 +234,8 @@ class FleshModel:
         self.n_outer = n
         tri_l = local[tri]
         self.tri_local = tri_l
-        # Cut edges (inside the full mesh, on the border of the region) pin their vertices.
-        def edge_count(t):
-            e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-            key = e[:, 0] * (V + 1) + e[:, 1]
-            u, cnt = np.unique(key, return_counts=True)
-            return dict(zip(u.tolist(), cnt.tolist(), strict=True)), key
-        full, _ = edge_count(triangles)
-        sub, _ = edge_count(tri)
-        border = [k for k, c in sub.items() if c == 1 and full.get(k, 0) > 1]
         pinned_outer = np.zeros(n, bool)
-        for k in border:
-            pinned_outer[local[k // (V + 1)]] = True
-            pinned_outer[local[k % (V + 1)]] = True
+        pinned_outer[local[_cut_vertices(triangles, tri)]] = True
         outer = neutral[verts]
         normals = vertex_normals(neutral, triangles)[verts]
         inner = outer - o.thickness * normals
@@ -247,7 +261,7 @@ class FleshModel:
             jw = np.asarray(rig.weights, np.float64)[verts]
             soft |= (jw > 0.05) & (jw < 0.95)
         self.soft_outer = soft
-        self.soft_tets = np.any(np.concatenate([soft, soft])[tets], axis=1) & np.all(tets >= 0, axis=1)
+        self.soft_tets = np.any(np.concatenate([soft, soft])[tets], axis=1)
         pinned = np.concatenate([pinned_outer, pinned_outer | ~soft])
         self.pinned = pinned
         self.free = np.flatnonzero(~pinned)
