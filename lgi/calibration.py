@@ -111,8 +111,12 @@ class Board:
         return img
 
 
-def pair_images(folder: str | os.PathLike[str]) -> list[tuple[str, Path, Path]]:
-    """(name, left, right) image pairs of a folder: ``left*``/``right*`` or ``cam0/``/``cam1/``."""
+def pair_images(folder: str | os.PathLike[str], strict: bool = False) -> list[tuple[str, Path, Path]]:
+    """(name, left, right) image pairs of a folder: ``left*``/``right*`` or ``cam0/``/``cam1/``.
+
+    ``strict``: an image without its partner is an error (footage, where frames are numbered in order and a
+    missing one would shift every later frame), not skipped (calibration views).
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError("image folder not found", path=folder)
@@ -126,6 +130,11 @@ def pair_images(folder: str | os.PathLike[str]) -> list[tuple[str, Path, Path]]:
         left = {p.name[4:]: p for p in files if p.name.lower().startswith("left")}
         right = {p.name[5:]: p for p in files if p.name.lower().startswith("right")}
         pairs = [(f"pair{k}", left[k], right[k]) for k in sorted(set(left) & set(right))]
+    if strict and set(left) != set(right):
+        lone = sorted(set(left) ^ set(right))[0]
+        path = left.get(lone) or right.get(lone)
+        raise InputError(f"this image has no partner in the other camera ({len(set(left) ^ set(right))} unpaired)",
+                         path=path)
     if not pairs:
         raise InputError("no image pairs (left*/right* files, or cam0/ and cam1/ folders)", path=folder)
     return pairs

@@ -1,7 +1,8 @@
 """HMC footage to bundles: read the frames, detect dots, label and track, triangulate, stabilise.
 
 Footage is a folder of frame pairs: ``cam0/`` and ``cam1/`` with the same file names, or
-``left*``/``right*`` files; frames are taken in name order and numbered from 0.
+``left*``/``right*`` files; frames are taken in name order and numbered from 0. A frame missing from one
+camera is an error (it would shift every later frame's number).
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ def detect_footage(folder: str | os.PathLike[str], size: tuple[int, int] | None 
     """
     from .calibration import pair_images
 
-    pairs = pair_images(folder)
+    pairs = pair_images(folder, strict=True)
     o = options or DotOptions()
     jobs = [(p, f, size, o) for f, (_, p0, p1) in enumerate(pairs) for p in (p0, p1)]
     with ThreadPoolExecutor(max_workers=workers) as pool:
@@ -249,7 +250,11 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
     F, M = shot.head.shape[:2]
     with atomic_file(tracks_out) as tmp:
         tracks_table(shot).to_parquet(tmp, index=False)
-    write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / mm))
+    try:
+        write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / mm))
+    except BaseException:
+        tracks_out.unlink(missing_ok=True)  # the two files go together, or neither is left
+        raise
     tr = shot.tracks
     err = tr.error[np.isfinite(tr.error)]
     summary = {

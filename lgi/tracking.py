@@ -249,7 +249,7 @@ class Tracker:
         X[drop] = np.nan
         return uv, cost, X, rejected
 
-    def _pass(self, order: list[int], dots: list[tuple[Dots, Dots]], start_X: np.ndarray, label: int):
+    def _pass(self, order: list[int], dots: list[tuple[Dots, Dots]], start_X: np.ndarray):
         """Track along ``order`` (frames) from a known state at ``order[0]``."""
         F, M = len(order), len(start_X)
         uv = np.full((F, M, 2, 2), np.nan)
@@ -351,7 +351,7 @@ class Tracker:
             if hi in anchor_X:
                 runs.append((list(range(hi, lo - 1, -1)), anchor_X[hi], 2))
             for order, start, label in runs:
-                u, c, r = self._pass(order, dots, start, label)
+                u, c, r = self._pass(order, dots, start)
                 for k, f in enumerate(order[1:], start=1):
                     if f in anchor_X:
                         continue

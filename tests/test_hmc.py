@@ -186,8 +186,15 @@ def test_track_bad_inputs(hmc_shot: Path, tmp_path: Path) -> None:
     assert "000003.png" in str(e.value) and "frame 3" in str(e.value)
     assert main(["track", str(shot), "--calib", str(true_calib), "--markers", markers, "--out", str(out)]) == 2
     assert not out.exists() and not out.with_name("b.tracks.parquet").exists()
-    # A label file naming an unknown marker.
+    # A frame missing from one camera: named, not silently dropped (later frames would be renumbered).
     (shot / "cam1" / "000003.png").unlink()
+    with pytest.raises(InputError, match="no partner") as e:
+        detect_footage(shot)
+    assert "000003.png" in str(e.value)
+    assert main(["track", str(shot), "--calib", str(true_calib), "--markers", markers, "--out", str(out)]) == 2
+    assert not out.exists()
+    # A label file naming an unknown marker.
+    (shot / "cam0" / "000003.png").unlink()
     labels = tmp_path / "labels.csv"
     labels.write_text("camera,x,y,marker\n0,10,10,no_such_marker\n")
     assert main(["track", str(shot), "--calib", str(true_calib), "--markers", markers, "--out", str(out),
