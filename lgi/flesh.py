@@ -359,7 +359,8 @@ class FleshModel:
             contrib = _local_step(x, self.tets, self.K, ws, wv).reshape(-1, 3)
             rhs = np.column_stack([np.bincount(self._scatter, contrib[:, d], len(x)) for d in range(3)])
             x[free] = lu.solve(rhs[free] + const)
-            contacts = self._contact(x)
+            if not hard_skin:  # held at the blend: the linear in-between as it is, lips and all
+                contacts = self._contact(x)
         full = target.copy()
         full[self.verts] = x[: self.n_outer]
         dist = float(np.sqrt(np.mean(np.sum((x[: self.n_outer] - tgt[: self.n_outer]) ** 2, axis=1))))
