@@ -476,6 +476,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
+    import logging
+
     from .dataset import ShapeDataset
     from .jaw import PARAM_NAMES, fit_rig
 
@@ -496,15 +498,38 @@ def cmd_rig(args: argparse.Namespace) -> int:
     sel = ds.select(include=args.shapes)
     if sel.n_shapes == 0:
         raise InputError(f"no shape matches {args.shapes!r}", path=args.dataset_dir)
-    rig, params = fit_rig(ds.neutral, sel.deltas, jv, ds.triangles)
+    # fit_rig logs its warnings; they are printed below with the report, so keep Python's last-resort
+    # handler from printing them a second time on stderr (handlers an application set up still get them).
+    jaw_log = logging.getLogger("lgi.jaw")
+    quiet = logging.NullHandler()
+    jaw_log.addHandler(quiet)
+    try:
+        rig, params = fit_rig(ds.neutral, sel.deltas, jv, ds.triangles, names=sel.names)
+    finally:
+        jaw_log.removeHandler(quiet)
+    rep = rig.fit_report
     rig.save(args.out)
     print(f"jaw rig from {sel.n_shapes} shapes and {len(jv)} jaw vertices: pivot {np.round(rig.pivot, 3).tolist()} "
           f"{ds.units}; {int((rig.weights > 0.5).sum())} vertices with weight > 0.5")
+    how = ("pivot and slides solved jointly" if rep.joint_slides
+           else f"pivot as the rotation{'s' if len(rep.used) > 1 else ''}' fixed point")
+    print(f"hinge from {len(rep.used)} opening shape{'s' if len(rep.used) > 1 else ''}: {', '.join(rep.used)} "
+          f"({how}); weights from {rep.widest}")
+    off = np.linalg.norm(rep.pivot - rep.centroid)
+    print(f"  pivot ({', '.join(f'{v * 10:.2f}' for v in rep.pivot)}) mm, {off * 10:.1f} mm from the jaw vertices' "
+          f"centroid")
+    for name in rep.used:
+        print(f"  opening {name}: {rep.angles_deg[name]:.2f} deg, slide {rep.slides[name] * 10:.2f} mm, hinge "
+              f"residual {rep.residual_rms[name] * 10:.3f} mm RMS")
+    for name, why in rep.skipped.items():
+        print(f"  skipped {name}: {why}")
     for name, th in zip(sel.names, params, strict=True):
         fit = rig.skin(ds.neutral, th) - ds.neutral
         err = np.linalg.norm(fit - sel.deltas[sel.index(name)], axis=1)[rig.weights > 0.5]
         vals = ", ".join(f"{n} {v:.3g}" for n, v in zip(PARAM_NAMES, th, strict=True))
         print(f"  {name}: {vals}; skinning reproduces it to {np.sqrt(np.mean(err**2)) * 10:.2f} mm RMS on the jaw")
+    for msg in rep.warnings:
+        print(f"warning: {msg}")
     print(f"rig: {Path(args.out).resolve()}")
     return 0
 
@@ -749,7 +774,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("dataset_dir", metavar="DATASET_DIR")
     s.add_argument("--jaw-vertices", required=True, metavar="FIRST:LAST|FILE",
                    help="vertices moving rigidly with the jaw: an inclusive range or an index file")
-    s.add_argument("--shapes", default="jaw*", metavar="PATTERN", help="the jaw shapes (default 'jaw*')")
+    s.add_argument("--shapes", default="jaw*", metavar="PATTERN",
+                   help="the jaw shapes (default 'jaw*'); the hinge is fitted from the openings among them (the jaw "
+                        "vertices rotate about the lateral x axis), the others only get their jaw parameters")
     s.add_argument("--out", required=True, metavar="RIG_NPZ")
     s.set_defaults(func=cmd_rig)
 

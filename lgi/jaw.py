@@ -11,8 +11,9 @@ move with the jaw, indexed, and skinned back.
 
 from __future__ import annotations
 
+import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,15 @@ from .npz import save_npz
 
 N_PARAMS = 4
 PARAM_NAMES = ["open_deg", "yaw_deg", "roll_deg", "forward_cm"]
+
+# Thresholds of the hinge fit (cm and degrees; the rig's convention: x lateral, y up, z forward).
+OPENING_MIN_DEG = 1.0  # a smaller rotation of the jaw vertices is a translation for the hinge fit
+OPENING_MIN_AXIS_X = 0.9  # |x| of an opening's rotation axis: within ~26 degrees of the lateral axis
+WARN_RESIDUAL_CM = 0.05  # hinge residual of an opening above which the fit is reported as far off
+WARN_SLIDE_CM = 1.0  # a jaw slides a few mm along the articular eminence, not centimetres
+WARN_PIVOT_DISTANCE_CM = 15.0  # the hinge (the condyles) sits ~5-12 cm from the lower teeth
+
+log = logging.getLogger(__name__)
 
 
 def jaw_matrix(params: np.ndarray, pivot: np.ndarray) -> np.ndarray:
@@ -154,14 +164,142 @@ def _two_sizes_about_one_axis(rotations: list[np.ndarray], angles: np.ndarray) -
     return False
 
 
+@dataclass
+class RigFitReport:
+    """How :func:`fit_rig` placed the hinge.
+
+    Attributes
+    ----------
+    used : list of str
+        The opening shapes the pivot was fitted from, in input order.
+    skipped : dict of str to str
+        The other shapes, each with why it was not taken as an opening.
+    angles_deg : dict of str to float
+        Each used opening's opening angle (degrees, the ``open`` parameter).
+    slides : dict of str to float
+        Each used opening's slide along +z (cm).
+    residual_rms : dict of str to float
+        Each used opening's RMS distance (cm) of the jaw vertices from the hinge model (its rotation
+        about the fitted pivot, then its slide along z).
+    pivot : (3,) float64, cm
+    centroid : (3,) float64, cm
+        The jaw vertices' centroid on the neutral.
+    widest : str
+        The opening whose displacements gave the skinning weights.
+    joint_slides : bool
+        Whether the slides were solved jointly with the pivot (openings of different sizes about one
+        axis) rather than the pivot taken as the rotations' fixed point.
+    warnings : list of str
+        What looked far off (also logged as warnings).
+    """
+
+    used: list[str]
+    skipped: dict[str, str]
+    angles_deg: dict[str, float]
+    slides: dict[str, float]
+    residual_rms: dict[str, float]
+    pivot: np.ndarray
+    centroid: np.ndarray
+    widest: str
+    joint_slides: bool
+    warnings: list[str] = field(default_factory=list)
+
+
+def _axis_angle(r: np.ndarray) -> tuple[np.ndarray, float]:
+    """Unit axis (3,) and angle (degrees, in [0, 180]) of a rotation matrix (3, 3)."""
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+    ax = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    n = np.linalg.norm(ax)
+    if n < 1e-9 and angle > 90:
+        # At 180 degrees the antisymmetric part vanishes; the axis is R's eigenvector of eigenvalue 1.
+        vals, vecs = np.linalg.eigh((r + r.T) / 2)
+        return vecs[:, int(np.argmax(vals))], angle
+    return (ax / n if n > 0 else np.zeros(3)), angle
+
+
+def _opening_or_reason(r: np.ndarray, t_mean: np.ndarray) -> str | None:
+    """None when a shape's jaw motion is an opening, else why not (for the report).
+
+    ``r`` (3, 3) is the rigid rotation of the jaw vertices, ``t_mean`` (3,) cm their mean displacement.
+    """
+    axis, angle = _axis_angle(r)
+    if angle <= OPENING_MIN_DEG:
+        return (f"rotates the jaw vertices by {angle:.2f} deg (<= {OPENING_MIN_DEG:g}): mostly a translation "
+                f"of {np.linalg.norm(t_mean) * 10:.1f} mm, no hinge in it")
+    if abs(axis[0]) <= OPENING_MIN_AXIS_X:
+        ax = ", ".join(f"{v:.2f}" for v in axis)
+        return (f"rotates {angle:.1f} deg about axis ({ax}), not the lateral x axis (|x| {abs(axis[0]):.2f} <= "
+                f"{OPENING_MIN_AXIS_X:g}): a sideways or twisting motion, not an opening")
+    return None
+
+
+def _solve_pivot(rotations: list[np.ndarray], translations: list[np.ndarray], centroid: np.ndarray,
+                 joint: bool) -> np.ndarray:
+    """Hinge (3,) cm from openings ``x' = R_k x + t_k``: least squares of ``(I - R_k) p + f_k z = t_k``.
+
+    With ``joint`` every opening's slide ``f_k`` is an unknown too (separable from the pivot only with
+    openings of different sizes about one axis); otherwise the pivot is the rotations' fixed point. The
+    component along the hinge axis is not observable from rotations about it: solving for the offset
+    from the jaw vertices' centroid with the minimum-norm solution puts the pivot in their mid-plane.
+    """
+    n = len(rotations)
+    a = np.zeros((3 * n, 3 + n))
+    b = np.empty(3 * n)
+    for k, (r, t) in enumerate(zip(rotations, translations, strict=True)):
+        a[3 * k:3 * k + 3, :3] = np.eye(3) - r
+        a[3 * k + 2, 3 + k] = 1.0
+        b[3 * k:3 * k + 3] = t - (np.eye(3) - r) @ centroid
+    cols = a if joint else a[:, :3]
+    return centroid + np.linalg.lstsq(cols, b, rcond=None)[0][:3]
+
+
+def _hinge_rms(rest: np.ndarray, moved: np.ndarray, params: np.ndarray, pivot: np.ndarray) -> float:
+    """RMS distance (cm) of ``moved`` (N, 3) from ``rest`` (N, 3) moved rigidly by ``jaw_matrix(params, pivot)``."""
+    m = jaw_matrix(params, pivot)
+    return float(np.sqrt(np.mean(np.sum((rest @ m[:3, :3].T + m[:3, 3] - moved) ** 2, axis=1))))
+
+
+def _fit_warnings(report: RigFitReport) -> list[str]:
+    """What makes the fitted hinge implausible, one sentence each (mm in the text, cm in the report)."""
+    out = []
+    for name, rms in report.residual_rms.items():
+        if rms > WARN_RESIDUAL_CM:
+            out.append(f"{name}: the jaw vertices are {rms * 10:.2f} mm RMS from the hinge model (> "
+                       f"{WARN_RESIDUAL_CM * 10:g} mm): they do not move as a rotation about the fitted pivot plus "
+                       f"a slide; check the jaw vertices and the opening shapes")
+    for name, f in report.slides.items():
+        if abs(f) > WARN_SLIDE_CM:
+            out.append(f"{name}: the hinge needs a slide of {f * 10:.1f} mm along z (> {WARN_SLIDE_CM * 10:g} mm): "
+                       f"the pivot is probably misplaced")
+    off = report.pivot - report.centroid
+    dist = float(np.linalg.norm(off))
+    where = []
+    if dist > WARN_PIVOT_DISTANCE_CM:
+        where.append(f"{dist * 10:.0f} mm from the jaw vertices' centroid (> {WARN_PIVOT_DISTANCE_CM * 10:g} mm)")
+    if off[2] > 0:
+        where.append(f"{off[2] * 10:.0f} mm in front of the jaw vertices (a hinge is behind them)")
+    if off[1] < 0:
+        where.append(f"{-off[1] * 10:.0f} mm below the jaw vertices (a hinge is above them)")
+    if where:
+        p = ", ".join(f"{v:.2f}" for v in report.pivot)
+        out.append(f"the pivot ({p}) cm is " + " and ".join(where) + ": implausible for a jaw hinge")
+    return out
+
+
 def fit_rig(neutral: np.ndarray, deltas: np.ndarray, jaw_vertices: np.ndarray, triangles: np.ndarray,
-            smoothing: int = 10) -> tuple[JawRig, np.ndarray]:
+            smoothing: int = 10, names: list[str] | None = None) -> tuple[JawRig, np.ndarray]:
     """Fit a jaw rig from shapes in which a set of vertices moves rigidly with the jaw.
+
+    The hinge is fitted from the *opening* shapes only: those whose jaw vertices mainly rotate about an
+    axis close to the mesh's lateral x axis (by more than ``OPENING_MIN_DEG``, axis ``|x| >
+    OPENING_MIN_AXIS_X``). Sideways and forward shapes (ICT's jawLeft/jawRight/jawForward are linear
+    approximations, mostly translations) would pull the pivot far off: with them, two openings put it
+    11 cm from the hinge with a 4.9 cm slide.
 
     Parameters
     ----------
-    neutral : (V, 3) cm
-    deltas : (S, V, 3)
+    neutral : (V, 3) float, cm
+    deltas : (S, V, 3) float, cm
         The jaw shapes (e.g. ICT's jawOpen, jawLeft, jawRight, jawForward).
     jaw_vertices : (K,) int
         Vertices that move rigidly with the jaw (ICT: the lower teeth, 19247-21450).
@@ -169,46 +307,76 @@ def fit_rig(neutral: np.ndarray, deltas: np.ndarray, jaw_vertices: np.ndarray, t
         For smoothing the weights over the mesh.
     smoothing : int
         Averaging passes of the weights over mesh neighbours (the jaw vertices stay at 1).
+    names : list of S str, optional
+        Shape names for the report and messages (default ``shape 0``, ``shape 1``, ...).
 
     Returns
     -------
     rig : JawRig
-        Pivot: the hinge, solved by least squares jointly with each rotating shape's forward slide
-        (``(I - R_k) p + f_k z = t_k``) when openings of different sizes make that well posed, as a pure
-        rotation's fixed point otherwise. Weights: how much of each
-        vertex's displacement in the widest-opening shape follows the jaw's motion, in [0, 1], smoothed.
+        Pivot: the hinge, solved by least squares from the openings jointly with each opening's forward
+        slide (``(I - R_k) p + f_k z = t_k``) when openings of different sizes make that well posed, as a
+        pure rotation's fixed point otherwise; along the hinge axis it is the jaw vertices' mid-plane.
+        Weights: how much of each vertex's displacement in the widest opening follows the jaw's motion, in
+        [0, 1], smoothed. ``rig.fit_report`` is the :class:`RigFitReport` of the fit.
     params : (S, 4)
-        Each shape's jaw parameters (Euler angles of its rotation; forward = the translation left along z).
+        Every shape's jaw parameters (Euler angles of its rotation, degrees; forward = the translation
+        left along z about the pivot, cm), openings or not.
+
+    Raises
+    ------
+    InputError
+        When no shape is an opening (the hinge cannot be placed).
+
+    Notes
+    -----
+    Logs a warning (``logging.getLogger("lgi.jaw")``) when the fit looks far off: an opening more than
+    ``WARN_RESIDUAL_CM`` RMS from the hinge model, a slide over ``WARN_SLIDE_CM``, or a pivot more than
+    ``WARN_PIVOT_DISTANCE_CM`` from the jaw vertices' centroid or not behind and above them.
     """
     from .stabilize import rigid_fit
 
     x0 = np.asarray(neutral, np.float64)
     jv = np.asarray(jaw_vertices)
-    fits = [rigid_fit(x0[jv], x0[jv] + np.asarray(d, np.float64)[jv]) for d in deltas]
+    names = [f"shape {k}" for k in range(len(deltas))] if names is None else [str(n) for n in names]
+    if len(names) != len(deltas):
+        raise ValueError(f"{len(names)} names for {len(deltas)} shapes")
+    rest = x0[jv]
+    moved = [rest + np.asarray(d, np.float64)[jv] for d in deltas]
+    fits = [rigid_fit(rest, m) for m in moved]
     rot = [f.rotation for f in fits]
-    angles = np.array([np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))) for r in rot])
-    use = np.flatnonzero(angles > 1.0)
-    if use.size == 0:
-        raise InputError("no jaw shape rotates the jaw vertices by more than 1 degree: cannot place the hinge")
-    # A rotation about p followed by a forward slide f along z: (I - R) p + f z = t. Solved jointly for
-    # p and every rotating shape's f (openings of different sizes separate the slide from the pivot).
-    # The slides are only separable from the pivot with several openings of different sizes; with
-    # one (ICT has a single jawOpen) they trade off exactly, and a pure rotation is fitted instead.
-    a = np.zeros((3 * len(use), 3 + len(use)))
-    for r, k in enumerate(use):
-        a[3 * r:3 * r + 3, :3] = np.eye(3) - rot[k]
-        a[3 * r + 2, 3 + r] = 1.0
-    b = np.concatenate([fits[k].translation for k in use])
-    if _two_sizes_about_one_axis([rot[k] for k in use], angles[use]):
-        pivot = np.linalg.lstsq(a, b, rcond=None)[0][:3]
-    else:
-        pivot = np.linalg.lstsq(a[:, :3], b, rcond=None)[0]
+    angles = np.array([_axis_angle(r)[1] for r in rot])
+    skipped: dict[str, str] = {}
+    use = []
+    for k, (r, m) in enumerate(zip(rot, moved, strict=True)):
+        reason = _opening_or_reason(r, (m - rest).mean(0))
+        if reason is None:
+            use.append(k)
+        else:
+            skipped[names[k]] = reason
+    if not use:
+        why = "; ".join(f"{n}: {r}" for n, r in skipped.items()) or "no shapes given"
+        plural = "" if len(deltas) == 1 else "s"
+        raise InputError(f"no jaw opening among the {len(deltas)} jaw shape{plural} (an opening rotates the jaw "
+                         f"vertices by more than {OPENING_MIN_DEG:g} deg about an axis with |x| > "
+                         f"{OPENING_MIN_AXIS_X:g}): cannot place the hinge ({why})")
+    centroid = rest.mean(0)
+    joint = _two_sizes_about_one_axis([rot[k] for k in use], angles[use])
+    pivot = _solve_pivot([rot[k] for k in use], [fits[k].translation for k in use], centroid, joint)
     params = np.zeros((len(deltas), 4))
     for k, f in enumerate(fits):
         op, yaw, roll = _euler(f.rotation)
-        rest = f.translation - (pivot - f.rotation @ pivot)
-        params[k] = [op, yaw, roll, rest[2]]
-    widest = int(np.argmax(angles))
+        left = f.translation - (pivot - f.rotation @ pivot)
+        params[k] = [op, yaw, roll, left[2]]
+    widest = use[int(np.argmax(angles[use]))]
+    report = RigFitReport(
+        used=[names[k] for k in use], skipped=skipped,
+        angles_deg={names[k]: float(params[k, 0]) for k in use},
+        slides={names[k]: float(params[k, 3]) for k in use},
+        residual_rms={names[k]: _hinge_rms(rest, moved[k], params[k], pivot) for k in use},
+        pivot=pivot.copy(), centroid=centroid, widest=names[widest], joint_slides=bool(joint))
+    report.warnings = _fit_warnings(report)
+    for msg in report.warnings:
+        log.warning("jaw rig: %s", msg)
     rig = JawRig(pivot, np.zeros(len(x0)))
     move = rig.skin(x0, params[widest], np.ones(len(x0))) - x0
     d = np.asarray(deltas[widest], np.float64)
@@ -228,4 +396,6 @@ def fit_rig(neutral: np.ndarray, deltas: np.ndarray, jaw_vertices: np.ndarray, t
         w = 0.5 * w + 0.5 * (adj @ w) / deg
         w[jv] = 1.0
     rig.weights = np.clip(w, 0.0, 1.0)
+    # An attribute, not a third return value, so that existing ``rig, params = fit_rig(...)`` callers hold.
+    rig.fit_report = report  # type: ignore[attr-defined]
     return rig, params
