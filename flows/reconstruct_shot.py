@@ -30,7 +30,7 @@ def reconstruct_shot(
     bundles: str,
     out: str,
     chunk_size: int = 60,
-    smooth: int = 1,
+    smooth: int | str = "auto",
     jaw_smooth: int | None = None,
     max_gap: int = 10,
     temporal_weight: float = 0.02,
@@ -40,6 +40,8 @@ def reconstruct_shot(
     calib: str | None = None,
     markers: str | None = None,
     helmet: str | None = None,
+    noise: float | str = "auto",
+    method: str = "local",
 ) -> dict:
     """Reconstruct a shot into ``out`` (meshes.npz, diagnostics.csv, per_frame.csv/png, shot.usdc).
 
@@ -59,13 +61,14 @@ def reconstruct_shot(
     progress = create_progress_artifact(progress=0.0, description=f"chunks of {chunk_size} frames solved")
     futures = solve_chunk.map(unmapped(index_dir), unmapped(bundles), [b[0] for b in bounds],
                               [b[1] for b in bounds], [str(work / f"chunk_{lo:06d}.npz") for lo, _ in bounds],
-                              unmapped(temporal_weight), unmapped(spatial_weight), unmapped(max_gap))
+                              unmapped(temporal_weight), unmapped(spatial_weight), unmapped(max_gap),
+                              unmapped(noise), unmapped(method))
     chunks = []
     for k, fut in enumerate(futures):
         chunks.append(fut.result())
         update_progress_artifact(progress, progress=100.0 * (k + 1) / len(futures))
     summary = finish_shot(index_dir, bundles, chunks, out, smooth, jaw_smooth, max_gap, temporal_weight,
-                          spatial_weight, usd)
+                          spatial_weight, usd, noise, method)
     for c in chunks:
         Path(c).unlink(missing_ok=True)
     if work.is_dir() and not any(work.iterdir()):

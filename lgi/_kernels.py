@@ -634,3 +634,171 @@ def add_correction(x, c_indptr, c_indices, c_data, fix, resid):  # pragma: no co
     for v in nb.prange(n_v):
         for k in range(3):
             x[v, k] += buf[0, v, k] + buf[1, v, k]
+
+
+@nb.njit(cache=True)
+def _cholesky_solve(h, free, nf, rhs, out, work):  # pragma: no cover - compiled
+    """Solve h[free, free] x = rhs[free] by Cholesky (h symmetric positive definite, nf = len(free));
+    returns False if a pivot is not positive. ``work`` is (n, n) scratch."""
+    for a in range(nf):
+        for b in range(a + 1):
+            s = h[free[a], free[b]]
+            for c in range(b):
+                s -= work[a, c] * work[b, c]
+            if a == b:
+                if s <= 0.0:
+                    return False
+                work[a, a] = np.sqrt(s)
+            else:
+                work[a, b] = s / work[b, b]
+    for a in range(nf):
+        s = rhs[free[a]]
+        for c in range(a):
+            s -= work[a, c] * out[c]
+        out[a] = s / work[a, a]
+    for a in range(nf - 1, -1, -1):
+        s = out[a]
+        for c in range(a + 1, nf):
+            s -= work[c, a] * out[c]
+        out[a] = s / work[a, a]
+    return True
+
+
+@nb.njit(cache=True)
+def box_qp(h, g, lo, hi, x, max_iter=60, tol=1e-13):  # pragma: no cover - compiled
+    """Minimise 0.5 x'hx - g'x subject to lo <= x <= hi (h SPD, small), in place from a feasible x.
+
+    Projected Newton (Bertsekas 1982): Newton steps on the variables not held at a bound by their
+    gradient, projected onto the box with a backtracking search along the projection arc. Converges in
+    a few iterations for the small, well-regularised problems of the local fits. Returns the iterations.
+    """
+    n = x.shape[0]
+    grad = np.empty(n)
+    free = np.empty(n, np.int64)
+    step = np.empty(n)
+    rhs = np.empty(n)
+    work = np.empty((n, n))
+    trial = np.empty(n)
+    for it in range(max_iter):
+        for a in range(n):
+            acc = -g[a]
+            for b in range(n):
+                acc += h[a, b] * x[b]
+            grad[a] = acc
+        nf = 0
+        pg = 0.0
+        for a in range(n):
+            at_lo = x[a] <= lo[a] and grad[a] > 0
+            at_hi = x[a] >= hi[a] and grad[a] < 0
+            if not (at_lo or at_hi):
+                free[nf] = a
+                nf += 1
+                pg = max(pg, abs(grad[a]))
+        if nf == 0 or pg <= tol:
+            return it
+        for a in range(n):
+            rhs[a] = -grad[a]
+        if not _cholesky_solve(h, free, nf, rhs, step, work):
+            return -1
+        f0 = 0.0
+        for a in range(n):
+            f0 += 0.5 * x[a] * (grad[a] - g[a])  # 0.5 x'hx - g'x = 0.5 x'(grad + g) - g'x
+        alpha = 1.0
+        improved = False
+        for _ in range(30):
+            for a in range(n):
+                trial[a] = x[a]
+            for c in range(nf):
+                a = free[c]
+                trial[a] = min(hi[a], max(lo[a], x[a] + alpha * step[c]))
+            f1 = 0.0
+            for a in range(n):
+                acc = 0.0
+                for b in range(n):
+                    acc += h[a, b] * trial[b]
+                f1 += 0.5 * trial[a] * acc - g[a] * trial[a]
+            if f1 <= f0:
+                improved = True
+                break
+            alpha *= 0.5
+        if not improved:
+            return it
+        moved = 0.0
+        for a in range(n):
+            moved = max(moved, abs(trial[a] - x[a]))
+            x[a] = trial[a]
+        if moved <= 1e-15:
+            return it
+    return max_iter
+
+
+@nb.njit(parallel=True, cache=True)
+def local_fits(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight,
+               out):  # pragma: no cover - compiled
+    """Each bundle's local shape weights: the global weights changed, on the bundle's candidate shapes,
+    to fit the bundle and its seen natural neighbours.
+
+    For bundle i with rows J = {i} (weight ``own_weight``) and its seen natural neighbours (weight 1),
+    the change d on shapes ``cols[col_off[i]:col_off[i+1]]`` minimises
+    ``sum_j c_j |resid_j - sum_k d_k basis[k, j]|^2 + beta[i] |d|^2`` with ``0 <= w_global + d <= 1``.
+
+    Parameters
+    ----------
+    resid : (M, 3) float64, cm
+        Bundles minus the global fit's model (unskinned space); rows of missing bundles unused.
+    basis : (S, M, 3) float64, cm
+        Every shape's displacement of every bundle.
+    w_global : (S,) float64
+    beta : (M,) float64, cm^2
+        Ridge toward the global weights per bundle.
+    out : (M, S) float64
+        Filled with each bundle's weights.
+    """
+    m = resid.shape[0]
+    for i in nb.prange(m):
+        a0, a1 = col_off[i], col_off[i + 1]
+        n = a1 - a0
+        for k in range(w_global.shape[0]):
+            out[i, k] = w_global[k]
+        if n == 0:
+            continue
+        h = np.zeros((n, n))
+        g = np.zeros(n)
+        for a in range(n):
+            h[a, a] = beta[i]
+        n_rows = 0
+        for e in range(nb_off[i] - 1, nb_off[i + 1]):
+            # The bundle itself first (e = nb_off[i] - 1), then its natural neighbours.
+            own = e < nb_off[i]
+            j = np.int64(i) if own else nb_idx[e]
+            if not seen[j]:
+                continue
+            n_rows += 1
+            cw = own_weight if own else 1.0
+            for a in range(n):
+                ka = cols[a0 + a]
+                acc = 0.0
+                for d in range(3):
+                    acc += basis[ka, j, d] * resid[j, d]
+                g[a] += cw * acc
+                for b in range(a + 1):
+                    kb = cols[a0 + b]
+                    acc = 0.0
+                    for d in range(3):
+                        acc += basis[ka, j, d] * basis[kb, j, d]
+                    h[a, b] += cw * acc
+        if n_rows == 0:
+            continue
+        for a in range(n):
+            for b in range(a):
+                h[b, a] = h[a, b]
+        lo = np.empty(n)
+        hi = np.empty(n)
+        x = np.zeros(n)
+        for a in range(n):
+            wk = w_global[cols[a0 + a]]
+            lo[a] = -wk
+            hi[a] = 1.0 - wk
+        box_qp(h, g, lo, hi, x)
+        for a in range(n):
+            out[i, cols[a0 + a]] = w_global[cols[a0 + a]] + x[a]

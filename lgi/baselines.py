@@ -6,6 +6,12 @@
   bending, Bickel et al. 2007; Bhat et al. 2013); no detail beyond the neutral's.
 * :class:`BlendshapeSolver`: shape weights in [0, 1] minimising the bundles' distances (bounded least
   squares), optionally L2-regularised.
+* :class:`RiggedBlendshapeSolver`: the same fit with a jaw rig: the jaw and the weights of the unskinned
+  shapes solved together (:class:`~lgi.globalfit.GlobalFit`, the jaw estimate LGI uses too).
+
+With a rigged index every baseline is given the same rig and the same jaw estimate as LGI: the shell
+interpolates the bundles' displacements from the neutral skinned by the estimated jaw, and RBF blends
+LGI's weights of unskinned shapes and skins the result.
 * :class:`RBFSolver`: LGI's per-bundle shape weights spread over the mesh by Gaussian radial basis
   functions instead of natural-neighbour weights, then the remaining bundle displacements interpolated
   by the smooth method so the surface passes through the bundles (section 7.4).
@@ -22,7 +28,9 @@ from scipy.spatial import cKDTree
 
 from . import _kernels as K
 from .dataset import ShapeDataset
+from .globalfit import GlobalFit, GlobalFitResult
 from .index import LGIIndex
+from .jaw import JawRig
 from .markers import MarkerLayout
 from .smooth import SmoothInterpolator
 from .solver import LGISolver
@@ -36,6 +44,7 @@ class SimpleResult:
     vertices: np.ndarray
     residual: np.ndarray
     weights: np.ndarray | None = None
+    fit: GlobalFitResult | None = None
 
 
 class _SequenceMixin:
@@ -65,26 +74,36 @@ class SmoothSolver(_SequenceMixin):
         The markers (constraint points).
     ks, kb
         Stretching and bending stiffness (1 and 100).
+    rig, jaw_fit
+        Optional jaw rig and the estimator of each frame's jaw (the one LGI uses): the displacements are
+        then interpolated from the neutral skinned by the estimated jaw.
     """
 
     name = "smooth"
 
     def __init__(self, neutral: np.ndarray, triangles: np.ndarray, layout: MarkerLayout, ks: float = 1.0,
-                 kb: float = 100.0) -> None:
+                 kb: float = 100.0, rig: JawRig | None = None, jaw_fit: GlobalFit | None = None) -> None:
         self.layout = layout
         self.x0 = np.asarray(neutral, np.float64)
         self.rest = layout.evaluate(self.x0)
         self.interp = SmoothInterpolator(self.x0, triangles, layout.vertices, layout.weights, ks, kb)
+        self.rig = rig
+        self.jaw_fit = jaw_fit
 
     def solve_frame(self, bundles: np.ndarray, previous: SimpleResult | None = None) -> SimpleResult:
         p = np.asarray(bundles, np.float64)
         seen = np.all(np.isfinite(p), axis=1)
-        disp = np.where(seen[:, None], p - self.rest, 0.0)
+        base, fit = self.x0, None
+        if self.rig is not None:
+            fit = self.jaw_fit.solve(p, init=None if previous is None else previous.fit)
+            base = self.rig.skin(self.x0, fit.jaw)
+        rest = self.layout.evaluate(base)
+        disp = np.where(seen[:, None], p - rest, 0.0)
         if previous is not None and not seen.all():
             # A missing bundle keeps its previous displacement rather than snapping back to rest.
-            disp[~seen] = (self.layout.evaluate(previous.vertices.astype(np.float64)) - self.rest)[~seen]
-        x = self.x0 + self.interp.solve(disp)
-        return SimpleResult(x.astype(np.float32), _residual(self.layout, x, p))
+            disp[~seen] = (self.layout.evaluate(previous.vertices.astype(np.float64)) - rest)[~seen]
+        x = base + self.interp.solve(disp)
+        return SimpleResult(x.astype(np.float32), _residual(self.layout, x, p), fit=fit)
 
 
 class BlendshapeSolver(_SequenceMixin):
@@ -166,11 +185,38 @@ class RBFSolver(_SequenceMixin):
         self._data = rm.data.astype(np.float64)
 
     def solve_frame(self, bundles: np.ndarray, previous: SimpleResult | None = None) -> SimpleResult:
-        p, seen, shapes, lam, *_ = self.lgi.select(bundles)  # LGI's shapes and weights per bundle
+        prev_sel = None if previous is None else previous.fit
+        sel = self.lgi.select_frame(bundles, prev_sel)  # LGI's shapes and weights per bundle (and the jaw)
         x = np.empty_like(self.x0)
-        K.blend(self.x0, self.lgi._deltas, self._indptr, self._indices, self._data, shapes, lam, x)
-        residual = self.lgi.correct(x, p, seen)
-        return SimpleResult(x.astype(np.float32), residual)
+        K.blend(self.x0, self.lgi._deltas, self._indptr, self._indices, self._data, sel.shapes, sel.weights, x)
+        if self.lgi.rig is not None:
+            x = self.lgi.rig.skin(x, sel.jaw)
+        seen = np.all(np.isfinite(sel.bundles), axis=1)
+        residual = self.lgi.correct(x, sel.bundles, seen)
+        return SimpleResult(x.astype(np.float32), residual, fit=sel)
+
+
+class RiggedBlendshapeSolver(_SequenceMixin):
+    """Bounded blendshape fit of an index's shapes with its jaw rig: jaw and weights of the unskinned
+    shapes solved together for every frame (:class:`~lgi.globalfit.GlobalFit`), then the blend skinned.
+    Without a rig it is the plain bounded fit of the index's shapes."""
+
+    name = "blendshape_rig"
+
+    def __init__(self, index: LGIIndex) -> None:
+        self.lgi = LGISolver(index)
+        self.layout = self.lgi.layout
+        self.fit = self.lgi.global_fit
+        self.x0 = self.lgi._x0
+        self.deltas = np.asarray(index.deltas[1:])
+
+    def solve_frame(self, bundles: np.ndarray, previous: SimpleResult | None = None) -> SimpleResult:
+        p = np.asarray(bundles, np.float64)
+        fit = self.fit.solve(p, init=None if previous is None else previous.fit)
+        x = self.x0 + np.tensordot(fit.weights, self.deltas, axes=1)
+        if self.lgi.rig is not None:
+            x = self.lgi.rig.skin(x, fit.jaw)
+        return SimpleResult(x.astype(np.float32), _residual(self.layout, x, p), fit.weights, fit)
 
 
 class LGIMethod(_SequenceMixin):

@@ -1,146 +1,182 @@
-"""Every method on the same frames, in one run: LGI and the baselines of :mod:`lgi.baselines`.
+"""The accuracy benchmark: LGI and the baselines on the same frames, in one run (``lgi bench``,
+``benchmarks/bench_accuracy.py``).
 
-Test sets:
+The test sets are built by :mod:`lgi.benchsets` (their frames are never dataset shapes): (a) the
+synthetic actor's held-out performance, (b) an ICT actor with a rotating jaw, (c) held-out ICT shapes,
+(d) ICT with combination shapes and their correctives, each with clean bundles and with tracking noise
+(0.3 mm per coordinate, 5 % of marker-frames missing in runs).
 
-* synthetic: the built-in actor's dataset (47 shapes) and a random performance whose frames are not in
-  it; also run with bundle noise (Gaussian, ``noise_mm`` per coordinate) for the jitter measure. LGI
-  runs twice: with the actor's jaw rig ("LGI + jaw", shapes unskinned) and without;
-* ICT (when the data is there): the dataset is ICT without ``ICT_HELD_OUT`` plus linear combinations
-  of the remaining shapes; the test frames are the held-out shapes and mixes of 2-3 shapes that involve
-  at least one of them. Errors over the face area (vertices 0-9408).
+Every method gets the same information. Where a set has a jaw rig, LGI indexes unskinned shapes and
+estimates each frame's jaw with the shape weights (:class:`~lgi.globalfit.GlobalFit`), and every
+baseline gets that rig and that jaw estimate: the blendshape fit solves the same joint problem (it *is*
+the jaw estimator), the shell interpolates from the neutral skinned by the jaw, RBF skins its blend.
+The plain blendshape fit of the dataset's shapes as they are is shown beside them.
 
-Columns: vertex error RMS, 95th percentile and max (mm), largest bundle residual (mm), mean normal-angle
-error (degrees; how well folds and wrinkles are reproduced), jitter on noisy input (mean squared second
-difference, mm^2; the truth's own value is printed beside it), frames/s.
+Methods:
+
+* ``LGI (default)``: ``lgi reconstruct``'s defaults (local fits, noise estimated from the shot and,
+  when the bundles are noisy, weights smoothed over time);
+* ``LGI simplex (paper)``: the paper's choice among containing simplices only (``--method simplex
+  --noise 0 --smooth 1``); on noisy sets also ``LGI --smooth 5`` (``--noise 0 --smooth 5``);
+* ``blendshape fit``, ``blendshape fit + rig``, ``RBF weights + smooth``, ``smooth (shell)``:
+  :mod:`lgi.baselines`.
+
+Columns: vertex error RMS / p95 / max over the set's measured vertices (face area), RMS on the lips and
+on the frames opened wide, the largest distance of a seen bundle from the surface (mm), frames/s, and
+the ratio of each method's RMS and p95 to the best baseline's.
 """
 
 from __future__ import annotations
 
 import time
-from pathlib import Path
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 
-from .baselines import BlendshapeSolver, LGIMethod, RBFSolver, SmoothSolver
+from .baselines import BlendshapeSolver, RBFSolver, RiggedBlendshapeSolver, SmoothSolver
 from .evaluate import jitter, normal_angle_errors, vertex_errors
 
 ICT_HELD_OUT = ["mouthFunnel", "mouthSmile_L", "browInnerUp_R", "cheekPuff_R", "noseSneer_L", "jawLeft"]
 
-
-def _methods(dataset, layout, index, jaw_index=None) -> list:
-    lgi_jaw = [] if jaw_index is None else [LGIMethod(jaw_index, temporal_weight=0.02)]
-    return [
-        *lgi_jaw,
-        LGIMethod(index, temporal_weight=0.02),
-        RBFSolver(index),
-        BlendshapeSolver(dataset, layout),
-        BlendshapeSolver(dataset, layout, l2=1e-3),
-        SmoothSolver(dataset.neutral, dataset.triangles, layout),
-    ]
+# What ``lgi reconstruct`` does by default (kept in one place with the CLI's defaults).
+LGI_DEFAULTS = {"temporal_weight": 0.02, "spatial_weight": 1e-3, "max_gap": 10}
 
 
-def _label(m) -> str:
-    if isinstance(m, BlendshapeSolver) and m.l2 > 0:
-        return f"blendshape (L2 {m.l2:g})"
-    if isinstance(m, LGIMethod) and m.solver.rig is not None:
-        return "LGI + jaw"
-    return {"lgi": "LGI", "rbf": "RBF weights + smooth", "blendshape": "blendshape fit",
-            "smooth": "smooth (shell)"}[m.name]
+@dataclass
+class Method:
+    """A method of the benchmark: a label, whether it is a baseline, and a function from bundle positions
+    (F, M, 3) cm to vertices (F, V, 3)."""
+
+    label: str
+    baseline: bool
+    run: Callable[[np.ndarray], np.ndarray]
 
 
-def run_methods(methods: list, truth: np.ndarray, bundles: np.ndarray, triangles: np.ndarray,
-                mask: np.ndarray | None = None, noisy: np.ndarray | None = None,
-                normal_frames: int = 40) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
-    """Run every method on the same frames.
+def lgi_method(index, label: str = "LGI (default)", **options) -> Method:
+    """LGI through :meth:`LGISolver.solve_sequence` with ``lgi reconstruct``'s defaults, overridden by
+    ``options`` (solver and sequence options together)."""
+    from .solver import LGISolver
 
-    Parameters
-    ----------
-    truth : (F, V, 3) cm; bundles : (F, M, 3) cm
-    mask : (V,) bool, optional
-        Vertices the errors are measured on.
-    noisy : (F, M, 3), optional
-        Noisy bundles of the same frames (a sequence) for the jitter column.
-    normal_frames : int
-        Frames (evenly spread) on which normal angles are measured.
+    seq_keys = {"smooth", "jaw_smooth", "max_gap", "noise"}
+    opts = {**LGI_DEFAULTS, **options}
+    seq = {k: v for k, v in opts.items() if k in seq_keys}
+    ctor = {k: v for k, v in opts.items() if k not in seq_keys}
+
+    def run(pos: np.ndarray) -> np.ndarray:
+        return LGISolver(index, **ctor).solve_sequence(pos, **seq).vertices
+
+    return Method(label, False, run)
+
+
+def _sequence(solver) -> Callable[[np.ndarray], np.ndarray]:
+    return solver.solve_sequence
+
+
+def methods_for(bench_set, index, noisy: bool = False) -> list[Method]:
+    """The methods compared on a set, given its index (built with the set's rig when it has one)."""
+    rig = index.jaw_rig()
+    out = [lgi_method(index), lgi_method(index, "LGI simplex (paper)", method="simplex", noise=0, smooth=1)]
+    if noisy:
+        out.append(lgi_method(index, "LGI --smooth 5 (no noise model)", noise=0, smooth=5))
+    ds, layout = bench_set.dataset, bench_set.layout
+    out.append(Method("blendshape fit", True, _sequence(BlendshapeSolver(ds, layout))))
+    if rig is not None:
+        out.append(Method("blendshape fit + rig", True, _sequence(RiggedBlendshapeSolver(index))))
+    rigged = RiggedBlendshapeSolver(index)
+    out.append(Method("RBF weights + smooth", True, _sequence(RBFSolver(index))))
+    out.append(Method("smooth (shell)" + (" + rig" if rig is not None else ""), True,
+                      _sequence(SmoothSolver(ds.neutral, ds.triangles, layout, rig=rig,
+                                             jaw_fit=rigged.fit if rig is not None else None))))
+    return out
+
+
+def run_set(bench_set, methods: list[Method], noisy: bool = False, frames: int | None = None,
+            normal_frames: int = 0) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
+    """Run every method on one set (clean or noisy bundles).
 
     Returns
     -------
-    table : DataFrame, one row per method
-    mean_error : dict name -> (V,) mean vertex error over frames, mm (for heat maps)
+    table : DataFrame, one row per method (errors in mm)
+    mean_error : dict label -> (V,) mean vertex error over frames, mm (for heat maps)
     """
+    bs = bench_set
+    n = bs.n_frames if frames is None else min(frames, bs.n_frames)
+    pos = (bs.noisy if noisy else bs.bundles)[:n]
+    truth = bs.truth[:n]
     rows, maps = [], {}
-    sel = np.unique(np.linspace(0, len(truth) - 1, min(normal_frames, len(truth))).astype(int))
     for m in methods:
         t = time.perf_counter()
-        recon = m.solve_sequence(bundles)
+        recon = np.asarray(m.run(pos), np.float64)
         dt = time.perf_counter() - t
-        resid = max(float(np.nanmax(m.solve_frame(b).residual)) for b in bundles[:: max(1, len(bundles) // 20)])
         err = vertex_errors(recon, truth)
-        ang = normal_angle_errors(recon[sel], truth[sel], triangles)
-        e = err if mask is None else err[:, mask]
-        a = ang if mask is None else ang[:, mask]
-        row = {"method": _label(m), "rms_mm": float(np.sqrt(np.mean(e**2))), "p95_mm": float(np.percentile(e, 95)),
-               "max_mm": float(e.max()), "bundle_residual_mm": resid * 10, "normal_deg": float(a.mean()),
-               "frames_per_s": len(truth) / dt}
-        if noisy is not None:
-            row["jitter_mm2"] = jitter(m.solve_sequence(noisy), mask)
+        e = err[:, bs.mask]
+        seen = np.all(np.isfinite(pos), axis=2)
+        resid = []
+        for c in range(3):
+            at = np.einsum("fmk,mk->fm", recon[:, bs.layout.vertices, c], bs.layout.weights)
+            resid.append(at - np.where(seen, pos[..., c], 0.0))
+        resid = np.where(seen, np.linalg.norm(np.stack(resid, -1), axis=-1), np.nan)
+        row = {"set": bs.name, "bundles": "noisy" if noisy else "clean", "method": m.label, "baseline": m.baseline,
+               "rms_mm": float(np.sqrt(np.mean(e**2))), "p95_mm": float(np.percentile(e, 95)),
+               "max_mm": float(e.max()),
+               "lips_rms_mm": float(np.sqrt(np.mean(err[:, bs.lips] ** 2))) if bs.lips.any() else np.nan,
+               "wide_open_rms_mm": (float(np.sqrt(np.mean(e[bs.wide_open[:n]] ** 2)))
+                                    if bs.wide_open[:n].any() else np.nan),
+               "bundle_residual_mm": float(np.nanmax(resid)) * 10, "frames_per_s": n / dt}
+        if normal_frames:
+            sel = np.unique(np.linspace(0, n - 1, min(normal_frames, n)).astype(int))
+            row["normal_deg"] = float(normal_angle_errors(recon[sel], truth[sel], bs.triangles)[:, bs.mask].mean())
+        if noisy:
+            row["jitter_mm2"] = jitter(recon, bs.mask)
         rows.append(row)
-        maps[_label(m)] = err.mean(0)
-    return pd.DataFrame(rows), maps
+        maps[m.label] = err.mean(0)
+    table = pd.DataFrame(rows)
+    base = table[table.baseline]
+    table["rms_vs_best_baseline"] = table.rms_mm / base.rms_mm.min()
+    table["p95_vs_best_baseline"] = table.p95_mm / base.p95_mm.min()
+    return table, maps
 
 
-def synthetic_benchmark(frames: int = 300, noise_mm: float = 0.3, seed: int = 1):
-    """The synthetic held-out comparison. Returns (table, heat maps, actor, truth jitter)."""
-    from . import synth
+def build_set_index(bench_set, show_progress: bool = False):
+    """The LGI index of a set's dataset and layout (with its rig when it has one)."""
     from .index import build_index
 
-    actor = synth.make_actor()
-    ds = synth.make_dataset(actor)
-    layout, _ = synth.default_layout(actor)
-    index, _ = build_index(ds, layout, show_progress=False)
-    jaw_index, _ = build_index(ds, layout, show_progress=False, jaw_rig=synth.jaw_rig(actor))
-    truth = actor.evaluate_many(synth.random_performance(frames, seed=seed)).astype(np.float64)
-    bundles = layout.evaluate(truth)
-    rng = np.random.default_rng(seed)
-    noisy = bundles + rng.normal(scale=noise_mm / 10, size=bundles.shape)
-    table, maps = run_methods(_methods(ds, layout, index, jaw_index), truth, bundles, actor.triangles, noisy=noisy)
-    return table, maps, actor, jitter(truth)
+    index, _ = build_index(bench_set.dataset, bench_set.layout, show_progress=show_progress, jaw_rig=bench_set.rig)
+    return index
 
 
-def ict_benchmark(ict: Path, n_combinations: int = 400, n_test: int = 60, seed: int = 0):
-    """The ICT held-out comparison. Returns (table, heat maps, dataset)."""
-    from .augment import linear_combinations
-    from .importers import import_obj_folder
-    from .index import build_index
-    from .markers import read_layout
-    from .paths import shipped
-
-    full = import_obj_folder(ict, rigid_vertices="none", show_progress=False)
-    layout = read_layout(shipped("markers_ict.csv"), full.triangles)
-    keep = [n for n in full.names if n not in ICT_HELD_OUT]
-    train = linear_combinations(full.take([full.index(n) for n in keep]), n_combinations, seed=seed)
-    mixes = linear_combinations(full, 4000, seed=seed + 7, levels=(0.3, 0.6, 0.9))
-    names = [n for n in mixes.names[full.n_shapes:] if any(h + "*" in n for h in ICT_HELD_OUT)][:n_test]
-    test = mixes.take([mixes.index(n) for n in names])
-    truth = np.concatenate([full.neutral[None] + np.asarray(full.deltas[[full.index(h) for h in ICT_HELD_OUT]],
-                                                                      np.float64),
-                            full.neutral[None] + np.asarray(test.deltas, np.float64)])
-    index, _ = build_index(train, layout, show_progress=False)
-    mask = np.zeros(full.n_vertices, bool)
-    mask[:9409] = True
-    table, maps = run_methods(_methods(train, layout, index), truth, layout.evaluate(truth), full.triangles, mask)
-    return table, maps, full
+def accuracy_benchmark(sets: dict, frames: int | None = None, log: Callable[[str], None] = print
+                       ) -> tuple[pd.DataFrame, dict[str, dict[str, np.ndarray]]]:
+    """Every set, clean and noisy. Returns the long table and the heat-map data per set and bundles kind."""
+    tables, maps = [], {}
+    for name, bs in sets.items():
+        t = time.perf_counter()
+        index = build_set_index(bs)
+        log(f"{name}: index built in {time.perf_counter() - t:.0f} s")
+        for noisy in (False, True):
+            table, m = run_set(bs, methods_for(bs, index, noisy), noisy, frames)
+            tables.append(table)
+            maps[f"{name}_{'noisy' if noisy else 'clean'}"] = m
+            log(f"\n{name}, {'noisy' if noisy else 'clean'} bundles: {bs.description}")
+            log(format_table(table))
+    return pd.concat(tables, ignore_index=True), maps
 
 
 def format_table(table: pd.DataFrame) -> str:
     cols = {"method": "method", "rms_mm": "RMS mm", "p95_mm": "p95 mm", "max_mm": "max mm",
+            "lips_rms_mm": "lips RMS mm", "wide_open_rms_mm": "wide-open RMS mm",
             "bundle_residual_mm": "bundle residual mm", "normal_deg": "normal error deg",
-            "jitter_mm2": "jitter mm^2 (noisy)", "frames_per_s": "frames/s"}
+            "jitter_mm2": "jitter mm^2", "rms_vs_best_baseline": "RMS / best baseline",
+            "p95_vs_best_baseline": "p95 / best baseline", "frames_per_s": "frames/s"}
     t = table[[c for c in cols if c in table]].rename(columns=cols)
-    fmt = {"RMS mm": "{:.3f}", "p95 mm": "{:.3f}", "max mm": "{:.2f}", "bundle residual mm": "{:.1e}",
-           "normal error deg": "{:.2f}", "jitter mm^2 (noisy)": "{:.4f}", "frames/s": "{:.0f}"}
+    fmt = {"RMS mm": "{:.3f}", "p95 mm": "{:.3f}", "max mm": "{:.2f}", "lips RMS mm": "{:.3f}",
+           "wide-open RMS mm": "{:.3f}", "bundle residual mm": "{:.1e}", "normal error deg": "{:.2f}",
+           "jitter mm^2": "{:.4f}", "RMS / best baseline": "{:.2f}", "p95 / best baseline": "{:.2f}",
+           "frames/s": "{:.0f}"}
     lines = ["| " + " | ".join(t.columns) + " |", "|" + "---|" * len(t.columns)]
     for _, r in t.iterrows():
-        lines.append("| " + " | ".join(fmt.get(c, "{}").format(r[c]) for c in t.columns) + " |")
+        lines.append("| " + " | ".join("-" if isinstance(r[c], float) and np.isnan(r[c]) else
+                                       fmt.get(c, "{}").format(r[c]) for c in t.columns) + " |")
     return "\n".join(lines)

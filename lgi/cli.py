@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 from pathlib import Path
@@ -246,7 +247,8 @@ def _solver(index, args: argparse.Namespace):
 
     jaw = getattr(args, "jaw", "auto")
     return LGISolver(index, temporal_weight=getattr(args, "temporal_weight", 0.0),
-                     spatial_weight=args.spatial_weight, jaw="none" if jaw == "none" else "auto")
+                     spatial_weight=args.spatial_weight, jaw="none" if jaw == "none" else "auto",
+                     method=getattr(args, "method", "local"))
 
 
 def _read_jaw_file(path: str, frames: np.ndarray) -> np.ndarray:
@@ -290,7 +292,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
         s = reconstruct_shot(args.index_dir, args.bundles, args.out, chunk_size=args.chunk_size, smooth=args.smooth,
                              jaw_smooth=args.jaw_smooth, max_gap=args.max_gap, temporal_weight=args.temporal_weight,
-                             spatial_weight=args.spatial_weight)
+                             spatial_weight=args.spatial_weight, noise=args.noise, method=args.method)
         print(f"reconstructed {s['frames']} frames through the reconstruct-shot flow; max bundle residual "
               f"{s['max_residual_mm']:.2e} mm; outputs in {s['out']}")
         return 0
@@ -316,7 +318,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     solver = _solver(index, args)
     t1 = time.perf_counter()
     res = solver.solve_sequence(bundles, show_progress=not args.quiet, smooth=args.smooth,
-                                jaw_smooth=args.jaw_smooth, jaw=jaw, max_gap=args.max_gap)
+                                jaw_smooth=args.jaw_smooth, jaw=jaw, max_gap=args.max_gap, noise=args.noise)
     t2 = time.perf_counter()
     out = Path(args.out)
     stage = _stage(out)
@@ -342,6 +344,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
           f"{(d.status == 'projected').mean() * 100:.1f} % projected (median distance "
           f"{d.projection_mm[d.status == 'projected'].median() if (d.status == 'projected').any() else 0:.3f} mm), "
           f"{(d.status == 'missing').mean() * 100:.1f} % missing; max bundle residual {d.residual_mm.max():.2e} mm")
+    est = solver.noise_estimate
+    how = (f"estimated {est.noise_mm:.3f} mm, neighbour correlation {est.coherence:.2f}" if est is not None
+           else "given")
+    mode = (f"measurements with {res.noise:.3f} mm noise (fitted, not interpolated)" if res.noise > 0
+            else "exact (the surface passes through every seen bundle)")
+    print(f"bundles treated as {mode} ({how}); weights smoothed over {res.smooth} frame{'s' if res.smooth > 1 else ''}"
+          f"; local fits for {(d.source == 'local fit').mean() * 100:.1f} % of bundle-frames")
+    if res.jaw is not None:
+        print(f"jaw: opening {res.jaw[:, 0].min():.1f} to {res.jaw[:, 0].max():.1f} deg; global fit residual median "
+              f"{d.fit_rms_mm.median():.3f} mm, max {d.fit_rms_mm.max():.3f} mm (per frame RMS)")
     print(f"outputs in {out.resolve()}: meshes.npz, diagnostics.csv{', obj/' if args.obj else ''}")
     return 0
 
@@ -503,10 +515,12 @@ def cmd_rig(args: argparse.Namespace) -> int:
     jaw_log = logging.getLogger("lgi.jaw")
     quiet = logging.NullHandler()
     jaw_log.addHandler(quiet)
+    jaw_log.propagate = False
     try:
         rig, params = fit_rig(ds.neutral, sel.deltas, jv, ds.triangles, names=sel.names)
     finally:
         jaw_log.removeHandler(quiet)
+        jaw_log.propagate = True
     rep = rig.fit_report
     rig.save(args.out)
     print(f"jaw rig from {sel.n_shapes} shapes and {len(jv)} jaw vertices: pivot {np.round(rig.pivot, 3).tolist()} "
@@ -739,8 +753,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="preference for the previous frame's shapes, in mm of neighbour misfit (0.02; 0 = none)")
     s.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
                    help="tie-break toward shapes the neighbours agree on, in mm (1e-3; 0 = none)")
-    s.add_argument("--smooth", type=int, default=1, metavar="WINDOW",
-                   help="central moving average of each bundle's shape weights over WINDOW frames (1 = none)")
+    s.add_argument("--smooth", default="auto", metavar="WINDOW|auto",
+                   help="central moving average of each bundle's shape weights over WINDOW frames (1 = none); "
+                        "auto (default): 5 frames when the bundles are noisy (see --noise), else none")
+    s.add_argument("--noise", default="auto", metavar="MM|auto",
+                   help="bundle noise per coordinate: 0 = exact bundles (the surface passes through each); above 0 "
+                        "they are measurements (fitted, not interpolated); auto (default): estimated from the "
+                        "shot's trajectories and reported")
+    s.add_argument("--method", default="local", choices=["local", "simplex"],
+                   help="local (default): a global fit of the jaw and shape weights, refitted per bundle over its "
+                        "natural neighbours and its containing simplices' shapes; simplex: the paper's choice among "
+                        "containing simplices only")
     s.add_argument("--jaw-smooth", type=int, default=None, metavar="WINDOW",
                    help="moving average of the jaw parameters (default: --smooth)")
     s.add_argument("--jaw", default="auto", metavar="auto|none|FILE",
@@ -855,9 +878,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class _WarningHandler(logging.Handler):
+    """Prints the library's warnings (what it could not do as asked) as ``lgi CMD: warning: ...`` on stderr."""
+
+    def __init__(self, command: str) -> None:
+        super().__init__(logging.WARNING)
+        self.command = command
+
+    def emit(self, record: logging.LogRecord) -> None:
+        print(f"lgi {self.command}: warning: {record.getMessage()}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    lgi_log = logging.getLogger("lgi")
+    for h in [h for h in lgi_log.handlers if isinstance(h, _WarningHandler)]:
+        lgi_log.removeHandler(h)
+    lgi_log.addHandler(_WarningHandler(args.command))
     for name in ("vertices", "frames"):
         if getattr(args, name, 1) is not None and getattr(args, name, 1) < 1:
             parser.error(f"--{name} must be positive")

@@ -214,10 +214,11 @@ def publish(src: Path, dest: str | os.PathLike[str]) -> Path:
 
 
 # ---------------------------------------------------------------------------------------------- shots
-def _shot_solver(index_dir: str, temporal_weight: float, spatial_weight: float):
+def _shot_solver(index_dir: str, temporal_weight: float, spatial_weight: float, method: str = "local"):
     from .solver import LGISolver
 
-    return LGISolver(LGIIndex.load(index_dir), temporal_weight=temporal_weight, spatial_weight=spatial_weight)
+    return LGISolver(LGIIndex.load(index_dir), temporal_weight=temporal_weight, spatial_weight=spatial_weight,
+                     method=method)
 
 
 def shot_frames(bundles: str) -> int:
@@ -228,19 +229,27 @@ def shot_frames(bundles: str) -> int:
 
 
 def select_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, temporal_weight: float = 0.02,
-                 spatial_weight: float = 1e-3, max_gap: int = 10) -> str:
+                 spatial_weight: float = 1e-3, max_gap: int = 10, noise: float | str = "auto",
+                 method: str = "local") -> str:
     """Choose shapes and weights for frames ``lo:hi`` of a shot; result: an npz of the choices.
 
-    Gaps are bridged on the whole shot first, so a chunk sees the same positions as a single run; each
-    chunk starts without a previous frame (the results do not depend on how chunks are scheduled).
+    Gaps are bridged and the noise is resolved on the whole shot first, so a chunk sees the same positions
+    and noise as a single run; each chunk starts without a previous frame (the results do not depend on how
+    chunks are scheduled).
     """
     from .bundles import read_bundles
+    from .solver import _stack_slots
 
-    solver = _shot_solver(index_dir, temporal_weight, spatial_weight)
+    solver = _shot_solver(index_dir, temporal_weight, spatial_weight, method)
     pos, frames, _ = solver.prepare(read_bundles(bundles, solver.index.marker_names), None, max_gap)
+    solver.resolve_noise(pos, noise)
     sels = solver.select_sequence(pos[lo:hi], frames[lo:hi])
     arrays = {k: np.stack([getattr(r, k) for r in sels]) for k in
-              ("shapes", "weights", "n_containing", "status", "projection", "score")}
+              ("n_containing", "status", "projection", "score")}
+    arrays["shapes"], arrays["weights"] = _stack_slots([r.shapes for r in sels], [r.weights for r in sels])
+    arrays["source"] = np.stack([r.source.astype(str) for r in sels])
+    arrays["fit_weights"] = np.stack([r.fit.weights for r in sels])
+    arrays["fit_residual"] = np.stack([r.fit.residual for r in sels])
     if sels and sels[0].jaw is not None:
         arrays["jaw"] = np.stack([r.jaw for r in sels])
     arrays["fallback"] = np.array(json.dumps([r.fallback for r in sels]))
@@ -252,9 +261,10 @@ def select_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, tempo
     return out
 
 
-def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int = 1,
+def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int | str = "auto",
                 jaw_smooth: int | None = None, max_gap: int = 10, temporal_weight: float = 0.02,
-                spatial_weight: float = 1e-3, usd: bool = False) -> dict:
+                spatial_weight: float = 1e-3, usd: bool = False, noise: float | str = "auto",
+                method: str = "local") -> dict:
     """Smooth, blend and correct every frame from the chunks' choices; write the shot's outputs.
 
     Writes ``meshes.npz``, ``diagnostics.csv``, ``per_frame.csv`` and ``per_frame.png`` (and
@@ -267,16 +277,24 @@ def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smoot
     from .solver import FrameResult
 
     t0 = time.perf_counter()
-    solver = _shot_solver(index_dir, temporal_weight, spatial_weight)
+    from .globalfit import GlobalFitResult
+
+    solver = _shot_solver(index_dir, temporal_weight, spatial_weight, method)
     pos, frames, bridged = solver.prepare(read_bundles(bundles, solver.index.marker_names), None, max_gap)
+    solver.resolve_noise(pos, noise)
+    smooth = solver.auto_smooth(smooth)
     sels = []
     for path in chunks:
         a = _load_npz(Path(path))
         notes = json.loads(str(a["fallback"]))
         for f in range(len(a["shapes"])):
+            jaw = a["jaw"][f] if "jaw" in a else None
+            r = a["fit_residual"][f]
+            fit = GlobalFitResult(a["fit_weights"][f], jaw, r, float(np.sqrt(np.nanmean(r**2))))
             sels.append(FrameResult(np.zeros((0, 3), np.float32), a["shapes"][f], a["weights"][f],
                                     a["n_containing"][f], a["status"][f], a["projection"][f], a["score"][f],
-                                    np.zeros(len(notes[f])), notes[f], a["jaw"][f] if "jaw" in a else None))
+                                    np.zeros(len(notes[f])), notes[f], jaw, source=a["source"][f].astype(object),
+                                    fit=fit))
     for f, sel in enumerate(sels):
         sel.bundles = pos[f]
     res = solver.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth)

@@ -15,6 +15,8 @@ natural neighbour (or nearest seen bundle); the diagnostics say which.
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,8 +25,22 @@ import pandas as pd
 from . import _kernels as K
 from .bundles import Bundles
 from .errors import InputError
+from .globalfit import GlobalFit, GlobalFitResult
 from .index import LGIIndex
 from .progress import progress
+from .temporal import NoiseEstimate, estimate_noise
+
+# With noisy bundles (noise > 0): ridge of the local fits per squared noise (1 / weight^2; the local
+# weights then stray from the global ones by about noise / 0.2 per unit of... see docs/indexing.md), and the
+# share of the remaining bundle residual the correction removes.
+NOISE_PRIOR = 25.0
+NOISE_GAIN = 0.0
+# Estimated noise below this (mm) is treated as none; window (frames) of the weight smoothing that noisy
+# bundles get by default.
+NOISE_FLOOR = 0.05
+NOISE_SMOOTH = 5
+
+log = logging.getLogger(__name__)
 
 STATUS = {K.CONTAINED: "contained", K.PROJECTED: "projected", K.MISSING: "missing", K.BORROWED: "neighbour"}
 
@@ -61,6 +77,12 @@ class FrameResult:
     residual_before : (M,) float64 or None, cm
         Distance from each bundle to the blended (and, with a rig, skinned) surface before the smooth
         correction: what temporal smoothing or a projection left to correct.
+    source : (M,) object or None
+        Where each bundle's weights came from: "local fit" or "simplex".
+    fit : GlobalFitResult or None
+        The frame's global fit (jaw and weights of all shapes) the local fits started from.
+    simplex_shapes, simplex_weights : (M, 4) int64 and float64, or None
+        The simplex choice of every bundle (carried to the next frame's temporal preference).
     """
 
     vertices: np.ndarray
@@ -75,6 +97,10 @@ class FrameResult:
     jaw: np.ndarray | None = None
     bundles: np.ndarray | None = None
     residual_before: np.ndarray | None = None
+    source: np.ndarray | None = None
+    fit: GlobalFitResult | None = None
+    simplex_shapes: np.ndarray | None = None
+    simplex_weights: np.ndarray | None = None
 
 
 @dataclass
@@ -86,6 +112,8 @@ class SequenceResult:
     vertices: np.ndarray
     diagnostics: pd.DataFrame
     jaw: np.ndarray | None = None
+    noise: float = 0.0
+    smooth: int = 1
 
 
 class LGISolver:
@@ -120,11 +148,33 @@ class LGISolver:
         tell its shapes apart, its neighbours can). The default weight is a tie-break: it decides only
         between candidates whose misfits differ by less than about a micrometre. 0 disables
         the second pass.
+    method : "local" or "simplex"
+        "local" (default): every frame first gets a global fit (bounded shape weights, and the jaw with a
+        rig, :class:`~lgi.globalfit.GlobalFit`); then each bundle's weights are refitted locally to the
+        bundle and its natural neighbours over the shapes the global fit uses and the shapes of the
+        bundle's best containing simplex (so additive combinations outside the cloud's hull are
+        reachable), and the simplex candidate is kept where it fits the neighbourhood better.
+        "simplex": the paper's choice among containing simplices only (the jaw from the global fit).
+    local_prior : float, cm^2
+        Ridge of the local fits toward the global weights, per unit weight squared.
+    noise : float, mm
+        Standard deviation of the bundles' measurement noise per coordinate. 0: the bundles are exact and
+        the surface passes through every one of them. Above 0 the bundles are measurements: the local fits
+        lean on the global weights (ridge ``noise_prior * noise^2``) and the correction to the bundles is
+        scaled by ``noise_gain``.
     """
 
     def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.1,
                  correct_residuals: bool = True, tolerance: float = 1e-9, n_project: int = 3,
-                 spatial_weight: float = 1e-3, top_k: int = 4, jaw: str = "auto") -> None:
+                 spatial_weight: float = 1e-3, top_k: int = 4, jaw: str = "auto", method: str = "local",
+                 local_prior: float = 1e-4, noise: float = 0.0) -> None:
+        if method not in ("local", "simplex"):
+            raise InputError(f"unknown method {method!r}: use 'local' or 'simplex'")
+        self.method = method
+        self.local_prior = float(local_prior)
+        self.noise_prior = NOISE_PRIOR
+        self.noise_estimate: NoiseEstimate | None = None
+        self.set_noise(noise)
         self.index = index
         a = index.arrays
         self._a = a
@@ -152,9 +202,18 @@ class LGISolver:
         if self.rig is not None and jaw == "none":
             raise InputError("the index was built with a jaw rig (its shapes are unskinned): use jaw 'auto' or "
                              "given parameters, or rebuild the index without a rig")
+        self._bundle_w = None
         if self.rig is not None:
             self._bundle_w = self.layout.evaluate(self.rig.weights[:, None])[:, 0]
-            self._jaw_bundles = np.flatnonzero(self._bundle_w >= 0.9)
+        self.global_fit = GlobalFit(a["ptab"], self.rig, self._bundle_w)
+        self._basis = self.global_fit.basis
+        # Each bundle with its natural neighbours, as flat (bundle, row) pairs for vectorised misfits.
+        counts = np.diff(nb_off)
+        self._pair_i = np.concatenate([np.arange(index.n_markers), np.repeat(np.arange(index.n_markers), counts)])
+        self._pair_j = np.concatenate([np.arange(index.n_markers), nb_idx]).astype(np.int64)
+        self._pair_w = np.concatenate([np.full(index.n_markers, K.OWN_WEIGHT), np.ones(len(nb_idx))])
+        own = np.repeat(np.arange(index.n_markers), counts)
+        self._nb_pairs = np.stack([own, nb_idx], 1)[own < nb_idx]
         # A bundle off a flat cloud's plane by less than the flatness tolerance is still inside it.
         self._dist_tol = float(index.manifest["options"]["cloud"]["flat_tol"])
 
@@ -211,12 +270,9 @@ class LGISolver:
         return np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
 
     def estimate_jaw(self, bundles: np.ndarray, init: np.ndarray | None = None) -> np.ndarray:
-        """(4,) jaw parameters fitted to the seen bundles that move with the jaw (weight >= 0.9)."""
-        p = np.asarray(bundles, np.float64)
-        jb = self._jaw_bundles[np.all(np.isfinite(p[self._jaw_bundles]), axis=1)]
-        if jb.size < 3:
-            return np.zeros(4) if init is None else np.asarray(init, np.float64)
-        return self.rig.fit(self._rest[jb], p[jb], self._bundle_w[jb], init)
+        """(4,) jaw parameters of a frame, fitted with the shape weights to all its bundles."""
+        start = None if init is None else GlobalFitResult(np.zeros(0), np.asarray(init, np.float64), np.zeros(0), 0.0)
+        return self.global_fit.solve(bundles, init=start).jaw
 
     def solve_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,
                     jaw: np.ndarray | None = None) -> FrameResult:
@@ -239,17 +295,83 @@ class LGISolver:
                      jaw: np.ndarray | None = None) -> FrameResult:
         """Choose shapes and weights (unskinning the bundles first with a jaw rig); no vertices yet."""
         p = np.asarray(bundles, np.float64)
-        theta = None
+        if p.shape != (self.index.n_markers, 3):
+            raise InputError(f"bundles have shape {p.shape}, the index has {self.index.n_markers} markers")
+        seen = np.all(np.isfinite(p), axis=1)
+        if not seen.any():
+            raise InputError("no marker seen in this frame")
+        fit = self.global_fit.solve(p, jaw=jaw, init=None if previous is None else previous.fit)
+        theta = fit.jaw
         q = p
         if self.rig is not None:
-            init = previous.jaw if previous is not None and previous.jaw is not None else None
-            theta = np.asarray(jaw, np.float64) if jaw is not None else self.estimate_jaw(p, init)
-            seen = np.all(np.isfinite(p), axis=1)
             q = p.copy()
             q[seen] = self.rig.unskin(p[seen], theta, self._bundle_w[seen])
-        q, seen, shapes, lam, n_contain, status, proj, score, fallback = self.select(q, previous)
+        prev_simplex = None
+        if previous is not None:
+            prev_simplex = FrameResult(previous.vertices, previous.simplex_shapes, previous.simplex_weights,
+                                       previous.n_containing, previous.status, previous.projection, previous.score,
+                                       previous.residual, previous.fallback)
+        q, seen, shapes, lam, n_contain, status, proj, score, fallback = self.select(q, prev_simplex)
+        simplex_shapes, simplex_weights = shapes.copy(), lam.copy()
+        source = np.full(len(p), "simplex", object)
+        if self.method == "local":
+            shapes, lam, score, source, fallback = self._local(q, seen, fit, shapes, lam, score, fallback)
         return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, n_contain, status, proj, score,
-                           np.where(seen, 0.0, np.nan), fallback, theta, p)
+                           np.where(seen, 0.0, np.nan), fallback, theta, p, None, source, fit, simplex_shapes,
+                           simplex_weights)
+
+    def _misfits(self, q: np.ndarray, seen: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """(M,) RMS misfit (cm) of each bundle's weights ``w`` (M, S) at the bundle (weight OWN_WEIGHT) and its
+        seen natural neighbours, in the index's (unskinned) space; the simplex candidates' score."""
+        i, j = self._pair_i, self._pair_j
+        ok = seen[j]
+        i, j, cw = i[ok], j[ok], self._pair_w[ok]
+        pred = self._rest[j] + np.einsum("ek,kec->ec", w[i], self._basis[:, j])
+        d2 = np.sum((pred - q[j]) ** 2, axis=1)
+        tot = np.bincount(i, cw * d2, minlength=len(q))
+        cnt = np.bincount(i, cw, minlength=len(q))
+        return np.sqrt(tot / np.maximum(cnt, 1e-300))
+
+    def _local(self, q: np.ndarray, seen: np.ndarray, fit: GlobalFitResult, shapes: np.ndarray, lam: np.ndarray,
+               score: np.ndarray, fallback: list[str]):
+        """Local fits (see ``method``); returns shapes and weights as slots (M, K), scores, sources, notes."""
+        m, n_s = len(q), self.global_fit.n_shapes
+        wg = fit.weights
+        support = np.flatnonzero(wg > 1e-9)
+        cols = []
+        for i in range(m):
+            extra = shapes[i][(lam[i] > 0) & (shapes[i] > 0)] - 1
+            cols.append(np.union1d(support, extra))
+        col_off = np.zeros(m + 1, np.int64)
+        col_off[1:] = np.cumsum([len(c) for c in cols])
+        flat = np.concatenate(cols).astype(np.int64) if col_off[-1] else np.zeros(0, np.int64)
+        resid = np.where(seen[:, None], q - self._rest - np.tensordot(wg, self._basis, axes=1), 0.0)
+        w_local = np.empty((m, n_s))
+        beta = np.full(m, self.local_prior + self.noise_prior * (self.noise / 10) ** 2)
+        K.local_fits(resid, seen, self._basis, self._a["nb_off"], self._a["nb_idx"], col_off, flat, wg, beta,
+                     K.OWN_WEIGHT, w_local)
+        local_score = self._misfits(q, seen, w_local)
+        # The simplex candidate's weights as a full vector, to compare like with like.
+        w_simplex = np.zeros((m, n_s + 1))
+        np.add.at(w_simplex, (np.repeat(np.arange(m), shapes.shape[1]), shapes.ravel()), lam.ravel())
+        simplex_score = self._misfits(q, seen, w_simplex[:, 1:])
+        # A simplex passes exactly through its bundle: with noisy bundles that is fitting the noise, so
+        # the simplex candidate competes only with exact bundles.
+        use_local = ~(seen & (simplex_score < local_score)) if self.noise == 0 else np.ones(m, bool)
+        chosen = np.where(use_local[:, None], w_local, w_simplex[:, 1:])
+        source = np.where(use_local, "local fit", "simplex").astype(object)
+        notes = list(fallback)
+        for i in np.flatnonzero(~seen):
+            n_nb = int(seen[self._neighbours[i]].sum())
+            notes[i] = f"fitted to {n_nb} seen natural neighbours" if n_nb else "global fit"
+        k = max(1, int((chosen > 0).sum(1).max()))
+        out_s = np.zeros((m, k), np.int64)
+        out_w = np.zeros((m, k))
+        for i in range(m):
+            nz = np.flatnonzero(chosen[i] > 0)
+            out_s[i, :len(nz)] = nz + 1
+            out_w[i, :len(nz)] = chosen[i, nz]
+        return out_s, out_w, np.where(use_local, local_score, simplex_score), source, notes
 
     def surface(self, shapes: np.ndarray, weights: np.ndarray, jaw: np.ndarray | None) -> np.ndarray:
         """(V, 3) float64: the natural-neighbour blend of the bundles' shapes, skinned when there is a rig."""
@@ -267,10 +389,12 @@ class LGISolver:
         x = self.surface(shapes, weights, jaw)
         p = sel.bundles if bundles is None else np.asarray(bundles, np.float64)
         seen = np.all(np.isfinite(p), axis=1)
-        before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - self.layout.evaluate(x), axis=1), np.nan)
-        residual = self.correct(x, p, seen)
-        return FrameResult(x.astype(np.float32), sel.shapes, sel.weights, sel.n_containing, sel.status,
-                           sel.projection, sel.score, residual, sel.fallback, jaw, p, before)
+        at = self.layout.evaluate(x)
+        before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - at, axis=1), np.nan)
+        self.correct(x, at + self.noise_gain * (p - at), seen)
+        residual = np.where(seen, np.linalg.norm(np.nan_to_num(p) - self.layout.evaluate(x), axis=1), np.nan)
+        return dataclasses.replace(sel, vertices=x.astype(np.float32), residual=residual, jaw=jaw, bundles=p,
+                                   residual_before=before)
 
     def _fill_missing(self, seen: np.ndarray, shapes: np.ndarray, lam: np.ndarray,
                       previous: FrameResult | None) -> list[str]:
@@ -298,8 +422,9 @@ class LGISolver:
 
     # ---------------------------------------------------------------------------------- sequences
     def solve_sequence(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
-                       show_progress: bool = False, smooth: int = 1, jaw_smooth: int | None = None,
-                       jaw: np.ndarray | None = None, max_gap: int = 0) -> SequenceResult:
+                       show_progress: bool = False, smooth: int | str = "auto", jaw_smooth: int | None = None,
+                       jaw: np.ndarray | None = None, max_gap: int = 0,
+                       noise: float | str | None = "auto") -> SequenceResult:
         """Reconstruct frames in order, carrying each frame's choice into the next.
 
         Parameters
@@ -308,9 +433,10 @@ class LGISolver:
             A :class:`~lgi.bundles.Bundles` (markers matched by name) or an (F, M, 3) array in layout order.
         frames
             Frame numbers for an array input (default 0..F-1).
-        smooth : int
+        smooth : int or "auto"
             Window (frames, odd) of the central moving average of each bundle's shape weights (paper 7.5);
-            1 = none. With a jaw rig the weights are those of the unskinned shapes, so the jaw is not
+            1 = none; "auto": ``NOISE_SMOOTH`` frames when the bundles are noisy (``noise``), else none.
+            With a jaw rig the weights are those of the unskinned shapes, so the jaw is not
             smoothed with them. The residual correction is averaged over the same window: each frame's
             blend is moved by the averaged bundle residuals, so bundle noise is not put straight back
             (the diagnostics' ``residual_mm`` says how far the result is from the raw bundles;
@@ -321,12 +447,72 @@ class LGISolver:
             Given jaw parameters per frame (a tracked jaw) instead of estimating them.
         max_gap : int
             Missing runs of a marker up to this many frames are bridged by interpolating its trajectory.
+        noise : float (mm), "auto" or None
+            The bundles' noise (see the class): "auto" estimates it from the shot's trajectories
+            (:func:`lgi.temporal.estimate_noise`; logged, and in ``SequenceResult.noise``); None keeps the
+            solver's.
         """
         pos, frames, bridged = self.prepare(bundles, frames, max_gap)
         if jaw is not None and len(jaw) != len(pos):
             raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
+        if noise is not None:
+            self.resolve_noise(pos, noise)
+        smooth = self.auto_smooth(smooth)
         sels = self.select_sequence(pos, frames, jaw, show_progress)
         return self.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth, show_progress)
+
+    def set_noise(self, noise_mm: float) -> None:
+        """Treat the bundles as exact (0) or as measurements with this noise (mm per coordinate)."""
+        if not np.isfinite(noise_mm) or noise_mm < 0:
+            raise InputError(f"noise must be a finite number of mm >= 0, not {noise_mm}")
+        self.noise = float(noise_mm)
+        self.noise_gain = NOISE_GAIN if self.noise > 0 else 1.0
+
+    def resolve_noise(self, positions: np.ndarray, noise: float | str = "auto") -> NoiseEstimate | None:
+        """Set the solver's noise for a shot (F, M, 3): a given value (mm) or "auto", estimated from the
+        shot. Below ``NOISE_FLOOR`` mm, or where the frame-to-frame changes are not noise (neighbouring
+        markers change together: independent poses rather than a performance), the bundles are exact.
+        Returns the estimate (None for a given value); the decision is logged."""
+        if noise != "auto":
+            try:
+                value = float(noise)
+            except (TypeError, ValueError):
+                raise InputError(f"noise must be a number of mm or 'auto', not {noise!r}") from None
+            self.set_noise(value)
+            self.noise_estimate = None
+            return None
+        est = estimate_noise(positions, self._nb_pairs)
+        self.noise_estimate = est
+        if not np.isfinite(est.noise_mm):
+            log.info("too few frames to estimate the bundle noise: bundles treated as exact")
+            self.set_noise(0.0)
+        elif est.noise_mm < NOISE_FLOOR:
+            log.info("bundle noise estimated at %.3f mm (below %.2f mm): bundles treated as exact", est.noise_mm,
+                     NOISE_FLOOR)
+            self.set_noise(0.0)
+        elif not est.is_noise:
+            log.warning("the bundles change from frame to frame by %.3f mm (median, per coordinate) but neighbouring "
+                        "markers change together (correlation %.2f): that is motion (independent poses?), not "
+                        "measurement noise, so the bundles are treated as exact; give the noise if they are "
+                        "measurements", est.noise_mm, est.coherence)
+            self.set_noise(0.0)
+        else:
+            log.info("bundle noise estimated at %.3f mm per coordinate (%d residuals, neighbour correlation %.2f): "
+                     "bundles treated as measurements", est.noise_mm, est.samples, est.coherence)
+            self.set_noise(est.noise_mm)
+        return est
+
+    def auto_smooth(self, smooth: int | str) -> int:
+        """The weight-smoothing window for ``smooth`` ("auto": ``NOISE_SMOOTH`` with noisy bundles, else 1)."""
+        if smooth == "auto":
+            return NOISE_SMOOTH if self.noise > 0 else 1
+        try:
+            value = int(smooth)
+        except (TypeError, ValueError):
+            raise InputError(f"smooth must be a window of frames or 'auto', not {smooth!r}") from None
+        if value < 1:
+            raise InputError(f"the smoothing window must be at least 1 frame, not {value}")
+        return value
 
     def prepare(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
                 max_gap: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -361,8 +547,7 @@ class LGISolver:
         """Smooth the choices over time, blend, skin and correct every frame; diagnostics per bundle."""
         from .temporal import window_slots
 
-        shapes = np.stack([r.shapes for r in sels])
-        lam = np.stack([r.weights for r in sels])
+        shapes, lam = _stack_slots([r.shapes for r in sels], [r.weights for r in sels])
         thetas = None
         if self.rig is not None:
             from .jaw import smooth_parameters
@@ -390,11 +575,14 @@ class LGISolver:
         for f in range(len(pos)):
             x = surfaces[f]
             seen = np.all(np.isfinite(pos[f]), axis=1)
-            target = np.where(seen[:, None], self.layout.evaluate(x) + np.nan_to_num(resid[f]), np.nan)
+            target = np.where(seen[:, None], self.layout.evaluate(x) + self.noise_gain * np.nan_to_num(resid[f]),
+                              np.nan)
             self.correct(x, target, seen)
             out[f] = x
             r_final = np.where(seen, np.linalg.norm(np.nan_to_num(pos[f]) - self.layout.evaluate(x), axis=1), np.nan)
             sel = sels[f]
+            jaw_cols = () if thetas is None else tuple(float(v) for v in sels[f].jaw)
+            fit_rms = sel.fit.rms * 10 if sel.fit is not None else np.nan
             for i in range(len(names)):
                 nz = sel.weights[i] > 0
                 status = STATUS[int(sel.status[i])] if not sel.fallback[i] else "missing"
@@ -406,11 +594,16 @@ class LGISolver:
                     ";".join(shape_names[k] for k in sel.shapes[i][nz]),
                     " ".join(f"{w:.4f}" for w in sel.weights[i][nz]), sel.projection[i] * 10, sel.score[i] * 10,
                     before[f, i] * 10, r_final[i] * 10, note,
+                    sel.source[i] if sel.source is not None else "simplex",
+                    sel.fit.residual[i] * 10 if sel.fit is not None else np.nan, fit_rms, *jaw_cols,
                 ))
+        from .jaw import PARAM_NAMES
+
         diag = pd.DataFrame(rows, columns=["frame", "marker", "status", "n_containing", "shapes", "weights",
                                            "projection_mm", "score_mm", "residual_before_mm", "residual_mm",
-                                           "fallback"])
-        return SequenceResult(np.asarray(frames), out, diag, thetas)
+                                           "fallback", "source", "fit_residual_mm", "fit_rms_mm",
+                                           *([] if thetas is None else [f"jaw_{n}" for n in PARAM_NAMES])])
+        return SequenceResult(np.asarray(frames), out, diag, thetas, self.noise, smooth)
 
     def align(self, bundles: Bundles) -> np.ndarray:
         """(F, M, 3) positions of a bundles file in this index's marker order (unknown markers rejected)."""
@@ -423,3 +616,14 @@ class LGISolver:
             if n in col:
                 pos[:, i] = bundles.positions[:, col[n]]
         return pos
+
+
+def _stack_slots(shapes: list[np.ndarray], weights: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(F, M, K) shapes and weights of frames whose bundles use different numbers of slots (zero-padded)."""
+    k = max(s.shape[1] for s in shapes)
+    out_s = np.zeros((len(shapes), shapes[0].shape[0], k), np.int64)
+    out_w = np.zeros((len(shapes), shapes[0].shape[0], k))
+    for f, (s, w) in enumerate(zip(shapes, weights, strict=True)):
+        out_s[f, :, :s.shape[1]] = s
+        out_w[f, :, :w.shape[1]] = w
+    return out_s, out_w

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
@@ -151,3 +153,151 @@ def moving_average(values: np.ndarray, window: int) -> np.ndarray:
     n = cn[hi] - cn[lo]
     out = np.divide(s, n, out=np.full_like(s, np.nan), where=n > 0)
     return np.where(ok, out, np.nan)
+
+
+# Savitzky-Golay smoothing weights (quadratic, 7 frames): the residual of a frame from the local quadratic
+# through its neighbourhood is pure noise where the motion is smooth over a quarter second.
+_SG7 = np.array([-2.0, 3.0, 6.0, 7.0, 6.0, 3.0, -2.0]) / 21.0
+
+
+@dataclass
+class NoiseEstimate:
+    """A shot's bundle noise as estimated from its trajectories.
+
+    Attributes
+    ----------
+    noise_mm : float
+        Standard deviation per coordinate (NaN when no marker is seen for 7 frames in a row).
+    samples : int
+        Residuals the estimate is based on.
+    coherence : float
+        Median correlation of the residuals of neighbouring markers: near 0 for measurement noise
+        (independent per marker), high when the frame-to-frame changes are motion (independent poses
+        rather than a performance), where the estimate is not noise.
+    """
+
+    noise_mm: float
+    samples: int
+    coherence: float
+
+    @property
+    def is_noise(self) -> bool:
+        """Whether the residuals look like measurement noise (see ``coherence``)."""
+        return bool(np.isfinite(self.noise_mm) and self.coherence < NOISE_MAX_COHERENCE)
+
+
+# Residuals of neighbouring markers more correlated than this are motion, not measurement noise.
+NOISE_MAX_COHERENCE = 0.3
+
+
+def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None) -> NoiseEstimate:
+    """Bundle noise of a shot from its trajectories.
+
+    Each coordinate's residual from the local quadratic over 7 frames (Savitzky-Golay) is noise plus
+    what the motion's third derivative leaves; the median absolute residual over all markers and frames
+    ignores the few fast moments. For white noise of deviation s the residual's deviation is
+    ``s * sqrt(1 - 7/21)``.
+
+    Parameters
+    ----------
+    positions : (F, M, 3) float, cm
+        Bundle positions; NaN rows (missing) are skipped with the windows that contain them.
+    pairs : (P, 2) int, optional
+        Neighbouring markers, for the coherence test (without them coherence is 0).
+    """
+    p = np.asarray(positions, np.float64)
+    if len(p) < len(_SG7):
+        return NoiseEstimate(float("nan"), 0, float("nan"))
+    win = np.lib.stride_tricks.sliding_window_view(p, len(_SG7), axis=0)  # (F-6, M, 3, 7)
+    r = win[..., 3] - win @ _SG7  # (F-6, M, 3)
+    ok = np.isfinite(r)
+    if not ok.any():
+        return NoiseEstimate(float("nan"), 0, float("nan"))
+    mad = float(np.median(np.abs(r[ok])))
+    noise = mad / 0.6745 / np.sqrt(1.0 - _SG7[3]) * 10.0
+    coherence = 0.0
+    if pairs is not None and len(pairs):
+        corr = []
+        for i, j in np.asarray(pairs):
+            a, b = r[:, i], r[:, j]
+            both = np.isfinite(a).all(1) & np.isfinite(b).all(1)
+            if both.sum() < 3:
+                continue
+            a, b = a[both].ravel(), b[both].ravel()
+            den = np.sqrt((a @ a) * (b @ b))
+            if den > 0:
+                corr.append((a @ b) / den)
+        coherence = float(np.median(corr)) if corr else float("nan")
+    return NoiseEstimate(noise, int(ok.sum()), coherence)
+
+
+SG_WINDOWS = (1, 5, 7, 9, 11, 15, 21, 31)
+
+
+def _sg_segments(x: np.ndarray, window: int) -> np.ndarray:
+    """Savitzky-Golay (quadratic) smoothing of (F, 3) with NaN rows; each run of seen frames is smoothed
+    on its own (runs shorter than the window are left as they are)."""
+    from scipy.signal import savgol_filter
+
+    out = x.copy()
+    if window <= 1:
+        return out
+    seen = np.all(np.isfinite(x), axis=1)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], seen.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        if b - a >= window:
+            out[a:b] = savgol_filter(x[a:b], window, 2, axis=0, mode="interp")
+    return out
+
+
+def denoise_trajectories(positions: np.ndarray, noise_mm: float,
+                         windows: tuple[int, ...] = SG_WINDOWS) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth each marker's trajectory by local quadratics over the window that minimises Stein's unbiased
+    estimate of its error, given the noise.
+
+    For a linear smoother ``y_hat = H y`` of data with white noise of deviation s, the expected squared error
+    against the truth is ``|y - y_hat|^2 - n s^2 + 2 s^2 tr(H)`` (SURE): the window trades noise for the lag
+    and rounding a wide window gives fast motion, marker by marker (lips move faster than the forehead).
+
+    Parameters
+    ----------
+    positions : (F, M, 3) float, cm
+        Rows of NaN are missing.
+    noise_mm : float
+        Noise deviation per coordinate.
+    windows : tuple of int
+        Odd windows tried (1: no smoothing).
+
+    Returns
+    -------
+    smoothed : (F, M, 3) float64, cm
+    window : (M,) int
+        The window chosen per marker.
+    """
+    from scipy.signal import savgol_coeffs
+
+    p = np.asarray(positions, np.float64)
+    s2 = (noise_mm / 10.0) ** 2
+    out = p.copy()
+    chosen = np.ones(p.shape[1], np.int64)
+    if s2 <= 0:
+        return out, chosen
+    for m in range(p.shape[1]):
+        x = p[:, m]
+        ok = np.all(np.isfinite(x), axis=1)
+        if ok.sum() < 8:
+            continue
+        best, best_risk = x, 0.0  # window 1: risk n s^2 - n s^2 ... relative to it: 0
+        for w in windows:
+            if w <= 1 or w > ok.sum():
+                continue
+            y = _sg_segments(x, w)
+            c0 = float(savgol_coeffs(w, 2)[w // 2])
+            d = (y - x)[ok]
+            # SURE relative to no smoothing (whose risk is n s^2 per coordinate): edges use other
+            # coefficients, which the centre one approximates.
+            risk = float(np.sum(d**2)) - 2 * s2 * d.size * (1.0 - c0)
+            if risk < best_risk:
+                best, best_risk, chosen[m] = y, risk, w
+        out[:, m] = best
+    return out, chosen
