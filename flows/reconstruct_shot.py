@@ -30,7 +30,7 @@ def reconstruct_shot(
     bundles: str,
     out: str,
     chunk_size: int = 60,
-    smooth: int | str = "auto",
+    smooth: int = 1,
     jaw_smooth: int | None = None,
     max_gap: int = 10,
     temporal_weight: float = 0.02,

@@ -349,8 +349,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
            else "given")
     mode = (f"measurements with {res.noise:.3f} mm noise (fitted, not interpolated)" if res.noise > 0
             else "exact (the surface passes through every seen bundle)")
-    print(f"bundles treated as {mode} ({how}); weights smoothed over {res.smooth} frame{'s' if res.smooth > 1 else ''}"
-          f"; local fits for {(d.source == 'local fit').mean() * 100:.1f} % of bundle-frames")
+    print(f"bundles treated as {mode} ({how}); local fits for {(d.source == 'local fit').mean() * 100:.1f} % of "
+          "bundle-frames")
     if res.jaw is not None:
         print(f"jaw: opening {res.jaw[:, 0].min():.1f} to {res.jaw[:, 0].max():.1f} deg; global fit residual median "
               f"{d.fit_rms_mm.median():.3f} mm, max {d.fit_rms_mm.max():.3f} mm (per frame RMS)")
@@ -753,13 +753,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="preference for the previous frame's shapes, in mm of neighbour misfit (0.02; 0 = none)")
     s.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
                    help="tie-break toward shapes the neighbours agree on, in mm (1e-3; 0 = none)")
-    s.add_argument("--smooth", default="auto", metavar="WINDOW|auto",
-                   help="central moving average of each bundle's shape weights over WINDOW frames (1 = none); "
-                        "auto (default): 5 frames when the bundles are noisy (see --noise), else none")
+    s.add_argument("--smooth", type=int, default=1, metavar="WINDOW",
+                   help="central moving average of each bundle's shape weights over WINDOW frames (1 = none)")
     s.add_argument("--noise", default="auto", metavar="MM|auto",
                    help="bundle noise per coordinate: 0 = exact bundles (the surface passes through each); above 0 "
-                        "they are measurements (fitted, not interpolated); auto (default): estimated from the "
-                        "shot's trajectories and reported")
+                        "they are measurements: each marker's trajectory is smoothed (window chosen per marker by "
+                        "Stein's unbiased risk estimate) and fitted, not interpolated; auto (default): estimated "
+                        "from the shot's trajectories and reported")
     s.add_argument("--method", default="local", choices=["local", "simplex"],
                    help="local (default): a global fit of the jaw and shape weights, refitted per bundle over its "
                         "natural neighbours and its containing simplices' shapes; simplex: the paper's choice among "

@@ -20,8 +20,8 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares, lsq_linear
 
+from . import _kernels as K
 from .jaw import N_PARAMS, JawRig, jaw_matrix
 
 log = logging.getLogger(__name__)
@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 # Scales of the jaw parameters (deg, deg, deg, cm) for the nonlinear steps and the determinacy test: a
 # degree of opening moves a chin bundle by about 1.5 mm, as does a 0.15 cm slide.
 THETA_SCALE = np.array([1.0, 1.0, 1.0, 0.15])
+# A marker "moves with the jaw" from this rig weight on; the jaw is estimated only with 3 such markers.
+JAW_MIN_WEIGHT = 0.2
 
 
 @dataclass
@@ -45,12 +47,15 @@ class GlobalFitResult:
         Distance from each bundle to the fitted model (NaN for missing bundles).
     rms : float, cm
         RMS of ``residual`` over the seen bundles.
+    jaw_source : str
+        "estimated", "given", "held at rest (not observable)", or "" without a rig.
     """
 
     weights: np.ndarray
     jaw: np.ndarray | None
     residual: np.ndarray
     rms: float
+    jaw_source: str = ""
 
 
 class GlobalFit:
@@ -85,9 +90,16 @@ class GlobalFit:
                 raise ValueError("a rig needs the bundles' jaw weights")
             self.bw = np.asarray(bundle_weights, np.float64)
             self.determinacy = self._determinacy()
+            moving = self.bw >= JAW_MIN_WEIGHT
+            self.jaw_observable = bool(moving.sum() >= 3)
+            self.jaw_note = "" if self.jaw_observable else (
+                f"only {int(moving.sum())} markers move with the jaw (rig weight >= {JAW_MIN_WEIGHT}; 3 are needed): "
+                "the jaw cannot be estimated from this layout and is held at rest unless given")
         else:
             self.bw = None
             self.determinacy = None
+            self.jaw_observable = False
+            self.jaw_note = ""
 
     # ------------------------------------------------------------------ the model
     def _maps(self, theta: np.ndarray) -> np.ndarray:
@@ -106,61 +118,79 @@ class GlobalFit:
         m = self._maps(theta)
         return np.einsum("mij,mj->mi", m[:, :, :3], x) + m[:, :, 3]
 
-    def _weights(self, p: np.ndarray, seen: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
-        m = self._maps(theta if theta is not None else np.zeros(N_PARAMS))[seen]
-        a = np.einsum("mij,kmj->mik", m[:, :, :3], self.basis[:, seen]).reshape(-1, self.n_shapes)
-        b = (p[seen] - np.einsum("mij,mj->mi", m[:, :, :3], self.rest[seen]) - m[:, :, 3]).ravel()
-        if self.l2 > 0:
-            a = np.vstack([a, np.sqrt(self.l2) * np.eye(self.n_shapes)])
-            b = np.concatenate([b, np.zeros(self.n_shapes)])
-        return lsq_linear(a, b, bounds=(0.0, 1.0), method="bvls").x
-
-    def _joint(self, p: np.ndarray, seen: np.ndarray, weights: np.ndarray, theta: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
-        """Jaw and weights solved together (bounded nonlinear least squares from a starting point).
-
-        Alternating between the two stalls where a shape and the jaw move the same bundles (ICT's
-        mouthLowerDown and a degree of opening): each step undoes the other's gain. A joint Gauss-Newton
-        step moves both along that valley."""
+    def _system(self, p: np.ndarray, seen: np.ndarray, weights: np.ndarray, theta: np.ndarray | None,
+                with_jaw: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (3m,) of the seen bundles and their Jacobian (3m, [4 +] S) in the jaw (per unit of
+        THETA_SCALE) and the weights, at (theta, weights)."""
         rest, basis = self.rest[seen], self.basis[:, seen]
+        x = rest + np.tensordot(weights, basis, axes=1)
+        if self.rig is None:
+            r = (x - p[seen]).ravel()
+            return r, basis.reshape(self.n_shapes, -1).T
         bw = self.bw[seen]
-        n_s = self.n_shapes
-        target = p[seen]
         eye = np.eye(4)[:3]
-        sq_l2 = np.sqrt(self.l2)
+        t0 = jaw_matrix(theta, self.rig.pivot)[:3]
+        m = (1 - bw)[:, None, None] * eye + bw[:, None, None] * t0
+        r = (np.einsum("mij,mj->mi", m[:, :, :3], x) + m[:, :, 3] - p[seen]).ravel()
+        jw = np.einsum("mij,kmj->mik", m[:, :, :3], basis).reshape(-1, self.n_shapes)
+        if not with_jaw:
+            return r, jw
+        xh = np.concatenate([x, np.ones((len(x), 1))], axis=1)
+        jt = np.empty((len(r), N_PARAMS))
+        for k in range(N_PARAMS):
+            step = np.zeros(N_PARAMS)
+            step[k] = 1e-6 * THETA_SCALE[k]
+            dt = (jaw_matrix(theta + step, self.rig.pivot)[:3] - t0) / 1e-6
+            jt[:, k] = (bw[:, None] * (xh @ dt.T)).ravel()
+        return r, np.concatenate([jt, jw], axis=1)
 
-        def unpack(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            return z[:N_PARAMS] * THETA_SCALE, z[N_PARAMS:]
+    def _gauss_newton(self, p: np.ndarray, seen: np.ndarray, weights: np.ndarray, theta: np.ndarray | None,
+                      with_jaw: bool, max_iter: int = 30) -> tuple[np.ndarray, np.ndarray | None]:
+        """Minimise |r|^2 + l2 |w|^2 over the weights in [0, 1] (and the jaw) by Gauss-Newton steps, each a
+        box-constrained quadratic program (:func:`lgi._kernels.box_qp`) with Levenberg-Marquardt damping.
 
-        def resid(z: np.ndarray) -> np.ndarray:
-            th, w = unpack(z)
-            x = rest + np.tensordot(w, basis, axes=1)
-            m = (1 - bw)[:, None, None] * eye + bw[:, None, None] * jaw_matrix(th, self.rig.pivot)[:3]
-            r = np.einsum("mij,mj->mi", m[:, :, :3], x) + m[:, :, 3] - target
-            return np.concatenate([r.ravel(), sq_l2 * w])
+        Alternating between the jaw and the weights stalls where a shape and the jaw move the same bundles
+        (ICT's mouthLowerDown and a degree of opening): each step undoes the other's gain; a joint step
+        moves both along that valley. Without the jaw the problem is linear and one step solves it."""
+        n_s = self.n_shapes
+        nj = N_PARAMS if with_jaw else 0
+        w = np.clip(np.asarray(weights, np.float64), 0.0, 1.0)
+        th = None if theta is None else np.asarray(theta, np.float64).copy()
+        reg = np.zeros(nj + n_s)
+        reg[nj:] = self.l2
 
-        def jac(z: np.ndarray) -> np.ndarray:
-            th, w = unpack(z)
-            x = rest + np.tensordot(w, basis, axes=1)
-            t0 = jaw_matrix(th, self.rig.pivot)[:3]
-            m = (1 - bw)[:, None, None] * eye + bw[:, None, None] * t0
-            out = np.zeros((3 * len(rest) + n_s, N_PARAMS + n_s))
-            xh = np.concatenate([x, np.ones((len(x), 1))], axis=1)
-            for k in range(N_PARAMS):
-                step = np.zeros(N_PARAMS)
-                step[k] = 1e-6 * THETA_SCALE[k]
-                dt = (jaw_matrix(th + step, self.rig.pivot)[:3] - t0) / 1e-6  # per unit scaled parameter
-                out[:3 * len(rest), k] = (bw[:, None] * (xh @ dt.T)).ravel()
-            out[:3 * len(rest), N_PARAMS:] = np.einsum("mij,kmj->mik", m[:, :, :3], basis).reshape(-1, n_s)
-            out[3 * len(rest):, N_PARAMS:] = sq_l2 * np.eye(n_s)
-            return out
+        def cost(r: np.ndarray, w: np.ndarray) -> float:
+            return float(r @ r + self.l2 * (w @ w))
 
-        z0 = np.concatenate([theta / THETA_SCALE, np.clip(weights, 0.0, 1.0)])
-        lo = np.concatenate([np.full(N_PARAMS, -np.inf), np.zeros(n_s)])
-        hi = np.concatenate([np.full(N_PARAMS, np.inf), np.ones(n_s)])
-        z = least_squares(resid, z0, jac=jac, bounds=(lo, hi), method="trf", xtol=1e-10, ftol=1e-12,
-                          max_nfev=50).x
-        return unpack(z)
+        r, jac = self._system(p, seen, w, th, with_jaw)
+        c = cost(r, w)
+        mu = 0.0
+        lo = np.concatenate([np.full(nj, -1e30), -w])
+        for _ in range(max_iter):
+            h = jac.T @ jac + np.diag(reg + mu)
+            g = -(jac.T @ r) - reg * np.concatenate([np.zeros(nj), w])
+            lo = np.concatenate([np.full(nj, -1e30), -w])
+            hi = np.concatenate([np.full(nj, 1e30), 1.0 - w])
+            dz = np.zeros(nj + n_s)
+            K.box_qp(h, g, lo, hi, dz)
+            w_new = np.clip(w + dz[nj:], 0.0, 1.0)
+            th_new = th if not with_jaw else th + dz[:nj] * THETA_SCALE
+            r_new, jac_new = self._system(p, seen, w_new, th_new, with_jaw)
+            c_new = cost(r_new, w_new)
+            if not with_jaw:
+                return w_new, th_new
+            if c_new <= c:
+                step = max(np.abs(dz[:nj]).max(), np.abs(dz[nj:]).max())
+                w, th, r, jac, c = w_new, th_new, r_new, jac_new, c_new
+                mu *= 0.1
+                if step < 1e-9 or c_new > c * (1 - 1e-12) and step < 1e-6:
+                    break
+            else:
+                # The jaw is nonlinear: damp toward gradient steps (in the scaled parameters) until it helps.
+                mu = max(mu * 10, 1e-6 * float(np.trace(h)) / len(h))
+                if mu > 1e12:
+                    break
+        return w, th
 
     # ------------------------------------------------------------------ frames
     def solve(self, bundles: np.ndarray, jaw: np.ndarray | None = None, init: GlobalFitResult | None = None
@@ -186,14 +216,20 @@ class GlobalFit:
                 theta = init.jaw.copy()
             else:
                 theta = np.zeros(N_PARAMS)
-        w = self._weights(p, seen, theta)
-        if self.rig is not None and jaw is None:
-            theta, w = self._joint(p, seen, w, theta)
+        w0 = init.weights if init is not None and len(init.weights) == self.n_shapes else np.zeros(self.n_shapes)
+        with_jaw = self.rig is not None and jaw is None and self.jaw_observable
+        if self.rig is not None and jaw is None and not self.jaw_observable:
+            theta = np.zeros(N_PARAMS)
+        w, theta = self._gauss_newton(p, seen, w0, theta, with_jaw)
+        if with_jaw:
             # The weights at the final jaw exactly (the joint solve stops at a tolerance).
-            w = self._weights(p, seen, theta)
+            w, _ = self._gauss_newton(p, seen, w, theta, False)
         r = np.linalg.norm(self.predict(w, theta) - np.where(seen[:, None], p, 0.0), axis=1)
         r = np.where(seen, r, np.nan)
-        return GlobalFitResult(w, theta, r, float(np.sqrt(np.nanmean(r**2))) if seen.any() else float("nan"))
+        source = "" if self.rig is None else ("given" if jaw is not None else "estimated" if with_jaw
+                                              else "held at rest (not observable)")
+        return GlobalFitResult(w, theta, r, float(np.sqrt(np.nanmean(r**2))) if seen.any() else float("nan"),
+                               source)
 
     # ------------------------------------------------------------------ diagnostics
     def _determinacy(self, eps: float = 1e-4) -> np.ndarray:

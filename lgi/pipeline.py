@@ -243,13 +243,14 @@ def select_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, tempo
     solver = _shot_solver(index_dir, temporal_weight, spatial_weight, method)
     pos, frames, _ = solver.prepare(read_bundles(bundles, solver.index.marker_names), None, max_gap)
     solver.resolve_noise(pos, noise)
-    sels = solver.select_sequence(pos[lo:hi], frames[lo:hi])
+    sels = solver.select_sequence(solver.denoise(pos)[lo:hi], frames[lo:hi])
     arrays = {k: np.stack([getattr(r, k) for r in sels]) for k in
               ("n_containing", "status", "projection", "score")}
     arrays["shapes"], arrays["weights"] = _stack_slots([r.shapes for r in sels], [r.weights for r in sels])
     arrays["source"] = np.stack([r.source.astype(str) for r in sels])
     arrays["fit_weights"] = np.stack([r.fit.weights for r in sels])
     arrays["fit_residual"] = np.stack([r.fit.residual for r in sels])
+    arrays["jaw_source"] = np.array([r.fit.jaw_source for r in sels])
     if sels and sels[0].jaw is not None:
         arrays["jaw"] = np.stack([r.jaw for r in sels])
     arrays["fallback"] = np.array(json.dumps([r.fallback for r in sels]))
@@ -261,7 +262,7 @@ def select_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, tempo
     return out
 
 
-def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int | str = "auto",
+def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int = 1,
                 jaw_smooth: int | None = None, max_gap: int = 10, temporal_weight: float = 0.02,
                 spatial_weight: float = 1e-3, usd: bool = False, noise: float | str = "auto",
                 method: str = "local") -> dict:
@@ -282,7 +283,7 @@ def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smoot
     solver = _shot_solver(index_dir, temporal_weight, spatial_weight, method)
     pos, frames, bridged = solver.prepare(read_bundles(bundles, solver.index.marker_names), None, max_gap)
     solver.resolve_noise(pos, noise)
-    smooth = solver.auto_smooth(smooth)
+    fit_pos = solver.denoise(pos)
     sels = []
     for path in chunks:
         a = _load_npz(Path(path))
@@ -290,14 +291,15 @@ def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smoot
         for f in range(len(a["shapes"])):
             jaw = a["jaw"][f] if "jaw" in a else None
             r = a["fit_residual"][f]
-            fit = GlobalFitResult(a["fit_weights"][f], jaw, r, float(np.sqrt(np.nanmean(r**2))))
+            fit = GlobalFitResult(a["fit_weights"][f], jaw, r, float(np.sqrt(np.nanmean(r**2))),
+                                  str(a["jaw_source"][f]))
             sels.append(FrameResult(np.zeros((0, 3), np.float32), a["shapes"][f], a["weights"][f],
                                     a["n_containing"][f], a["status"][f], a["projection"][f], a["score"][f],
                                     np.zeros(len(notes[f])), notes[f], jaw, source=a["source"][f].astype(object),
                                     fit=fit))
     for f, sel in enumerate(sels):
-        sel.bundles = pos[f]
-    res = solver.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth)
+        sel.bundles = fit_pos[f]
+    res = solver.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth, fit_pos=fit_pos)
     d = res.diagnostics
     per_frame = d.groupby("frame").agg(
         contained=("status", lambda s: float((s == "contained").mean())),

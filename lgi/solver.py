@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy.signal import savgol_coeffs
 
 from . import _kernels as K
 from .bundles import Bundles
@@ -28,17 +29,13 @@ from .errors import InputError
 from .globalfit import GlobalFit, GlobalFitResult
 from .index import LGIIndex
 from .progress import progress
-from .temporal import NoiseEstimate, estimate_noise
+from .temporal import NoiseEstimate, denoise_trajectories, estimate_noise
 
-# With noisy bundles (noise > 0): ridge of the local fits per squared noise (1 / weight^2; the local
-# weights then stray from the global ones by about noise / 0.2 per unit of... see docs/indexing.md), and the
-# share of the remaining bundle residual the correction removes.
-NOISE_PRIOR = 25.0
+# With noisy bundles (noise > 0): the share of the remaining bundle residual the correction removes (none:
+# what remains after the fit is mostly the noise).
 NOISE_GAIN = 0.0
-# Estimated noise below this (mm) is treated as none; window (frames) of the weight smoothing that noisy
-# bundles get by default.
+# Estimated noise below this (mm) is treated as none.
 NOISE_FLOOR = 0.05
-NOISE_SMOOTH = 5
 
 log = logging.getLogger(__name__)
 
@@ -159,9 +156,10 @@ class LGISolver:
         Ridge of the local fits toward the global weights, per unit weight squared.
     noise : float, mm
         Standard deviation of the bundles' measurement noise per coordinate. 0: the bundles are exact and
-        the surface passes through every one of them. Above 0 the bundles are measurements: the local fits
-        lean on the global weights (ridge ``noise_prior * noise^2``) and the correction to the bundles is
-        scaled by ``noise_gain``.
+        the surface passes through every one of them. Above 0 the bundles are measurements: a sequence's
+        trajectories are smoothed first (:meth:`denoise`), every bundle takes the global fit's weights
+        (measured: at 0.3 mm the local refits fit the noise, not the face, on every benchmark set) and
+        the surface is not pulled onto the bundles.
     """
 
     def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.1,
@@ -172,7 +170,6 @@ class LGISolver:
             raise InputError(f"unknown method {method!r}: use 'local' or 'simplex'")
         self.method = method
         self.local_prior = float(local_prior)
-        self.noise_prior = NOISE_PRIOR
         self.noise_estimate: NoiseEstimate | None = None
         self.set_noise(noise)
         self.index = index
@@ -206,6 +203,8 @@ class LGISolver:
         if self.rig is not None:
             self._bundle_w = self.layout.evaluate(self.rig.weights[:, None])[:, 0]
         self.global_fit = GlobalFit(a["ptab"], self.rig, self._bundle_w)
+        if self.rig is not None and not self.global_fit.jaw_observable:
+            log.warning("%s", self.global_fit.jaw_note)
         self._basis = self.global_fit.basis
         # Each bundle with its natural neighbours, as flat (bundle, row) pairs for vectorised misfits.
         counts = np.diff(nb_off)
@@ -314,7 +313,9 @@ class LGISolver:
         q, seen, shapes, lam, n_contain, status, proj, score, fallback = self.select(q, prev_simplex)
         simplex_shapes, simplex_weights = shapes.copy(), lam.copy()
         source = np.full(len(p), "simplex", object)
-        if self.method == "local":
+        if self.method == "local" and self.noise > 0:
+            shapes, lam, score, source, fallback = self._global(q, seen, fit, fallback)
+        elif self.method == "local":
             shapes, lam, score, source, fallback = self._local(q, seen, fit, shapes, lam, score, fallback)
         return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, n_contain, status, proj, score,
                            np.where(seen, 0.0, np.nan), fallback, theta, p, None, source, fit, simplex_shapes,
@@ -332,6 +333,19 @@ class LGISolver:
         cnt = np.bincount(i, cw, minlength=len(q))
         return np.sqrt(tot / np.maximum(cnt, 1e-300))
 
+    def _global(self, q: np.ndarray, seen: np.ndarray, fit: GlobalFitResult, fallback: list[str]):
+        """Every bundle takes the global fit's weights (noisy bundles: local refits would fit the noise)."""
+        m = len(q)
+        nz = np.flatnonzero(fit.weights > 0)
+        k = max(1, len(nz))
+        out_s = np.zeros((m, k), np.int64)
+        out_w = np.zeros((m, k))
+        out_s[:, :len(nz)] = nz + 1
+        out_w[:, :len(nz)] = fit.weights[nz]
+        notes = [("global fit" if not seen[i] else "") for i in range(m)]
+        score = self._misfits(q, seen, np.broadcast_to(fit.weights, (m, len(fit.weights))))
+        return out_s, out_w, score, np.full(m, "global fit", object), notes
+
     def _local(self, q: np.ndarray, seen: np.ndarray, fit: GlobalFitResult, shapes: np.ndarray, lam: np.ndarray,
                score: np.ndarray, fallback: list[str]):
         """Local fits (see ``method``); returns shapes and weights as slots (M, K), scores, sources, notes."""
@@ -347,7 +361,7 @@ class LGISolver:
         flat = np.concatenate(cols).astype(np.int64) if col_off[-1] else np.zeros(0, np.int64)
         resid = np.where(seen[:, None], q - self._rest - np.tensordot(wg, self._basis, axes=1), 0.0)
         w_local = np.empty((m, n_s))
-        beta = np.full(m, self.local_prior + self.noise_prior * (self.noise / 10) ** 2)
+        beta = np.full(m, self.local_prior)
         K.local_fits(resid, seen, self._basis, self._a["nb_off"], self._a["nb_idx"], col_off, flat, wg, beta,
                      K.OWN_WEIGHT, w_local)
         local_score = self._misfits(q, seen, w_local)
@@ -422,7 +436,7 @@ class LGISolver:
 
     # ---------------------------------------------------------------------------------- sequences
     def solve_sequence(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
-                       show_progress: bool = False, smooth: int | str = "auto", jaw_smooth: int | None = None,
+                       show_progress: bool = False, smooth: int = 1, jaw_smooth: int | None = None,
                        jaw: np.ndarray | None = None, max_gap: int = 0,
                        noise: float | str | None = "auto") -> SequenceResult:
         """Reconstruct frames in order, carrying each frame's choice into the next.
@@ -433,10 +447,9 @@ class LGISolver:
             A :class:`~lgi.bundles.Bundles` (markers matched by name) or an (F, M, 3) array in layout order.
         frames
             Frame numbers for an array input (default 0..F-1).
-        smooth : int or "auto"
+        smooth : int
             Window (frames, odd) of the central moving average of each bundle's shape weights (paper 7.5);
-            1 = none; "auto": ``NOISE_SMOOTH`` frames when the bundles are noisy (``noise``), else none.
-            With a jaw rig the weights are those of the unskinned shapes, so the jaw is not
+            1 = none. With a jaw rig the weights are those of the unskinned shapes, so the jaw is not
             smoothed with them. The residual correction is averaged over the same window: each frame's
             blend is moved by the averaged bundle residuals, so bundle noise is not put straight back
             (the diagnostics' ``residual_mm`` says how far the result is from the raw bundles;
@@ -450,22 +463,40 @@ class LGISolver:
         noise : float (mm), "auto" or None
             The bundles' noise (see the class): "auto" estimates it from the shot's trajectories
             (:func:`lgi.temporal.estimate_noise`; logged, and in ``SequenceResult.noise``); None keeps the
-            solver's.
+            solver's. Noisy trajectories are first smoothed marker by marker
+            (:func:`lgi.temporal.denoise_trajectories`, the window chosen by Stein's unbiased risk estimate).
         """
         pos, frames, bridged = self.prepare(bundles, frames, max_gap)
         if jaw is not None and len(jaw) != len(pos):
             raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
         if noise is not None:
             self.resolve_noise(pos, noise)
-        smooth = self.auto_smooth(smooth)
-        sels = self.select_sequence(pos, frames, jaw, show_progress)
-        return self.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth, show_progress)
+        fit_pos = self.denoise(pos)
+        sels = self.select_sequence(fit_pos, frames, jaw, show_progress)
+        return self.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth, show_progress, fit_pos)
+
+    def denoise(self, positions: np.ndarray) -> np.ndarray:
+        """The positions the frames are fitted to: with noisy bundles (``noise`` > 0) each marker's trajectory
+        smoothed by :func:`lgi.temporal.denoise_trajectories`; the noise left after it sets the local fits'
+        prior. Exact bundles are returned as they are."""
+        self.denoise_windows = None
+        self._fit_noise = self.noise
+        if self.noise <= 0:
+            return positions
+        out, windows = denoise_trajectories(positions, self.noise)
+        self.denoise_windows = windows
+        c0 = np.array([savgol_coeffs(w, 2)[w // 2] if w > 1 else 1.0 for w in windows])
+        self._fit_noise = self.noise * float(np.sqrt(np.median(c0)))
+        log.info("noisy bundles smoothed over %d-%d frames (median %d): %.3f mm noise left", windows.min(),
+                 windows.max(), int(np.median(windows)), self._fit_noise)
+        return out
 
     def set_noise(self, noise_mm: float) -> None:
         """Treat the bundles as exact (0) or as measurements with this noise (mm per coordinate)."""
         if not np.isfinite(noise_mm) or noise_mm < 0:
             raise InputError(f"noise must be a finite number of mm >= 0, not {noise_mm}")
         self.noise = float(noise_mm)
+        self._fit_noise = self.noise
         self.noise_gain = NOISE_GAIN if self.noise > 0 else 1.0
 
     def resolve_noise(self, positions: np.ndarray, noise: float | str = "auto") -> NoiseEstimate | None:
@@ -502,18 +533,6 @@ class LGISolver:
             self.set_noise(est.noise_mm)
         return est
 
-    def auto_smooth(self, smooth: int | str) -> int:
-        """The weight-smoothing window for ``smooth`` ("auto": ``NOISE_SMOOTH`` with noisy bundles, else 1)."""
-        if smooth == "auto":
-            return NOISE_SMOOTH if self.noise > 0 else 1
-        try:
-            value = int(smooth)
-        except (TypeError, ValueError):
-            raise InputError(f"smooth must be a window of frames or 'auto', not {smooth!r}") from None
-        if value < 1:
-            raise InputError(f"the smoothing window must be at least 1 frame, not {value}")
-        return value
-
     def prepare(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
                 max_gap: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Positions (F, M, 3) in layout order with short gaps bridged, frame numbers, bridged mask (F, M)."""
@@ -543,8 +562,12 @@ class LGISolver:
 
     def finish_sequence(self, sels: list[FrameResult], pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
                         smooth: int = 1, jaw_smooth: int | None = None,
-                        show_progress: bool = False) -> SequenceResult:
-        """Smooth the choices over time, blend, skin and correct every frame; diagnostics per bundle."""
+                        show_progress: bool = False, fit_pos: np.ndarray | None = None) -> SequenceResult:
+        """Smooth the choices over time, blend, skin and correct every frame; diagnostics per bundle.
+
+        ``pos`` are the bundles as given (the diagnostics' residuals are measured to them); ``fit_pos`` the
+        positions the frames were fitted to (denoised, :meth:`denoise`), which the correction aims at."""
+        fit_pos = pos if fit_pos is None else fit_pos
         from .temporal import window_slots
 
         shapes, lam = _stack_slots([r.shapes for r in sels], [r.weights for r in sels])
@@ -561,7 +584,7 @@ class LGISolver:
         for f in progress(range(len(pos)), "blending", disable=not show_progress):
             x = self.surface(shapes[f], lam[f], None if thetas is None else thetas[f])
             surfaces.append(x)
-            resid[f] = pos[f] - self.layout.evaluate(x)  # NaN where missing
+            resid[f] = fit_pos[f] - self.layout.evaluate(x)  # NaN where missing
         before = np.linalg.norm(resid, axis=2)
         if smooth > 1:
             # The correction follows the same moving average: corrected to each frame's raw residuals,
@@ -581,7 +604,8 @@ class LGISolver:
             out[f] = x
             r_final = np.where(seen, np.linalg.norm(np.nan_to_num(pos[f]) - self.layout.evaluate(x), axis=1), np.nan)
             sel = sels[f]
-            jaw_cols = () if thetas is None else tuple(float(v) for v in sels[f].jaw)
+            jaw_cols = () if thetas is None else (*(float(v) for v in thetas[f]),
+                                                  sel.fit.jaw_source if sel.fit is not None else "")
             fit_rms = sel.fit.rms * 10 if sel.fit is not None else np.nan
             for i in range(len(names)):
                 nz = sel.weights[i] > 0
@@ -602,7 +626,8 @@ class LGISolver:
         diag = pd.DataFrame(rows, columns=["frame", "marker", "status", "n_containing", "shapes", "weights",
                                            "projection_mm", "score_mm", "residual_before_mm", "residual_mm",
                                            "fallback", "source", "fit_residual_mm", "fit_rms_mm",
-                                           *([] if thetas is None else [f"jaw_{n}" for n in PARAM_NAMES])])
+                                           *([] if thetas is None else [*(f"jaw_{n}" for n in PARAM_NAMES),
+                                                                        "jaw_source"])])
         return SequenceResult(np.asarray(frames), out, diag, thetas, self.noise, smooth)
 
     def align(self, bundles: Bundles) -> np.ndarray:

@@ -31,7 +31,7 @@ def solve_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, tempor
 
 
 @task(name="finish-shot", **_T)
-def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int | str = "auto",
+def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int = 1,
                 jaw_smooth: int | None = None, max_gap: int = 10, temporal_weight: float = 0.02,
                 spatial_weight: float = 1e-3, usd: bool = False, noise: float | str = "auto",
                 method: str = "local") -> dict:

@@ -1,0 +1,129 @@
+"""The default reconstruction: a global fit of the jaw and shape weights, local refits per bundle, the noise
+model; measured against the baselines on frames that are not dataset shapes (lgi.benchsets)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+from scipy.optimize import lsq_linear
+
+from lgi import _kernels as K
+from lgi.baselines import RiggedBlendshapeSolver
+from lgi.bench import build_set_index
+from lgi.benchsets import ict_jaw_set, synthetic_set
+from lgi.solver import LGISolver
+from lgi.temporal import denoise_trajectories, estimate_noise
+
+
+@pytest.fixture(scope="module")
+def synth_set():
+    bs = synthetic_set(frames=60, n_vertices=3000)
+    return bs, build_set_index(bs)
+
+
+def _rms(recon: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
+    e = np.linalg.norm(np.asarray(recon, np.float64) - truth, axis=2)[:, mask] * 10
+    return float(np.sqrt(np.mean(e**2)))
+
+
+def test_box_qp_matches_bounded_least_squares() -> None:
+    rng = np.random.default_rng(0)
+    for n in (3, 12, 40):
+        a = rng.normal(size=(21, n))
+        b = rng.normal(size=21)
+        lo, hi = -rng.uniform(0, 1, n), rng.uniform(0, 1, n)
+        x = np.zeros(n)
+        K.box_qp(a.T @ a + 1e-6 * np.eye(n), a.T @ b, lo, hi, x)
+        ref = lsq_linear(np.vstack([a, 1e-3 * np.eye(n)]), np.r_[b, np.zeros(n)], bounds=(lo, hi), method="bvls").x
+        assert np.abs(x - ref).max() < 1e-8
+
+
+def test_jaw_estimated_with_the_shapes_on_the_synthetic_actor(synth_set) -> None:
+    bs, index = synth_set
+    res = LGISolver(index).solve_sequence(bs.bundles)
+    err = np.abs(res.jaw - bs.true_jaw)
+    assert err[:, 0].max() < 0.5  # degrees of opening
+    assert set(res.diagnostics.jaw_source) == {"estimated"}
+    assert {"fit_rms_mm", "fit_residual_mm", "jaw_open_deg", "source"} <= set(res.diagnostics.columns)
+
+
+def test_default_beats_the_rigged_blendshape_fit_and_passes_through_bundles(synth_set) -> None:
+    bs, index = synth_set
+    res = LGISolver(index).solve_sequence(bs.bundles)
+    fit = RiggedBlendshapeSolver(index).solve_sequence(bs.bundles)
+    simplex = LGISolver(index, method="simplex").solve_sequence(bs.bundles)
+    ours, theirs = _rms(res.vertices, bs.truth, bs.mask), _rms(fit, bs.truth, bs.mask)
+    assert ours < theirs
+    assert ours < _rms(simplex.vertices, bs.truth, bs.mask)
+    assert res.noise == 0 and np.nanmax(res.diagnostics.residual_mm) < 1e-4
+    assert (res.diagnostics.source == "local fit").mean() > 0.5
+
+
+def test_noise_is_estimated_and_handled(synth_set) -> None:
+    bs, index = synth_set
+    pairs = LGISolver(index)._nb_pairs
+    noisy = estimate_noise(bs.noisy, pairs)
+    assert noisy.is_noise and abs(noisy.noise_mm - 0.3) < 0.05
+    clean = estimate_noise(bs.bundles, pairs)
+    assert clean.noise_mm < 0.05
+    sol = LGISolver(index)
+    res = sol.solve_sequence(bs.noisy, max_gap=10)
+    assert abs(res.noise - 0.3) < 0.05 and sol.denoise_windows is not None
+    fit = RiggedBlendshapeSolver(index).solve_sequence(bs.noisy)
+    assert _rms(res.vertices, bs.truth, bs.mask) < _rms(fit, bs.truth, bs.mask)
+    # Told the bundles are exact, the surface passes through every seen one (noise and all).
+    exact = LGISolver(index).solve_sequence(bs.noisy, max_gap=10, noise=0)
+    assert exact.noise == 0 and np.nanmax(exact.diagnostics.residual_mm) < 1e-4
+
+
+def test_independent_poses_are_not_taken_for_noise(synth_set, caplog) -> None:
+    bs, index = synth_set
+    rng = np.random.default_rng(1)
+    # The performance's frames shuffled, their motion exaggerated so that most markers change from frame to
+    # frame by more than the noise floor: independent poses, not a noisy performance.
+    rest = bs.layout.evaluate(bs.dataset.neutral)
+    poses = rest + 10 * (bs.bundles[rng.permutation(bs.n_frames)] - rest)
+    sol = LGISolver(index)
+    with caplog.at_level(logging.WARNING, logger="lgi"):
+        sol.resolve_noise(poses)
+    assert sol.noise == 0 and sol.noise_estimate.coherence > 0.3 and sol.noise_estimate.noise_mm > 0.05
+    assert any("not measurement noise" in r.getMessage() for r in caplog.records)
+
+
+def test_denoising_chooses_wider_windows_for_slower_markers() -> None:
+    rng = np.random.default_rng(2)
+    t = np.arange(200)[:, None]
+    slow = np.concatenate([np.sin(t / 40.0), np.cos(t / 40.0), 0 * t], 1)
+    fast = np.concatenate([np.sin(t / 3.0), np.cos(t / 3.0), 0 * t], 1)
+    truth = np.stack([slow, fast], 1)  # cm
+    noisy = truth + rng.normal(scale=0.03, size=truth.shape)
+    out, windows = denoise_trajectories(noisy, 0.3)
+    assert windows[0] > windows[1]
+    for m in range(2):
+        assert np.sqrt(np.mean((out[:, m] - truth[:, m]) ** 2)) < np.sqrt(np.mean((noisy[:, m] - truth[:, m]) ** 2))
+
+
+def test_unobservable_jaw_is_said(synth_set, caplog) -> None:
+    from lgi.index import build_index
+
+    bs, _ = synth_set
+    rig = bs.rig
+    w = bs.layout.evaluate(rig.weights[:, None])[:, 0]
+    upper = bs.layout.subset([n for n, v in zip(bs.layout.names, w, strict=True) if v < 0.05])
+    index, _ = build_index(bs.dataset, upper, show_progress=False, jaw_rig=rig)
+    with caplog.at_level(logging.WARNING, logger="lgi"):
+        sol = LGISolver(index)
+    assert any("cannot be estimated" in r.getMessage() for r in caplog.records)
+    res = sol.solve_sequence(upper.evaluate(bs.truth[:5]))
+    assert set(res.diagnostics.jaw_source) == {"held at rest (not observable)"}
+
+
+def test_ict_layout_estimates_the_rotating_jaw_within_a_degree(ict_dir) -> None:
+    bs = ict_jaw_set(ict_dir, frames=200)
+    index = build_set_index(bs)
+    res = LGISolver(index).solve_sequence(bs.bundles)
+    assert np.abs(res.jaw[:, 0] - bs.true_jaw[:, 0]).max() < 1.0
+    noisy = LGISolver(index).solve_sequence(bs.noisy, max_gap=10)
+    assert np.abs(noisy.jaw[:, 0] - bs.true_jaw[:, 0]).max() < 1.0
