@@ -32,7 +32,7 @@ def reconstruct_shot(
     chunk_size: int = 60,
     smooth: int = 1,
     jaw_smooth: int | None = None,
-    max_gap: int = 10,
+    max_gap: int = 0,
     temporal_weight: float = 0.02,
     spatial_weight: float = 1e-3,
     usd: bool = False,

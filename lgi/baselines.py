@@ -155,7 +155,8 @@ class RBFSolver(_SequenceMixin):
     name = "rbf"
 
     def __init__(self, index: LGIIndex, sigma: float | None = None) -> None:
-        self.lgi = LGISolver(index)
+        # The paper's variant (7.4): the weights of LGI's simplex choice, the jaw from the global fit.
+        self.lgi = LGISolver(index, method="simplex")
         self.layout = self.lgi.layout
         x0 = np.asarray(index.arrays["neutral"], np.float64)
         self.x0 = x0

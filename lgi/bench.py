@@ -41,7 +41,7 @@ from .evaluate import jitter, normal_angle_errors, vertex_errors
 ICT_HELD_OUT = ["mouthFunnel", "mouthSmile_L", "browInnerUp_R", "cheekPuff_R", "noseSneer_L", "jawLeft"]
 
 # What ``lgi reconstruct`` does by default (kept in one place with the CLI's defaults).
-LGI_DEFAULTS = {"temporal_weight": 0.02, "spatial_weight": 1e-3, "max_gap": 10}
+LGI_DEFAULTS = {"temporal_weight": 0.02, "spatial_weight": 1e-3, "max_gap": 0}
 
 
 @dataclass

@@ -229,7 +229,7 @@ def shot_frames(bundles: str) -> int:
 
 
 def select_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, temporal_weight: float = 0.02,
-                 spatial_weight: float = 1e-3, max_gap: int = 10, noise: float | str = "auto",
+                 spatial_weight: float = 1e-3, max_gap: int = 0, noise: float | str = "auto",
                  method: str = "local") -> str:
     """Choose shapes and weights for frames ``lo:hi`` of a shot; result: an npz of the choices.
 
@@ -241,8 +241,7 @@ def select_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, tempo
     from .solver import _stack_slots
 
     solver = _shot_solver(index_dir, temporal_weight, spatial_weight, method)
-    pos, frames, _ = solver.prepare(read_bundles(bundles, solver.index.marker_names), None, max_gap)
-    solver.resolve_noise(pos, noise)
+    pos, frames, _ = solver.prepare_shot(read_bundles(bundles, solver.index.marker_names), None, max_gap, noise)
     sels = solver.select_sequence(solver.denoise(pos)[lo:hi], frames[lo:hi])
     arrays = {k: np.stack([getattr(r, k) for r in sels]) for k in
               ("n_containing", "status", "projection", "score")}
@@ -263,7 +262,7 @@ def select_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, tempo
 
 
 def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int = 1,
-                jaw_smooth: int | None = None, max_gap: int = 10, temporal_weight: float = 0.02,
+                jaw_smooth: int | None = None, max_gap: int = 0, temporal_weight: float = 0.02,
                 spatial_weight: float = 1e-3, usd: bool = False, noise: float | str = "auto",
                 method: str = "local") -> dict:
     """Smooth, blend and correct every frame from the chunks' choices; write the shot's outputs.
@@ -281,8 +280,8 @@ def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smoot
     from .globalfit import GlobalFitResult
 
     solver = _shot_solver(index_dir, temporal_weight, spatial_weight, method)
-    pos, frames, bridged = solver.prepare(read_bundles(bundles, solver.index.marker_names), None, max_gap)
-    solver.resolve_noise(pos, noise)
+    pos, frames, bridged = solver.prepare_shot(read_bundles(bundles, solver.index.marker_names), None, max_gap,
+                                               noise)
     fit_pos = solver.denoise(pos)
     sels = []
     for path in chunks:

@@ -34,6 +34,8 @@ from .temporal import NoiseEstimate, denoise_trajectories, estimate_noise
 # With noisy bundles (noise > 0): the share of the remaining bundle residual the correction removes (none:
 # what remains after the fit is mostly the noise).
 NOISE_GAIN = 0.0
+# A bundle keeps the global weights where they fit it and its neighbours within this RMS (cm; 1 micrometre).
+LOCAL_MIN_MISFIT = 1e-4
 # Estimated noise below this (mm) is treated as none.
 NOISE_FLOOR = 0.05
 
@@ -171,6 +173,7 @@ class LGISolver:
         self.method = method
         self.local_prior = float(local_prior)
         self.noise_estimate: NoiseEstimate | None = None
+        self.independent_poses = False
         self.set_noise(noise)
         self.index = index
         a = index.arrays
@@ -374,6 +377,14 @@ class LGISolver:
         use_local = ~(seen & (simplex_score < local_score)) if self.noise == 0 else np.ones(m, bool)
         chosen = np.where(use_local[:, None], w_local, w_simplex[:, 1:])
         source = np.where(use_local, "local fit", "simplex").astype(object)
+        # Where the global weights already fit the neighbourhood, a local refit could only move shapes the
+        # bundles do not see (eyes, the lateral border): keep the global weights.
+        global_score = self._misfits(q, seen, np.broadcast_to(wg, (m, n_s)))
+        keep = global_score <= LOCAL_MIN_MISFIT
+        chosen[keep] = wg
+        source[keep] = "global fit"
+        local_score = np.where(keep, global_score, local_score)
+        use_local |= keep
         notes = list(fallback)
         for i in np.flatnonzero(~seen):
             n_nb = int(seen[self._neighbours[i]].sum())
@@ -466,11 +477,9 @@ class LGISolver:
             solver's. Noisy trajectories are first smoothed marker by marker
             (:func:`lgi.temporal.denoise_trajectories`, the window chosen by Stein's unbiased risk estimate).
         """
-        pos, frames, bridged = self.prepare(bundles, frames, max_gap)
+        pos, frames, bridged = self.prepare_shot(bundles, frames, max_gap, noise)
         if jaw is not None and len(jaw) != len(pos):
             raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
-        if noise is not None:
-            self.resolve_noise(pos, noise)
         fit_pos = self.denoise(pos)
         sels = self.select_sequence(fit_pos, frames, jaw, show_progress)
         return self.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth, show_progress, fit_pos)
@@ -485,11 +494,29 @@ class LGISolver:
             return positions
         out, windows = denoise_trajectories(positions, self.noise)
         self.denoise_windows = windows
-        c0 = np.array([savgol_coeffs(w, 2)[w // 2] if w > 1 else 1.0 for w in windows])
-        self._fit_noise = self.noise * float(np.sqrt(np.median(c0)))
-        log.info("noisy bundles smoothed over %d-%d frames (median %d): %.3f mm noise left", windows.min(),
+        c0 = np.array([savgol_coeffs(w, 2)[w // 2] if w > 1 else 1.0 for w in np.unique(windows)])
+        share = np.array([(windows == w).mean() for w in np.unique(windows)])
+        self._fit_noise = self.noise * float(np.sqrt(share @ c0))
+        log.info("noisy bundles smoothed over %d-%d frames (median %d): about %.3f mm noise left", windows.min(),
                  windows.max(), int(np.median(windows)), self._fit_noise)
         return out
+
+    def prepare_shot(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None, max_gap: int = 0,
+                     noise: float | str | None = "auto") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A shot's positions (F, M, 3) in layout order, frame numbers and bridged mask (F, M), with the
+        solver's noise resolved (:meth:`resolve_noise`) on the positions as given. Gaps are bridged (up to
+        ``max_gap`` frames) unless the frames are independent poses rather than a performance: interpolating
+        a marker between two unrelated poses would invent a position (a warning says so)."""
+        from .temporal import bridge_gaps
+
+        raw, frames, _ = self.prepare(bundles, frames, 0)
+        if noise is not None:
+            self.resolve_noise(raw, noise)
+        if max_gap > 0 and self.independent_poses and not np.all(np.isfinite(raw)):
+            log.warning("missing markers are not bridged: the frames change like independent poses")
+            max_gap = 0
+        pos, bridged = bridge_gaps(raw, max_gap)
+        return pos, frames, bridged
 
     def set_noise(self, noise_mm: float) -> None:
         """Treat the bundles as exact (0) or as measurements with this noise (mm per coordinate)."""
@@ -511,9 +538,11 @@ class LGISolver:
                 raise InputError(f"noise must be a number of mm or 'auto', not {noise!r}") from None
             self.set_noise(value)
             self.noise_estimate = None
+            self.independent_poses = False
             return None
         est = estimate_noise(positions, self._nb_pairs)
         self.noise_estimate = est
+        self.independent_poses = bool(np.isfinite(est.noise_mm) and est.noise_mm >= NOISE_FLOOR and not est.is_noise)
         if not np.isfinite(est.noise_mm):
             log.info("too few frames to estimate the bundle noise: bundles treated as exact")
             self.set_noise(0.0)

@@ -23,7 +23,7 @@ def track_footage(footage: str, calib: str, markers: str, bundles: str, dataset:
 
 @task(name="solve-chunk", **_T)
 def solve_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, temporal_weight: float = 0.02,
-                spatial_weight: float = 1e-3, max_gap: int = 10, noise: float | str = "auto",
+                spatial_weight: float = 1e-3, max_gap: int = 0, noise: float | str = "auto",
                 method: str = "local") -> str:
     """Choose shapes and weights for frames lo:hi (see :func:`lgi.pipeline.select_chunk`)."""
     return pipeline.select_chunk(index_dir, bundles, lo, hi, out, temporal_weight, spatial_weight, max_gap, noise,
@@ -32,7 +32,7 @@ def solve_chunk(index_dir: str, bundles: str, lo: int, hi: int, out: str, tempor
 
 @task(name="finish-shot", **_T)
 def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smooth: int = 1,
-                jaw_smooth: int | None = None, max_gap: int = 10, temporal_weight: float = 0.02,
+                jaw_smooth: int | None = None, max_gap: int = 0, temporal_weight: float = 0.02,
                 spatial_weight: float = 1e-3, usd: bool = False, noise: float | str = "auto",
                 method: str = "local") -> dict:
     """Smooth, blend, correct and write the shot (see :func:`lgi.pipeline.finish_shot`)."""

@@ -128,7 +128,7 @@ def test_reconstruct_smoothing_jaw_file_and_occlusion(tmp_path: Path) -> None:
     b.to_csv(tmp_path / "occluded.csv", index=False)
     out = tmp_path / "rec_jaw"
     assert main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(tmp_path / "occluded.csv"), "--out",
-                 str(out), "-q", "--jaw", str(tmp_path / "jaw.csv")]) == 0
+                 str(out), "-q", "--jaw", str(tmp_path / "jaw.csv"), "--max-gap", "10"]) == 0
     m = np.load(out / "meshes.npz")
     err = np.linalg.norm(m["vertices"] - truth["vertices"], axis=2) * 10
     assert np.sqrt(np.mean(err**2)) < 0.2  # mm
@@ -142,12 +142,20 @@ def test_reconstruct_smoothing_jaw_file_and_occlusion(tmp_path: Path) -> None:
     noisy = b.copy()
     noisy[["x", "y", "z"]] += rng.normal(scale=0.03, size=(len(b), 3))
     noisy.to_csv(tmp_path / "noisy.csv", index=False)
-    jit = {}
-    for w in ("1", "5"):
+    jit, rms = {}, {}
+    for name, opts in (("1", ["--noise", "0"]), ("5", ["--noise", "0", "--smooth", "5"]), ("auto", [])):
         assert main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(tmp_path / "noisy.csv"), "--out",
-                     str(tmp_path / f"rec{w}"), "--smooth", w, "-q"]) == 0
-        jit[w] = jitter(np.load(tmp_path / f"rec{w}" / "meshes.npz")["vertices"])
+                     str(tmp_path / f"rec{name}"), "-q", *opts]) == 0
+        v = np.load(tmp_path / f"rec{name}" / "meshes.npz")["vertices"]
+        jit[name] = jitter(v)
+        rms[name] = np.sqrt(np.mean(np.sum((v - truth["vertices"]) ** 2, axis=-1)))
+    # Exact bundles (--noise 0): the moving average of the weights (and of the correction) cuts jitter.
     assert jit["5"] < 0.5 * jit["1"]
+    # By default the noise is estimated and the trajectories smoothed before the fit: less jitter and less
+    # error than passing through the noisy bundles.
+    assert jit["auto"] < 0.5 * jit["1"] and rms["auto"] < rms["1"]
+    d = pd.read_csv(tmp_path / "recauto" / "diagnostics.csv")
+    assert (d.source == "global fit").all()
 
 
 def test_fit_rig_recovers_the_synthetic_hinge(small_actor) -> None:

@@ -69,12 +69,12 @@ def test_noise_is_estimated_and_handled(synth_set) -> None:
     clean = estimate_noise(bs.bundles, pairs)
     assert clean.noise_mm < 0.05
     sol = LGISolver(index)
-    res = sol.solve_sequence(bs.noisy, max_gap=10)
+    res = sol.solve_sequence(bs.noisy)
     assert abs(res.noise - 0.3) < 0.05 and sol.denoise_windows is not None
     fit = RiggedBlendshapeSolver(index).solve_sequence(bs.noisy)
     assert _rms(res.vertices, bs.truth, bs.mask) < _rms(fit, bs.truth, bs.mask)
     # Told the bundles are exact, the surface passes through every seen one (noise and all).
-    exact = LGISolver(index).solve_sequence(bs.noisy, max_gap=10, noise=0)
+    exact = LGISolver(index).solve_sequence(bs.noisy, noise=0)
     assert exact.noise == 0 and np.nanmax(exact.diagnostics.residual_mm) < 1e-4
 
 
@@ -100,7 +100,7 @@ def test_denoising_chooses_wider_windows_for_slower_markers() -> None:
     truth = np.stack([slow, fast], 1)  # cm
     noisy = truth + rng.normal(scale=0.03, size=truth.shape)
     out, windows = denoise_trajectories(noisy, 0.3)
-    assert windows[0] > windows[1]
+    assert np.median(windows[:, 0]) > np.median(windows[:, 1])
     for m in range(2):
         assert np.sqrt(np.mean((out[:, m] - truth[:, m]) ** 2)) < np.sqrt(np.mean((noisy[:, m] - truth[:, m]) ** 2))
 
@@ -125,5 +125,5 @@ def test_ict_layout_estimates_the_rotating_jaw_within_a_degree(ict_dir) -> None:
     index = build_set_index(bs)
     res = LGISolver(index).solve_sequence(bs.bundles)
     assert np.abs(res.jaw[:, 0] - bs.true_jaw[:, 0]).max() < 1.0
-    noisy = LGISolver(index).solve_sequence(bs.noisy, max_gap=10)
+    noisy = LGISolver(index).solve_sequence(bs.noisy)
     assert np.abs(noisy.jaw[:, 0] - bs.true_jaw[:, 0]).max() < 1.0
