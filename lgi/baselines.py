@@ -34,6 +34,7 @@ from .jaw import JawRig
 from .markers import MarkerLayout
 from .smooth import SmoothInterpolator
 from .solver import LGISolver
+from .threads import one_blas_thread
 
 
 @dataclass
@@ -48,6 +49,7 @@ class SimpleResult:
 
 
 class _SequenceMixin:
+    @one_blas_thread
     def solve_sequence(self, positions: np.ndarray) -> np.ndarray:
         """(F, V, 3) float32 for bundle positions (F, M, 3)."""
         prev = None

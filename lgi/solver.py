@@ -30,6 +30,7 @@ from .globalfit import GlobalFit, GlobalFitResult
 from .index import LGIIndex
 from .progress import progress
 from .temporal import NoiseEstimate, denoise_trajectories, estimate_noise
+from .threads import one_blas_thread
 
 # With noisy bundles (noise > 0): the share of the remaining bundle residual the correction removes (none:
 # what remains after the fit is mostly the noise).
@@ -276,6 +277,7 @@ class LGISolver:
         start = None if init is None else GlobalFitResult(np.zeros(0), np.asarray(init, np.float64), np.zeros(0), 0.0)
         return self.global_fit.solve(bundles, init=start).jaw
 
+    @one_blas_thread
     def solve_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,
                     jaw: np.ndarray | None = None) -> FrameResult:
         """Reconstruct one frame.
@@ -446,6 +448,7 @@ class LGISolver:
         return notes
 
     # ---------------------------------------------------------------------------------- sequences
+    @one_blas_thread
     def solve_sequence(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
                        show_progress: bool = False, smooth: int = 1, jaw_smooth: int | None = None,
                        jaw: np.ndarray | None = None, max_gap: int = 0,
@@ -576,6 +579,7 @@ class LGISolver:
         pos, bridged = bridge_gaps(pos, max_gap)
         return pos, np.asarray(frames), bridged
 
+    @one_blas_thread
     def select_sequence(self, pos: np.ndarray, frames: np.ndarray, jaw: np.ndarray | None = None,
                         show_progress: bool = False) -> list[FrameResult]:
         """Each frame's choice of shapes and weights, in order (the previous frame's carried into the next)."""
@@ -589,6 +593,7 @@ class LGISolver:
             sels.append(prev)
         return sels
 
+    @one_blas_thread
     def finish_sequence(self, sels: list[FrameResult], pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
                         smooth: int = 1, jaw_smooth: int | None = None,
                         show_progress: bool = False, fit_pos: np.ndarray | None = None) -> SequenceResult:

@@ -58,7 +58,9 @@ def test_default_beats_the_rigged_blendshape_fit_and_passes_through_bundles(synt
     assert ours < theirs
     assert ours < _rms(simplex.vertices, bs.truth, bs.mask)
     assert res.noise == 0 and np.nanmax(res.diagnostics.residual_mm) < 1e-4
-    assert (res.diagnostics.source == "local fit").mean() > 0.5
+    # Bundles whose neighbourhood the global weights already fit keep them; the others are refitted.
+    src = res.diagnostics.source
+    assert (src != "simplex").mean() > 0.5 and (src == "local fit").mean() > 0.2
 
 
 def test_noise_is_estimated_and_handled(synth_set) -> None:

@@ -1,0 +1,687 @@
+"""Speed of ``lgi reconstruct`` on realistic frames, end to end, as whole processes (issue 13).
+
+    python benchmarks/bench_speed.py [--work DIR] [--shapes 100,500,2000] [--frames 1000] [--repeat 3]
+                                     [--stage-config 500,rig,noisy] [--jaw-motion] [--cold] [--cprofile N]
+                                     [--kinds clean,noisy] [--given-noise] [--blas-threads N]
+
+1. Test material, built in ``--work`` (default: a temporary directory, removed at the end) through the
+   ``lgi`` command line, and reused when it is already there (a second run with the same ``--work`` only
+   times):
+   - ``lgi import ICT --out ict --rigid-vertices none`` (ICT FaceKit from ``../shared/data/ict-facekit``
+     or ``$LGI_SHARED_DATA``; without it the benchmark says so and exits with status 0);
+   - a dataset of N shapes for every N of ``--shapes``: ICT's 57 shapes plus
+     ``lgi augment --linear --budget N-57`` (default levels 0.25,0.5,0.75,1 and orders 2,3: 2-3 shape
+     linear in-betweens);
+   - a jaw rig, ``lgi rig ict --jaw-vertices 19247:21450 --shapes 'jawOpen*'``;
+   - an index per dataset with and without the rig, ``lgi build DS --markers data/markers_ict.csv
+     [--jaw-rig rig.npz]``: wall time and peak memory of the build process;
+   - test frames that are not dataset points: ``lgi augment ict --linear --budget F+margin --seed 9``
+     (the first F of those combinations are the ones ``--budget F`` gives), the combinations that are also
+     in-betweens of the largest dataset dropped, the first F left evaluated by ``lgi bundles --shapes
+     <their names>``. The frames follow the order in which ``lgi augment`` drew the combinations:
+     consecutive frames are unrelated poses, not a performance. A copy with Gaussian noise (``--noise-mm``,
+     0.3 mm per coordinate, converted to the dataset's units) is written with pandas in the format of
+     ``lgi bundles``; the first S frames (``--short``, 100) of each file are a second, short shot.
+   - with ``--jaw-motion``, the same mixes with the jaw rotated by the rig (opening 12.5 (1 - cos(2 pi f /
+     90)) deg, 0-25 deg over 90 frames; yaw, roll and slide 0), clean and noisy, evaluated from the
+     skinned meshes with ``MarkerLayout.evaluate``.
+2. ``python -m lgi reconstruct INDEX --bundles FRAMES --out OUT -q`` as whole processes, for the short and
+   the long shot, ``--repeat`` times each (interleaved), for every shapes x {no rig, rig} x bundles kind:
+   median wall time, frames/s and ms per frame of the long shot, cost per extra frame
+   ``(t_F - t_S) / (F - S)``, peak resident memory of the process (``os.wait4``), and what the process
+   said about the bundles (share contained; how noise was treated: with the default ``--noise auto`` the
+   unrelated poses may be judged exact even when noisy; ``--given-noise`` passes ``--noise MM`` for the
+   noisy copies). One untimed process first (a changed ``lgi/_kernels.py`` is compiled by the first
+   process that uses it).
+3. Per-stage time for one configuration (``--stage-config``): ``lgi.cli.main(["reconstruct", ...])`` in
+   one process, once on the short shot (imports, numba cache load) and then, with timers around the
+   library calls it makes, on the long shot; ms per frame per stage. ``--cprofile N`` adds a cProfile
+   run (top N functions by own time). ``--cold``: one process with an empty numba cache
+   (``NUMBA_CACHE_DIR`` set to a new directory for that process only, so the shared cache in
+   ``lgi/__pycache__`` that other processes use is not deleted) against one with the cache.
+
+The children inherit this process's environment as a user's shell would give it; the thread variables
+seen (``OPENBLAS_NUM_THREADS`` etc.) are printed. ``--blas-threads N`` sets ``OPENBLAS_NUM_THREADS`` and
+``OMP_NUM_THREADS`` for the children. Every figure is printed; nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from bench_hmc import lgi as run_lgi  # python -m lgi ARGS, exits with its output on failure
+
+from lgi.paths import REPO_ROOT, shared_data, shipped
+
+ICT_SHAPES = 57
+JAW_VERTICES = "19247:21450"
+MIX_SEED = 9
+JAW_PERIOD = 90  # frames per jaw opening cycle with --jaw-motion
+JAW_MAX_DEG = 25.0
+MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+KINDS = {
+    "clean": "clean",
+    "noisy": "{noise} mm Gaussian noise per coordinate",
+    "jaw": "jaw rotating 0-25 deg (rig skinning), clean",
+    "jaw-noisy": "jaw rotating 0-25 deg (rig skinning), {noise} mm Gaussian noise per coordinate",
+}
+
+# In-process stage timers: (depth, label, module, qualified name). Functions that are absent (renamed by
+# later work on the solver) are reported as such; children are timed inside their parents.
+STAGES = [
+    (0, "index load (LGIIndex.load)", "lgi.index", "LGIIndex.load"),
+    (0, "read bundles (read_bundles)", "lgi.bundles", "read_bundles"),
+    (0, "solver set-up (LGISolver.__init__)", "lgi.solver", "LGISolver.__init__"),
+    (0, "solve_sequence", "lgi.solver", "LGISolver.solve_sequence"),
+    (1, "prepare_shot (align, noise estimate, gaps)", "lgi.solver", "LGISolver.prepare_shot"),
+    (1, "denoise (trajectory smoothing)", "lgi.solver", "LGISolver.denoise"),
+    (1, "select_sequence", "lgi.solver", "LGISolver.select_sequence"),
+    (2, "select_frame", "lgi.solver", "LGISolver.select_frame"),
+    (3, "global fit (GlobalFit.solve)", "lgi.globalfit", "GlobalFit.solve"),
+    (3, "select (simplex search)", "lgi.solver", "LGISolver.select"),
+    (4, "_kernels.solve_bundles", "lgi._kernels", "solve_bundles"),
+    (4, "_kernels.agreement", "lgi._kernels", "agreement"),
+    (3, "_local (local refits)", "lgi.solver", "LGISolver._local"),
+    (4, "_kernels.local_fits", "lgi._kernels", "local_fits"),
+    (3, "_global (global weights, noisy bundles)", "lgi.solver", "LGISolver._global"),
+    (1, "finish_sequence", "lgi.solver", "LGISolver.finish_sequence"),
+    (2, "surface (blend, skin)", "lgi.solver", "LGISolver.surface"),
+    (3, "_kernels.blend", "lgi._kernels", "blend"),
+    (2, "correct (residual correction)", "lgi.solver", "LGISolver.correct"),
+    (3, "_kernels.add_correction", "lgi._kernels", "add_correction"),
+    (0, "write meshes.npz (save_npz)", "lgi.cli", "save_npz"),
+    (0, "write diagnostics.csv (DataFrame.to_csv)", "pandas", "DataFrame.to_csv"),
+    (0, "move outputs into place (_commit)", "lgi.cli", "_commit"),
+]
+
+STAGE_CHILD = r"""
+import cProfile, importlib, io, json, pstats, shutil, sys, time
+cfg = json.loads(sys.argv[1])
+t0 = time.perf_counter()
+import lgi.cli
+t_import = time.perf_counter() - t0
+
+
+def reconstruct(bundles, out):
+    shutil.rmtree(out, ignore_errors=True)
+    t = time.perf_counter()
+    rc = lgi.cli.main(["reconstruct", cfg["index"], "--bundles", bundles, "--out", out, "-q", *cfg["extra"]])
+    dt = time.perf_counter() - t
+    shutil.rmtree(out, ignore_errors=True)
+    if rc != 0:
+        sys.exit(rc)
+    return dt
+
+
+first = reconstruct(cfg["warm"], cfg["out"])  # imports of the solver's modules, numba cache load or compile
+timers, found = {}, {}
+
+
+def wrap(key, mod, qual):
+    obj = importlib.import_module(mod)
+    *owners, attr = qual.split(".")
+    for o in owners:
+        obj = getattr(obj, o, None)
+    raw = (obj.__dict__.get(attr) if isinstance(obj, type) else None) or getattr(obj, attr, None)
+    if raw is None:
+        return False
+    kind = type(raw) if isinstance(raw, (classmethod, staticmethod)) else None
+    fn = raw.__func__ if kind else raw
+    acc = timers.setdefault(key, [0.0, 0])
+
+    def timed(*a, **k):
+        t = time.perf_counter()
+        try:
+            return fn(*a, **k)
+        finally:
+            acc[0] += time.perf_counter() - t
+            acc[1] += 1
+
+    setattr(obj, attr, kind(timed) if kind else timed)
+    return True
+
+
+for _, label, mod, qual in cfg["stages"]:
+    found[label] = wrap(label, mod, qual)
+total = reconstruct(cfg["bundles"], cfg["out"])
+timers = {k: list(v) for k, v in timers.items()}  # the cProfile run below must not add to them
+profile = ""
+if cfg["cprofile"]:
+    prof = cProfile.Profile()
+    prof.enable()
+    reconstruct(cfg["bundles"], cfg["out"])
+    prof.disable()
+    s = io.StringIO()
+    pstats.Stats(prof, stream=s).sort_stats("tottime").print_stats(cfg["cprofile"])
+    profile = s.getvalue()
+print(json.dumps({"import_s": t_import, "first_s": first, "total_s": total, "timers": timers, "found": found,
+                  "profile": profile}))
+"""
+
+
+@dataclass
+class Run:
+    """One finished child process."""
+
+    wall_s: float
+    peak_mib: float
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run_process(argv: list[str], env: dict[str, str] | None = None) -> Run:
+    """Run ``argv`` to completion; wall time and the peak resident set size of that process alone.
+
+    Parameters
+    ----------
+    argv
+        Command line.
+    env
+        Environment of the child (default: this process's).
+
+    Returns
+    -------
+    Run
+        ``peak_mib`` from ``os.wait4`` (the child's own ``ru_maxrss``, not the maximum over all children).
+    """
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+        t = time.perf_counter()
+        p = subprocess.Popen(argv, stdout=out, stderr=err, env=env, cwd=REPO_ROOT)
+        _, status, usage = os.wait4(p.pid, 0)
+        wall = time.perf_counter() - t
+        p.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        return Run(wall, usage.ru_maxrss / 1024, p.returncode, out.read().decode(errors="replace"),
+                   err.read().decode(errors="replace"))
+
+
+def lgi_timed(*args: str, env: dict[str, str] | None = None) -> Run:
+    """``python -m lgi ARGS`` as a timed process; exits with its output if it fails."""
+    r = run_process([sys.executable, "-m", "lgi", *args], env)
+    if r.returncode != 0:
+        raise SystemExit(f"lgi {' '.join(args)} failed (status {r.returncode}):\n{r.stdout}\n{r.stderr}")
+    return r
+
+
+def log(msg: str) -> None:
+    """Progress line on stderr (the tables go to stdout)."""
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+class Records:
+    """Figures of the build steps kept in ``WORK/records.json``, so a run that reuses the material still
+    reports how long the build took when it was made."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.data = json.loads(path.read_text()) if path.is_file() else {}
+
+    def put(self, key: str, value: dict) -> None:
+        self.data[key] = value
+        self.path.write_text(json.dumps(self.data, indent=1))
+
+
+def manifest(directory: Path) -> dict:
+    """A dataset's or index's ``manifest.json``."""
+    return json.loads((directory / "manifest.json").read_text())
+
+
+def combos(directory: Path) -> list[tuple[str, frozenset]]:
+    """``(name, sources)`` of a dataset's in-betweens, read from its manifest (no arrays loaded)."""
+    out = []
+    for s in manifest(directory)["shapes"]:
+        src = (s.get("extra") or {}).get("sources")
+        if src:
+            out.append((s["name"], frozenset((k, float(v)) for k, v in src.items())))
+    return out
+
+
+def dir_mib(path: Path) -> float:
+    """Size on disk of a directory's files, MiB."""
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2**20
+
+
+def add_noise(src: Path, dst: Path, sigma: float, seed: int) -> None:
+    """Copy of a bundles CSV with Gaussian noise ``sigma`` (file units) on every coordinate, written in the
+    format ``lgi bundles`` writes (``frame, marker, x, y, z``, ``%.9g``)."""
+    df = pd.read_csv(src)
+    rng = np.random.default_rng(seed)
+    df[["x", "y", "z"]] = df[["x", "y", "z"]].to_numpy(np.float64) + rng.normal(0.0, sigma, (len(df), 3))
+    df.to_csv(dst, index=False, float_format="%.9g")
+
+
+def first_frames(src: Path, dst: Path, n: int) -> None:
+    """The first ``n`` frames of a bundles CSV, rows unchanged."""
+    df = pd.read_csv(src, dtype={"marker": str, "frame": str, "x": str, "y": str, "z": str}, keep_default_na=False)
+    frames = pd.to_numeric(df["frame"])
+    keep = np.sort(frames.unique())[:n]
+    df[frames.isin(keep).to_numpy()].to_csv(dst, index=False)
+
+
+def jaw_frames(mixes: Path, names: list[str], rig_path: Path, markers: Path, out: Path) -> None:
+    """Bundles of the named mixes with the jaw rotated by the rig, opening 0-25 deg varying smoothly."""
+    from lgi.bundles import Bundles, write_bundles
+    from lgi.dataset import ShapeDataset
+    from lgi.jaw import JawRig
+    from lgi.markers import read_layout
+
+    ds = ShapeDataset.load(mixes, mmap=True)
+    layout = read_layout(markers, ds.triangles)
+    rig = JawRig.load(rig_path, ds.n_vertices)
+    row = {n: i for i, n in enumerate(ds.names)}
+    corners = np.asarray(layout.vertices)  # (M, 3): the markers' triangle corners; skinning them is exact
+    w = rig.weights[corners].ravel()
+    x0 = ds.neutral[corners]
+    pos = np.empty((len(names), len(layout), 3))
+    for f, name in enumerate(names):
+        x = x0 + np.asarray(ds.deltas[row[name]], np.float64)[corners]
+        theta = np.array([JAW_MAX_DEG / 2 * (1 - np.cos(2 * np.pi * f / JAW_PERIOD)), 0.0, 0.0, 0.0])
+        skinned = rig.skin(x.reshape(-1, 3), theta, w).reshape(x.shape)
+        pos[f] = np.einsum("mkd,mk->md", skinned, layout.weights)
+    write_bundles(out, Bundles(frames=np.arange(len(names)), markers=list(layout.names), positions=pos))
+
+
+def escape(name: str) -> str:
+    """A shape name as a shell pattern matching only itself (``*`` in in-between names is literal)."""
+    return "".join(f"[{c}]" if c in "*?[" else c for c in name)
+
+
+@dataclass
+class Material:
+    """Paths of the built test material."""
+
+    ict: Path
+    rig: Path
+    markers: Path
+    datasets: dict[int, Path]
+    indexes: dict[tuple[int, bool], Path]
+    files: dict[tuple[str, int], Path]  # (kind, frames) -> bundles file
+    frames: int
+    short: int
+    excluded: int
+    units: str
+    budget: int
+    augment: str  # levels and orders of the datasets' in-betweens, from the manifest
+
+
+def build_material(work: Path, ict_dir: Path, shapes: list[int], frames: int, short: int, kinds: list[str],
+                   noise_mm: float, records: Records) -> Material:
+    """Import, augment, rig, index and test frames in ``work``; what exists there is reused."""
+    markers = shipped("markers_ict.csv")
+    ict = work / "ict"
+    if not (ict / "manifest.json").is_file():
+        log(f"lgi import {ict_dir} --out {ict} --rigid-vertices none")
+        run_lgi("import", str(ict_dir), "--out", str(ict), "--rigid-vertices", "none", "-q")
+    units = manifest(ict).get("units", "cm")
+    datasets = {}
+    for n in shapes:
+        if n == ICT_SHAPES:
+            datasets[n] = ict
+            continue
+        d = work / f"ds{n}"
+        if not (d / "manifest.json").is_file():
+            log(f"lgi augment ict --out {d.name} --linear --budget {n - ICT_SHAPES}")
+            run_lgi("augment", str(ict), "--out", str(d), "--linear", "--budget", str(n - ICT_SHAPES), "-q")
+        got = len(manifest(d)["shapes"])
+        if got != n:
+            log(f"warning: {d.name} has {got} shapes, not {n} (the augmentation ran out of combinations)")
+        datasets[n] = d
+    rig = work / "rig.npz"
+    if not rig.is_file():
+        log(f"lgi rig ict --jaw-vertices {JAW_VERTICES} --shapes 'jawOpen*' --out rig.npz")
+        run_lgi("rig", str(ict), "--jaw-vertices", JAW_VERTICES, "--shapes", "jawOpen*", "--out", str(rig))
+    indexes = {}
+    for n in shapes:
+        for with_rig in (False, True):
+            idx = work / f"idx{n}{'-rig' if with_rig else ''}"
+            if not (idx / "manifest.json").is_file():
+                log(f"lgi build {datasets[n].name} --markers {markers.name}{' --jaw-rig rig.npz' if with_rig else ''}"
+                    f" --out {idx.name}")
+                r = lgi_timed("build", str(datasets[n]), "--markers", str(markers), "--out", str(idx), "-q",
+                              *(["--jaw-rig", str(rig)] if with_rig else []))
+                records.put(f"build/{idx.name}", {"wall_s": r.wall_s, "peak_mib": r.peak_mib})
+            indexes[(n, with_rig)] = idx
+
+    # Held-out frames: combinations drawn with another seed, minus any that are in-betweens of a dataset.
+    margin = max(20, frames // 10)
+    budget = frames + margin
+    mixes = work / f"mixes-b{budget}-s{MIX_SEED}"
+    if not (mixes / "manifest.json").is_file():
+        log(f"lgi augment ict --out {mixes.name} --linear --budget {budget} --seed {MIX_SEED}")
+        run_lgi("augment", str(ict), "--out", str(mixes), "--linear", "--budget", str(budget), "--seed", str(MIX_SEED),
+            "-q")
+    taken = set()
+    for n in shapes:
+        if n > ICT_SHAPES:
+            taken |= {c for _, c in combos(datasets[n])}
+    candidates = combos(mixes)
+    held = [name for name, c in candidates if c not in taken]
+    excluded = sum(1 for _, c in candidates[:frames] if c in taken)
+    if len(held) < frames:
+        log(f"warning: only {len(held)} held-out mixes; using them all")
+    held = held[:frames]
+    frames = len(held)
+    short = short if short < frames else max(1, frames // 5)
+    fdir = work / f"frames-F{frames}-vs{max(shapes)}"
+    fdir.mkdir(exist_ok=True)
+    (fdir / "names.txt").write_text("\n".join(held) + "\n")
+    files = {}
+    clean = fdir / f"clean-{frames}.csv"
+    if not clean.is_file():
+        pattern = ",".join(escape(n) for n in held)
+        if len(pattern) > 120_000:  # one argument may not exceed 128 KiB (Linux MAX_ARG_STRLEN)
+            raise SystemExit(f"--frames {frames}: the list of shape names is too long for one argument")
+        log(f"lgi bundles {mixes.name} --markers {markers.name} --out {clean.name} --shapes <{frames} held-out names>")
+        run_lgi("bundles", str(mixes), "--markers", str(markers), "--out", str(clean), "--shapes", pattern)
+    files[("clean", frames)] = clean
+    sigma = noise_mm / MM_PER_UNIT[units]
+    if "jaw" in kinds or "jaw-noisy" in kinds:
+        jaw = fdir / f"jaw-{frames}.csv"
+        if not jaw.is_file():
+            log(f"jaw-motion frames -> {jaw.name}")
+            order = pd.read_csv(clean.with_name(clean.stem + ".shapes.csv"))["shape"].tolist()
+            jaw_frames(mixes, order, rig, markers, jaw)
+        files[("jaw", frames)] = jaw
+    for kind in kinds:
+        if kind.endswith("noisy"):
+            base = files[("clean" if kind == "noisy" else "jaw", frames)]
+            dst = fdir / f"{kind}{noise_mm:g}mm-{frames}.csv"
+            if not dst.is_file():
+                log(f"{noise_mm:g} mm noise ({sigma:g} {units}) -> {dst.name}")
+                add_noise(base, dst, sigma, seed=1)
+            files[(kind, frames)] = dst
+    for kind in kinds:
+        long = files[(kind, frames)]
+        dst = long.with_name(f"{long.stem}-first{short}.csv")
+        if not dst.is_file():
+            first_frames(long, dst, short)
+        files[(kind, short)] = dst
+    aug = manifest(datasets[max(shapes)])["info"].get("augmented", {}) if max(shapes) > ICT_SHAPES else {}
+    how = ", ".join(f"{k} {','.join(f'{v:g}' for v in aug[k])}" for k in ("levels", "orders") if k in aug)
+    return Material(ict, rig, markers, datasets, indexes, files, frames, short, excluded, units, budget, how)
+
+
+def summary(stdout: str) -> dict:
+    """What ``lgi reconstruct`` printed about the bundles: contained share and how noise was treated."""
+    out = {}
+    m = re.search(r"([\d.]+) % contained", stdout)
+    out["contained"] = float(m.group(1)) if m else float("nan")
+    m = re.search(r"bundles treated as (exact|measurements with ([\d.]+) mm noise)", stdout)
+    out["noise"] = "?" if not m else ("exact" if m.group(1) == "exact" else f"{m.group(2)} mm")
+    m = re.search(r"local fits for ([\d.]+) %", stdout)
+    out["local"] = float(m.group(1)) if m else float("nan")
+    return out
+
+
+def reconstruct_argv(index: Path, bundles: Path, out: Path, extra: list[str]) -> list[str]:
+    """The timed command line."""
+    return [sys.executable, "-m", "lgi", "reconstruct", str(index), "--bundles", str(bundles), "--out", str(out), "-q",
+            *extra]
+
+
+def noise_args(kind: str, args: argparse.Namespace) -> list[str]:
+    """``--noise MM`` for the noisy kinds with ``--given-noise``; nothing otherwise (``--noise auto``)."""
+    return ["--noise", f"{args.noise_mm:g}"] if args.given_noise and kind.endswith("noisy") else []
+
+
+def time_config(mat: Material, index: Path, kind: str, repeat: int, env: dict[str, str], scratch: Path,
+                extra: list[str]) -> dict:
+    """Median wall times of the short and the long shot (runs interleaved), peak memory, summary."""
+    walls = {mat.short: [], mat.frames: []}
+    peaks = {mat.short: [], mat.frames: []}
+    last = ""
+    for _ in range(repeat):
+        for n in (mat.short, mat.frames):
+            out = scratch / "recon"
+            shutil.rmtree(out, ignore_errors=True)
+            r = run_process(reconstruct_argv(index, mat.files[(kind, n)], out, extra), env)
+            shutil.rmtree(out, ignore_errors=True)
+            if r.returncode != 0:
+                log(f"reconstruct failed ({index.name}, {kind}, {n} frames):\n{r.stderr[-3000:]}")
+                return {"failed": True}
+            walls[n].append(r.wall_s)
+            peaks[n].append(r.peak_mib)
+            if n == mat.frames:
+                last = r.stdout
+    ts, tl = statistics.median(walls[mat.short]), statistics.median(walls[mat.frames])
+    return {"failed": False, "t_short": ts, "t_long": tl, "peak_mib": max(peaks[mat.frames]),
+            "walls_long": walls[mat.frames], "extra_ms": (tl - ts) / max(mat.frames - mat.short, 1) * 1e3,
+            **summary(last)}
+
+
+def stage_breakdown(index: Path, warm: Path, bundles: Path, frames: int, env: dict[str, str], scratch: Path,
+                    cprofile: int, extra: list[str]) -> None:
+    """Print ms per frame per stage of ``lgi reconstruct`` run in one process (see the module docstring)."""
+    cfg = {"index": str(index), "warm": str(warm), "bundles": str(bundles), "out": str(scratch / "stage-recon"),
+           "stages": STAGES, "cprofile": cprofile, "extra": extra}
+    r = run_process([sys.executable, "-c", STAGE_CHILD, json.dumps(cfg)], env)
+    if r.returncode != 0:
+        print(f"stage breakdown failed (status {r.returncode}):\n{r.stderr[-3000:]}")
+        return
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    timers, total = res["timers"], res["total_s"]
+    print(f"Process: python start-up not included; `import lgi.cli` {res['import_s']:.2f} s; first call (short shot, "
+          f"imports of the solver's modules, numba cache load) {res['first_s']:.2f} s; the timed call below "
+          f"{total:.2f} s = {total / frames * 1e3:.2f} ms per frame ({frames / total:.0f} frames/s); peak RSS of "
+          f"the process {r.peak_mib:.0f} MiB.\n")
+    print("| stage | calls | s | ms per frame | % of the call |")
+    print("|---|---|---|---|---|")
+
+    def row(depth: int, label: str, calls: str, secs: float) -> None:
+        print(f"| {'. ' * depth}{label} | {calls} | {secs:.3f} | {secs / frames * 1e3:.3f} | "
+              f"{100 * secs / total:.1f} |")
+
+    pending: dict[int, list] = {}  # row -> "rest of" rows printed after it (after a parent's last descendant)
+    for i, (depth, label, _, _) in enumerate(STAGES):
+        if not res["found"].get(label):
+            print(f"| {'. ' * depth}{label} | absent | | | |")
+        else:
+            secs, calls = timers[label]
+            row(depth, label, str(calls), secs)
+            end, kids = i, []
+            while end + 1 < len(STAGES) and STAGES[end + 1][0] > depth:
+                end += 1
+                d2, l2 = STAGES[end][:2]
+                if d2 == depth + 1 and res["found"].get(l2):
+                    kids.append(timers[l2][0])
+            if kids:
+                pending.setdefault(end, []).insert(0, (depth + 1, f"(rest of {label.split(' (')[0]})",
+                                                       secs - sum(kids)))
+        for d, lab, secs in pending.pop(i, []):
+            row(d, lab, "", secs)
+    top = sum(timers[label][0] for d, label, _, _ in STAGES if d == 0 and res["found"].get(label))
+    row(0, "(rest of lgi reconstruct: arguments, prints)", "", total - top)
+    print("\n`(rest of finish_sequence)` is marker evaluation, the diagnostics rows and their DataFrame; "
+          "`(rest of select_frame)` includes unskinning the bundles with a rig.")
+    if res["profile"]:
+        print(f"\ncProfile of a third call (same shot; timings inflated by the profiler):\n```\n"
+              f"{res['profile'].strip()}\n```")
+
+
+def cold_run(index: Path, bundles: Path, frames: int, env: dict[str, str], scratch: Path, extra: list[str]) -> None:
+    """One process with an empty numba cache against one with the cache in place."""
+    cache = Path(tempfile.mkdtemp(prefix="numba-cold-", dir=scratch))
+    out = scratch / "cold-recon"
+    try:
+        cold = run_process(reconstruct_argv(index, bundles, out, extra), {**env, "NUMBA_CACHE_DIR": str(cache)})
+        shutil.rmtree(out, ignore_errors=True)
+        warm = run_process(reconstruct_argv(index, bundles, out, extra), env)
+        shutil.rmtree(out, ignore_errors=True)
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+    if cold.returncode or warm.returncode:
+        print(f"cold run failed:\n{cold.stderr[-2000:]}\n{warm.stderr[-2000:]}")
+        return
+    print(f"First run after a fresh install ({index.name}, {frames} frames): empty numba cache "
+          f"(NUMBA_CACHE_DIR set to a new directory for that process) {cold.wall_s:.1f} s, with the cache "
+          f"{warm.wall_s:.1f} s: compiling the kernels costs about {cold.wall_s - warm.wall_s:.1f} s once.")
+
+
+def parse_config(text: str, shapes: list[int], kinds: list[str]) -> tuple[int, bool, str]:
+    """``"500,rig,noisy"`` -> (shapes, rig, kind); shapes not built fall back to the nearest built."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 3 or parts[1] not in ("rig", "norig", "none") or parts[2] not in KINDS:
+        raise SystemExit(f"--stage-config: SHAPES,rig|norig,{'|'.join(KINDS)} expected, got {text!r}")
+    n = int(parts[0])
+    if n not in shapes:
+        near = min(shapes, key=lambda s: abs(s - n))
+        log(f"--stage-config: {n} shapes not in --shapes; using {near}")
+        n = near
+    kind = parts[2] if parts[2] in kinds else kinds[-1]
+    return n, parts[1] == "rig", kind
+
+
+def main() -> int:
+    """Build or reuse the material, time the configurations, print the tables."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", type=Path, default=None, help="material directory, reused (default: a temp dir)")
+    ap.add_argument("--shapes", default="100,500,2000", help="dataset sizes, comma-separated (>= 57)")
+    ap.add_argument("--frames", type=int, default=1000, help="frames of the long shot (1000)")
+    ap.add_argument("--short", type=int, default=100, help="frames of the short shot (100; F/5 if >= F)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per shot and configuration; medians (3)")
+    ap.add_argument("--kinds", default=None, help="bundles kinds: clean,noisy (with --jaw-motion also jaw,jaw-noisy)")
+    ap.add_argument("--jaw-motion", action="store_true", help="also frames whose jaw rotates (rig skinning)")
+    ap.add_argument("--noise-mm", type=float, default=0.3, help="noise per coordinate of the noisy copies (0.3)")
+    ap.add_argument("--given-noise", action="store_true", help="pass --noise MM to lgi reconstruct for the noisy "
+                    "copies (default: --noise auto, which may call unrelated poses exact)")
+    ap.add_argument("--stage-config", default="500,rig,noisy", help="SHAPES,rig|norig,KIND for the per-stage "
+                    "breakdown, or 'none' (500,rig,noisy)")
+    ap.add_argument("--cprofile", type=int, default=0, metavar="N", help="also cProfile the stage run: top N")
+    ap.add_argument("--cold", action="store_true", help="also one run with an empty numba cache")
+    ap.add_argument("--blas-threads", type=int, default=None, help="set OPENBLAS_NUM_THREADS/OMP_NUM_THREADS for "
+                    "the children (default: inherit)")
+    ap.add_argument("--ict", type=Path, default=shared_data("ict-facekit"))
+    args = ap.parse_args()
+    if not (args.ict / "generic_neutral_mesh.obj").is_file():
+        print(f"skipped: ICT FaceKit not found at {args.ict} (put it in ../shared/data/ict-facekit or set "
+              "$LGI_SHARED_DATA)")
+        return 0
+    shapes = sorted({int(s) for s in args.shapes.split(",") if s.strip()})
+    if not shapes or shapes[0] < ICT_SHAPES:
+        raise SystemExit(f"--shapes: every size must be at least ICT's {ICT_SHAPES} shapes")
+    kinds = (args.kinds.split(",") if args.kinds else
+             ["clean", "noisy", *(["jaw", "jaw-noisy"] if args.jaw_motion else [])])
+    bad = [k for k in kinds if k not in KINDS or (k.startswith("jaw") and not args.jaw_motion)]
+    if bad:
+        raise SystemExit(f"--kinds: unknown {bad} (jaw kinds need --jaw-motion)")
+    env = dict(os.environ)
+    if args.blas_threads is not None:
+        env["OPENBLAS_NUM_THREADS"] = env["OMP_NUM_THREADS"] = str(args.blas_threads)
+    tmp = None
+    if args.work is None:
+        tmp = tempfile.TemporaryDirectory(prefix="lgi-bench-speed-")
+        work = Path(tmp.name)
+    else:
+        work = args.work.resolve()
+        work.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    try:
+        records = Records(work / "records.json")
+        mat = build_material(work, args.ict, shapes, args.frames, args.short, kinds, args.noise_mm, records)
+        run_all(args, mat, shapes, kinds, env, work, records)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    print(f"\n({time.perf_counter() - t_start:.0f} s in all; material in "
+          f"{'a temporary directory, removed (--work DIR keeps it)' if tmp else work})")
+    return 0
+
+
+def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: list[str], env: dict[str, str],
+            work: Path, records: Records) -> None:
+    """Time every configuration and print the tables."""
+    scratch = work / "scratch"
+    scratch.mkdir(exist_ok=True)
+    given = f" plus `--noise {args.noise_mm:g}` for the noisy copies" if args.given_noise else ""
+    threads = ", ".join(f"{v}={env.get(v, 'unset')}" for v in THREAD_VARS)
+    log("one untimed process first (compiles the kernels if lgi/_kernels.py changed)")
+    first = run_process(reconstruct_argv(mat.indexes[(shapes[0], True)], mat.files[(kinds[0], mat.short)],
+                                         scratch / "recon", []), env)
+    shutil.rmtree(scratch / "recon", ignore_errors=True)
+    load0 = os.getloadavg()[0]
+    results = {}
+    for kind in kinds:
+        for n in shapes:
+            for with_rig in (False, True):
+                log(f"timing {n} shapes, {'rig' if with_rig else 'no rig'}, {kind}: {args.repeat} x "
+                    f"({mat.short} + {mat.frames} frames)")
+                results[(kind, n, with_rig)] = time_config(mat, mat.indexes[(n, with_rig)], kind, args.repeat, env,
+                                                           scratch, noise_args(kind, args))
+
+    print(f"# lgi reconstruct speed ({os.cpu_count()} cores; 1-minute load average {load0:.2f} before the timed "
+          f"runs, {os.getloadavg()[0]:.2f} after; {threads})\n")
+    print(f"Datasets: ICT FaceKit ({ICT_SHAPES} shapes, 26,719 vertices, {mat.units}) plus `lgi augment --linear "
+          f"--budget N-{ICT_SHAPES}` ({mat.augment or 'no in-betweens'}). Test frames: `lgi augment --linear --budget "
+          f"{mat.budget} --seed {MIX_SEED}` of the 57 ICT shapes, the combinations that are in-betweens of the "
+          f"{max(shapes)}-shape dataset removed ({mat.excluded} of the first {mat.frames}), the first {mat.frames} "
+          f"left; in the order drawn, so consecutive frames are unrelated poses (not a performance). Short shot: "
+          f"their first {mat.short} frames. Every `lgi reconstruct` is a whole process (`python -m lgi reconstruct "
+          f"INDEX --bundles FRAMES --out OUT -q`{given}, defaults otherwise), median of {args.repeat}; "
+          f"ms/extra frame = (t{mat.frames} - t{mat.short}) / {mat.frames - mat.short}. The first process "
+          f"(untimed) took {first.wall_s:.1f} s for {mat.short} frames.\n")
+    for kind in kinds:
+        what = KINDS[kind].format(noise=f"{args.noise_mm:g}")
+        print(f"## {mat.frames} held-out 2-3 shape linear mixes of ICT shapes (not in the dataset), {what}\n")
+        print(f"| shapes | rig | bundles | build s | build peak MiB | {mat.short} frames s | {mat.frames} frames s | "
+              f"frames/s ({mat.frames}) | ms/frame ({mat.frames}) | ms/extra frame | peak MiB | contained % | "
+              "noise treated as |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+        for n in shapes:
+            for with_rig in (False, True):
+                idx = mat.indexes[(n, with_rig)]
+                b = records.data.get(f"build/{idx.name}", {})
+                bs = f"{b['wall_s']:.1f}" if b else "?"
+                bm = f"{b['peak_mib']:.0f}" if b else "?"
+                r = results[(kind, n, with_rig)]
+                head = f"| {n} | {'rig' if with_rig else 'none'} | {kind} | {bs} | {bm} |"
+                if r["failed"]:
+                    print(f"{head} failed | | | | | | | |")
+                    continue
+                print(f"{head} {r['t_short']:.2f} | {r['t_long']:.2f} | {mat.frames / r['t_long']:.1f} | "
+                      f"{r['t_long'] / mat.frames * 1e3:.2f} | {r['extra_ms']:.2f} | {r['peak_mib']:.0f} | "
+                      f"{r['contained']:.1f} | {r['noise']} |")
+        print()
+    print("| index | shapes | rig | simplices | on disk MiB |")
+    print("|---|---|---|---|---|")
+    for (n, with_rig), idx in mat.indexes.items():
+        counts = manifest(idx).get("counts", {})
+        print(f"| {idx.name} | {n} | {'rig' if with_rig else 'none'} | {counts.get('simplices', '?')} | "
+              f"{dir_mib(idx):.0f} |")
+    print()
+
+    if args.stage_config != "none":
+        n, with_rig, kind = parse_config(args.stage_config, shapes, kinds)
+        what = KINDS[kind].format(noise=f"{args.noise_mm:g}")
+        print(f"## Per stage: {n} shapes, {'rig' if with_rig else 'no rig'}, {mat.frames} held-out 2-3 shape linear "
+              f"mixes of ICT shapes (not in the dataset), {what}\n")
+        log(f"stage breakdown: {n} shapes, {'rig' if with_rig else 'no rig'}, {kind}")
+        stage_breakdown(mat.indexes[(n, with_rig)], mat.files[(kind, mat.short)], mat.files[(kind, mat.frames)],
+                        mat.frames, env, scratch, args.cprofile, noise_args(kind, args))
+    if args.cold:
+        n, with_rig, kind = parse_config(args.stage_config if args.stage_config != "none" else "500,rig,noisy",
+                                         shapes, kinds)
+        log("cold run (empty numba cache)")
+        print()
+        cold_run(mat.indexes[(n, with_rig)], mat.files[(kind, mat.short)], mat.short, env, scratch,
+                 noise_args(kind, args))
+    shutil.rmtree(scratch, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
