@@ -665,20 +665,34 @@ def _cholesky_solve(h, free, nf, rhs, out, work):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True)
-def box_qp(h, g, lo, hi, x, max_iter=60, tol=1e-13):  # pragma: no cover - compiled
+def box_qp(h, g, lo, hi, x, max_iter=0, tol=1e-13):  # pragma: no cover - compiled
     """Minimise 0.5 x'hx - g'x subject to lo <= x <= hi (h SPD, small), in place from a feasible x.
 
-    Projected Newton (Bertsekas 1982): Newton steps on the variables not held at a bound by their
-    gradient, projected onto the box with a backtracking search along the projection arc. Converges in
-    a few iterations for the small, well-regularised problems of the local fits. Returns the iterations.
+    Primal active-set method: Newton steps on the free variables (Cholesky), cut at the first bound they
+    reach (which joins the active set); at a subspace minimum the bound variable whose multiplier most
+    wants it free is released. Terminates exactly; warm starts from a nearby solution take a few steps.
+    Returns the iterations (-1 if a free block is not positive definite).
     """
     n = x.shape[0]
+    if max_iter <= 0:
+        max_iter = 10 * n + 10
+    state = np.zeros(n, np.int64)  # 0 free, -1 at the lower bound, +1 at the upper
+    for a in range(n):
+        if x[a] <= lo[a]:
+            x[a] = lo[a]
+            state[a] = -1
+        elif x[a] >= hi[a]:
+            x[a] = hi[a]
+            state[a] = 1
     grad = np.empty(n)
     free = np.empty(n, np.int64)
     step = np.empty(n)
     rhs = np.empty(n)
     work = np.empty((n, n))
-    trial = np.empty(n)
+    scale = 0.0
+    for a in range(n):
+        scale = max(scale, abs(g[a]), abs(h[a, a]))
+    tol = max(tol, 1e-12 * scale)
     for it in range(max_iter):
         for a in range(n):
             acc = -g[a]
@@ -686,49 +700,54 @@ def box_qp(h, g, lo, hi, x, max_iter=60, tol=1e-13):  # pragma: no cover - compi
                 acc += h[a, b] * x[b]
             grad[a] = acc
         nf = 0
-        pg = 0.0
         for a in range(n):
-            at_lo = x[a] <= lo[a] and grad[a] > 0
-            at_hi = x[a] >= hi[a] and grad[a] < 0
-            if not (at_lo or at_hi):
+            if state[a] == 0:
                 free[nf] = a
                 nf += 1
-                pg = max(pg, abs(grad[a]))
-        if nf == 0 or pg <= tol:
-            return it
-        for a in range(n):
-            rhs[a] = -grad[a]
-        if not _cholesky_solve(h, free, nf, rhs, step, work):
-            return -1
-        f0 = 0.0
-        for a in range(n):
-            f0 += 0.5 * x[a] * (grad[a] - g[a])  # 0.5 x'hx - g'x = 0.5 x'(grad + g) - g'x
-        alpha = 1.0
-        improved = False
-        for _ in range(30):
+        big = 0.0
+        if nf > 0:
             for a in range(n):
-                trial[a] = x[a]
+                rhs[a] = -grad[a]
+            if not _cholesky_solve(h, free, nf, rhs, step, work):
+                return -1
             for c in range(nf):
-                a = free[c]
-                trial[a] = min(hi[a], max(lo[a], x[a] + alpha * step[c]))
-            f1 = 0.0
+                big = max(big, abs(step[c]))
+        if big <= 1e-14 * (1.0 + scale):
+            # At the minimum over the free variables: release the most wrongly held bound, if any.
+            worst = -1
+            worst_v = tol
             for a in range(n):
-                acc = 0.0
-                for b in range(n):
-                    acc += h[a, b] * trial[b]
-                f1 += 0.5 * trial[a] * acc - g[a] * trial[a]
-            if f1 <= f0:
-                improved = True
-                break
-            alpha *= 0.5
-        if not improved:
-            return it
-        moved = 0.0
-        for a in range(n):
-            moved = max(moved, abs(trial[a] - x[a]))
-            x[a] = trial[a]
-        if moved <= 1e-15:
-            return it
+                if state[a] == -1 and -grad[a] > worst_v:
+                    worst, worst_v = a, -grad[a]
+                elif state[a] == 1 and grad[a] > worst_v:
+                    worst, worst_v = a, grad[a]
+            if worst < 0:
+                return it
+            state[worst] = 0
+            continue
+        alpha = 1.0
+        block = -1
+        for c in range(nf):
+            a = free[c]
+            if step[c] < 0.0:
+                t = (lo[a] - x[a]) / step[c]
+            elif step[c] > 0.0:
+                t = (hi[a] - x[a]) / step[c]
+            else:
+                continue
+            if t < alpha:
+                alpha = t
+                block = c
+        for c in range(nf):
+            x[free[c]] += alpha * step[c]
+        if block >= 0:
+            a = free[block]
+            if step[block] < 0.0:
+                x[a] = lo[a]
+                state[a] = -1
+            else:
+                x[a] = hi[a]
+                state[a] = 1
     return max_iter
 
 
