@@ -84,11 +84,10 @@ def methods_for(bench_set, index, noisy: bool = False) -> list[Method]:
     out.append(Method("blendshape fit", True, _sequence(BlendshapeSolver(ds, layout))))
     if rig is not None:
         out.append(Method("blendshape fit + rig", True, _sequence(RiggedBlendshapeSolver(index))))
-    rigged = RiggedBlendshapeSolver(index)
     out.append(Method("RBF weights + smooth", True, _sequence(RBFSolver(index))))
+    jaw_fit = RiggedBlendshapeSolver(index).fit if rig is not None else None
     out.append(Method("smooth (shell)" + (" + rig" if rig is not None else ""), True,
-                      _sequence(SmoothSolver(ds.neutral, ds.triangles, layout, rig=rig,
-                                             jaw_fit=rigged.fit if rig is not None else None))))
+                      _sequence(SmoothSolver(ds.neutral, ds.triangles, layout, rig=rig, jaw_fit=jaw_fit))))
     return out
 
 

@@ -26,7 +26,7 @@ from .jaw import N_PARAMS, JawRig, jaw_matrix
 
 log = logging.getLogger(__name__)
 
-# Scales of the jaw parameters (deg, deg, deg, cm) for the nonlinear steps and the determinacy test: a
+# Scales of the jaw parameters (deg, deg, deg, cm) for the nonlinear steps: a
 # degree of opening moves a chin bundle by about 1.5 mm, as does a 0.15 cm slide.
 THETA_SCALE = np.array([1.0, 1.0, 1.0, 0.15])
 # A marker "moves with the jaw" from this rig weight on; the jaw is estimated only with 3 such markers.
@@ -72,24 +72,20 @@ class GlobalFit:
     l2 : float
         Ridge on the weights (cm^2 per unit weight^2): keeps the fit unique where shapes are redundant at
         the bundles.
-    iterations : int
-        Alternations between the weights and the jaw.
     """
 
     def __init__(self, table: np.ndarray, rig: JawRig | None = None, bundle_weights: np.ndarray | None = None,
-                 l2: float = 1e-6, iterations: int = 4) -> None:
+                 l2: float = 1e-6) -> None:
         tab = np.asarray(table, np.float64)
         self.rest = tab[0]
         self.basis = tab[1:] - tab[0][None]  # (S, M, 3)
         self.n_shapes, self.n_markers = self.basis.shape[:2]
         self.rig = rig
         self.l2 = float(l2)
-        self.iterations = int(iterations)
         if rig is not None:
             if bundle_weights is None:
                 raise ValueError("a rig needs the bundles' jaw weights")
             self.bw = np.asarray(bundle_weights, np.float64)
-            self.determinacy = self._determinacy()
             moving = self.bw >= JAW_MIN_WEIGHT
             self.jaw_observable = bool(moving.sum() >= 3)
             self.jaw_note = "" if self.jaw_observable else (
@@ -97,7 +93,6 @@ class GlobalFit:
                 "the jaw cannot be estimated from this layout and is held at rest unless given")
         else:
             self.bw = None
-            self.determinacy = None
             self.jaw_observable = False
             self.jaw_note = ""
 
@@ -224,28 +219,6 @@ class GlobalFit:
                                               else "held at rest (not observable)")
         return GlobalFitResult(w, theta, r, float(np.sqrt(np.nanmean(r**2))) if seen.any() else float("nan"),
                                source)
-
-    # ------------------------------------------------------------------ diagnostics
-    def _determinacy(self, eps: float = 1e-4) -> np.ndarray:
-        """(4,) for each jaw parameter, the share of the bundle motion it causes (at the rest pose) that no
-        combination of shapes can reproduce: near 0, the layout cannot tell that parameter from the shapes."""
-        m0 = self.predict(np.zeros(self.n_shapes), np.zeros(N_PARAMS)).ravel()
-        cols = []
-        for k in range(N_PARAMS):
-            th = np.zeros(N_PARAMS)
-            th[k] = eps * THETA_SCALE[k]
-            cols.append((self.predict(np.zeros(self.n_shapes), th).ravel() - m0) / eps)
-        j = np.stack(cols, 1)  # (3M, 4), motion per unit scaled parameter
-        b = self.basis.reshape(self.n_shapes, -1).T
-        q, _ = np.linalg.qr(b)
-        out = np.zeros(N_PARAMS)
-        for k in range(N_PARAMS):
-            n = np.linalg.norm(j[:, k])
-            out[k] = np.linalg.norm(j[:, k] - q @ (q.T @ j[:, k])) / n if n > 0 else 0.0
-        return out
-
-
-__all__ = ["GlobalFit", "GlobalFitResult"]
 
 
 def _working_set_step(jac: np.ndarray, r: np.ndarray, w: np.ndarray, nj: int, reg: np.ndarray,
