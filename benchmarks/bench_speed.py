@@ -29,7 +29,8 @@
    the long shot, ``--repeat`` times each (interleaved), for every shapes x {no rig, rig} x bundles kind:
    median wall time, frames/s and ms per frame of the long shot, cost per extra frame
    ``(t_F - t_S) / (F - S)``, peak resident memory of the process (``os.wait4``), and what the process
-   said about the bundles (share contained; how noise was treated: with the default ``--noise auto`` the
+   said about the bundles (share contained; share fitted as measurements, where noisy bundles skip the
+   simplex search; how noise was treated: with the default ``--noise auto`` the
    unrelated poses may be judged exact even when noisy; ``--given-noise`` passes ``--noise MM`` for the
    noisy copies). One untimed process first (a changed ``lgi/_kernels.py`` is compiled by the first
    process that uses it).
@@ -422,6 +423,8 @@ def summary(stdout: str) -> dict:
     out = {}
     m = re.search(r"([\d.]+) % contained", stdout)
     out["contained"] = float(m.group(1)) if m else float("nan")
+    m = re.search(r"([\d.]+) % fitted as measurements", stdout)
+    out["fitted"] = float(m.group(1)) if m else 0.0
     m = re.search(r"bundles treated as (exact|measurements with ([\d.]+) mm noise)", stdout)
     out["noise"] = "?" if not m else ("exact" if m.group(1) == "exact" else f"{m.group(2)} mm")
     m = re.search(r"local fits for ([\d.]+) %", stdout)
@@ -640,8 +643,8 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
         print(f"## {mat.frames} held-out 2-3 shape linear mixes of ICT shapes (not in the dataset), {what}\n")
         print(f"| shapes | rig | bundles | build s | build peak MiB | {mat.short} frames s | {mat.frames} frames s | "
               f"frames/s ({mat.frames}) | ms/frame ({mat.frames}) | ms/extra frame | peak MiB | contained % | "
-              "noise treated as |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+              "fitted % | noise treated as |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
         for n in shapes:
             for with_rig in (False, True):
                 idx = mat.indexes[(n, with_rig)]
@@ -651,11 +654,11 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
                 r = results[(kind, n, with_rig)]
                 head = f"| {n} | {'rig' if with_rig else 'none'} | {kind} | {bs} | {bm} |"
                 if r["failed"]:
-                    print(f"{head} failed | | | | | | | |")
+                    print(f"{head} failed | | | | | | | | |")
                     continue
                 print(f"{head} {r['t_short']:.2f} | {r['t_long']:.2f} | {mat.frames / r['t_long']:.1f} | "
                       f"{r['t_long'] / mat.frames * 1e3:.2f} | {r['extra_ms']:.2f} | {r['peak_mib']:.0f} | "
-                      f"{r['contained']:.1f} | {r['noise']} |")
+                      f"{r['contained']:.1f} | {r['fitted']:.1f} | {r['noise']} |")
         print()
     print("| index | shapes | rig | simplices | on disk MiB |")
     print("|---|---|---|---|---|")

@@ -571,6 +571,28 @@ def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma:
         out[v, 2] = a2
 
 
+@nb.njit(parallel=True, cache=True)
+def blend_uniform(x0, deltas, w_sum, shapes, lam, out):  # pragma: no cover - compiled
+    """:func:`blend` when every bundle has the same shapes (K,) and weights (K,): out[v] = x0[v] + w_sum[v]
+    sum_c lam[c] deltas[shapes[c], v], with w_sum[v] the vertex's total blend weight (1 inside the bundles'
+    region, 0 where no bundle reaches). One pass over the shapes instead of one per natural neighbour."""
+    n_v = x0.shape[0]
+    for v in nb.prange(n_v):
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for c in range(shapes.shape[0]):
+            lc = lam[c]
+            if lc != 0.0:
+                k = shapes[c]
+                a0 += lc * deltas[k, v, 0]
+                a1 += lc * deltas[k, v, 1]
+                a2 += lc * deltas[k, v, 2]
+        out[v, 0] = x0[v, 0] + w_sum[v] * a0
+        out[v, 1] = x0[v, 1] + w_sum[v] * a1
+        out[v, 2] = x0[v, 2] + w_sum[v] * a2
+
+
 @nb.njit(cache=True)
 def agreement(points, lam, seen, alias_off, class_off, alias_shape, nb_off, nb_idx, n_shapes):  # pragma: no cover
     """(M, S+1) evidence for each shape from the first-pass choices: every corner's weight is split
@@ -637,41 +659,61 @@ def add_correction(x, c_indptr, c_indices, c_data, fix, resid):  # pragma: no co
 
 
 @nb.njit(cache=True)
-def _cholesky_solve(h, free, nf, rhs, out, work):  # pragma: no cover - compiled
-    """Solve h[free, free] x = rhs[free] by Cholesky (h symmetric positive definite, nf = len(free));
-    returns False if a pivot is not positive. ``work`` is (n, n) scratch."""
-    for a in range(nf):
-        for b in range(a + 1):
-            s = h[free[a], free[b]]
-            for c in range(b):
-                s -= work[a, c] * work[b, c]
-            if a == b:
-                if s <= 0.0:
-                    return False
-                work[a, a] = np.sqrt(s)
-            else:
-                work[a, b] = s / work[b, b]
-    for a in range(nf):
-        s = rhs[free[a]]
-        for c in range(a):
-            s -= work[a, c] * out[c]
-        out[a] = s / work[a, a]
-    for a in range(nf - 1, -1, -1):
-        s = out[a]
-        for c in range(a + 1, nf):
-            s -= work[c, a] * out[c]
-        out[a] = s / work[a, a]
+def _chol_add(h, fl, nf, a, lf):  # pragma: no cover - compiled
+    """Append variable ``a`` to the Cholesky factor ``lf`` of h[fl[:nf], fl[:nf]] (O(nf^2)); returns False
+    (nothing changed) if the extended block is not numerically positive definite."""
+    d = h[a, a]
+    for c in range(nf):
+        s = h[a, fl[c]]
+        for k in range(c):
+            s -= lf[nf, k] * lf[c, k]
+        lf[nf, c] = s / lf[c, c]
+        d -= lf[nf, c] * lf[nf, c]
+    if d <= 1e-14 * h[a, a]:
+        return False
+    lf[nf, nf] = np.sqrt(d)
+    fl[nf] = a
     return True
 
 
 @nb.njit(cache=True)
-def box_qp(h, g, lo, hi, x, max_iter=0, tol=1e-13):  # pragma: no cover - compiled
+def _chol_remove(fl, nf, p, lf):  # pragma: no cover - compiled
+    """Remove the variable at position ``p`` of ``fl`` from the Cholesky factor ``lf`` (O(nf^2)): its row is
+    dropped and the columns it leaves out of shape are rotated back to lower-triangular (Givens)."""
+    for i in range(p, nf - 1):
+        fl[i] = fl[i + 1]
+        for k in range(i + 2):
+            lf[i, k] = lf[i + 1, k]
+    for c in range(p, nf - 1):
+        x0 = lf[c, c]
+        y0 = lf[c, c + 1]
+        r = np.sqrt(x0 * x0 + y0 * y0)
+        cs = x0 / r
+        sn = y0 / r
+        for i in range(c, nf - 1):
+            u = lf[i, c]
+            v = lf[i, c + 1]
+            lf[i, c] = cs * u + sn * v
+            lf[i, c + 1] = -sn * u + cs * v
+    for i in range(nf - 1):
+        lf[i, nf - 1] = 0.0
+
+
+@nb.njit(cache=True)
+def box_qp(h, g, lo, hi, x, max_iter=0, tol=1e-13, gain=0.0):  # pragma: no cover - compiled
     """Minimise 0.5 x'hx - g'x subject to lo <= x <= hi (h SPD, small), in place from a feasible x.
 
-    Primal active-set method: Newton steps on the free variables (Cholesky), cut at the first bound they
-    reach (which joins the active set); at a subspace minimum the bound variable whose multiplier most
-    wants it free is released. Terminates exactly; warm starts from a nearby solution take a few steps.
-    Returns the iterations (-1 if a free block is not positive definite).
+    Primal active-set method: Newton steps on the free variables, cut at the first bound they reach (which
+    joins the active set); at a subspace minimum the bound variable whose multiplier most wants it free is
+    released, if releasing it alone would lower the objective by more than ``gain`` (``m^2 / (2 h_aa)`` for
+    multiplier ``m``). The Cholesky factor of the free block is updated as variables join and leave
+    (O(n^2) per step, not a factorisation). Warm starts from a nearby solution take a few steps.
+
+    Rounding can make a just-released variable's Newton step point back into its bound (redundant columns
+    with a ridge of 1e-6 against norms of 1: h's condition is ~1e8 and the multiplier at the rounding
+    level); the variable is then returned to its bound and not released again, and a variable whose column
+    the free block cannot take (not positive definite) stays at its bound, so the method cannot cycle.
+    Returns the iterations, or -1 if the starting free block is not positive definite.
     """
     n = x.shape[0]
     if max_iter <= 0:
@@ -684,51 +726,69 @@ def box_qp(h, g, lo, hi, x, max_iter=0, tol=1e-13):  # pragma: no cover - compil
         elif x[a] >= hi[a]:
             x[a] = hi[a]
             state[a] = 1
+    banned = np.zeros(n, np.bool_)
     grad = np.empty(n)
-    free = np.empty(n, np.int64)
+    fl = np.empty(n, np.int64)
     step = np.empty(n)
-    rhs = np.empty(n)
-    work = np.empty((n, n))
+    lf = np.zeros((n, n))
+    nf = 0
+    for a in range(n):
+        if state[a] == 0:
+            if not _chol_add(h, fl, nf, a, lf):
+                return -1
+            nf += 1
     scale = 0.0
     for a in range(n):
         scale = max(scale, abs(g[a]), abs(h[a, a]))
     tol = max(tol, 1e-12 * scale)
+    released = -1
+    at_min = False  # after a full Newton step: at the free variables' minimum, up to rounding
     for it in range(max_iter):
         for a in range(n):
             acc = -g[a]
             for b in range(n):
                 acc += h[a, b] * x[b]
             grad[a] = acc
-        nf = 0
-        for a in range(n):
-            if state[a] == 0:
-                free[nf] = a
-                nf += 1
         big = 0.0
-        if nf > 0:
-            for a in range(n):
-                rhs[a] = -grad[a]
-            if not _cholesky_solve(h, free, nf, rhs, step, work):
-                return -1
+        if nf > 0 and not at_min:
             for c in range(nf):
+                s = -grad[fl[c]]
+                for k in range(c):
+                    s -= lf[c, k] * step[k]
+                step[c] = s / lf[c, c]
+            for c in range(nf - 1, -1, -1):
+                s = step[c]
+                for k in range(c + 1, nf):
+                    s -= lf[k, c] * step[k]
+                step[c] = s / lf[c, c]
                 big = max(big, abs(step[c]))
-        if big <= 1e-14 * (1.0 + scale):
+        if at_min or big <= 1e-14 * (1.0 + scale):
+            # (Repeating the Newton step there would only chase rounding: with h's condition ~1e8 its
+            # size stays ~1e-11, never below a fixed threshold.)
+            at_min = False
             # At the minimum over the free variables: release the most wrongly held bound, if any.
             worst = -1
             worst_v = tol
             for a in range(n):
-                if state[a] == -1 and -grad[a] > worst_v:
-                    worst, worst_v = a, -grad[a]
-                elif state[a] == 1 and grad[a] > worst_v:
-                    worst, worst_v = a, grad[a]
+                if banned[a]:
+                    continue
+                m = -grad[a] if state[a] == -1 else grad[a] if state[a] == 1 else 0.0
+                if m > worst_v and m * m > gain * 2.0 * h[a, a]:
+                    worst, worst_v = a, m
             if worst < 0:
                 return it
+            if not _chol_add(h, fl, nf, worst, lf):
+                banned[worst] = True
+                at_min = True
+                continue
+            nf += 1
             state[worst] = 0
+            released = worst
             continue
         alpha = 1.0
         block = -1
         for c in range(nf):
-            a = free[c]
+            a = fl[c]
             if step[c] < 0.0:
                 t = (lo[a] - x[a]) / step[c]
             elif step[c] > 0.0:
@@ -738,16 +798,29 @@ def box_qp(h, g, lo, hi, x, max_iter=0, tol=1e-13):  # pragma: no cover - compil
             if t < alpha:
                 alpha = t
                 block = c
+        if block >= 0 and fl[block] == released and alpha <= 1e-12:
+            # The released variable would go straight back to its bound: rounding, not a descent direction.
+            state[released] = -1 if step[block] < 0.0 else 1
+            banned[released] = True
+            _chol_remove(fl, nf, block, lf)
+            nf -= 1
+            released = -1
+            at_min = True
+            continue
+        released = -1
         for c in range(nf):
-            x[free[c]] += alpha * step[c]
+            x[fl[c]] += alpha * step[c]
+        at_min = block < 0
         if block >= 0:
-            a = free[block]
+            a = fl[block]
             if step[block] < 0.0:
                 x[a] = lo[a]
                 state[a] = -1
             else:
                 x[a] = hi[a]
                 state[a] = 1
+            _chol_remove(fl, nf, block, lf)
+            nf -= 1
     return max_iter
 
 
@@ -821,3 +894,118 @@ def local_fits(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta
         box_qp(h, g, lo, hi, x)
         for a in range(n):
             out[i, cols[a0 + a]] = w_global[cols[a0 + a]] + x[a]
+
+
+
+# The global fit's linearisation (lgi.globalfit.GlobalFit). Bundle i = seen_idx[e] is modelled as
+# (1 - b_i) x_i + b_i (R x_i + t), x_i = rest_i + sum_k w_k basis_ki; the derivative in w_k is
+# J_k,e = (1 - b_i) d + b_i R d (d = basis_ki). Loops rather than numpy expressions: those allocate
+# (S, m, 3) temporaries, which cost more than the arithmetic (10 ms per call at 500 shapes here), and the
+# full Jacobian is never stored: the fit needs its product with a vector and a few of its rows.
+@nb.njit(cache=True)
+def global_residual(rest, basis, seen_idx, w, rot, trans, bw, p, r_out):  # pragma: no cover - compiled
+    """Model minus ``p`` at the seen bundles, ``r_out[3e + c]``."""
+    nz = np.flatnonzero(w)
+    x = np.empty(3)
+    for e in range(seen_idx.shape[0]):
+        i = seen_idx[e]
+        for c in range(3):
+            x[c] = rest[i, c]
+        for k in nz:
+            for c in range(3):
+                x[c] += w[k] * basis[k, i, c]
+        b = bw[i]
+        for c in range(3):
+            r_out[3 * e + c] = ((1.0 - b) * x[c] + b * (rot[c, 0] * x[0] + rot[c, 1] * x[1] + rot[c, 2] * x[2]
+                                                        + trans[c]) - p[i, c])
+
+
+@nb.njit(cache=True)
+def global_gradient(basis, seen_idx, rot, bw, v, out):  # pragma: no cover - compiled
+    """``out[k] = J_k . v`` for every shape k: ``sum_e d . ((1 - b) v_e + b R^T v_e)``."""
+    m = seen_idx.shape[0]
+    u = np.empty((m, 3))
+    for e in range(m):
+        b = bw[seen_idx[e]]
+        for c in range(3):
+            u[e, c] = (1.0 - b) * v[3 * e + c] + b * (rot[0, c] * v[3 * e] + rot[1, c] * v[3 * e + 1]
+                                                      + rot[2, c] * v[3 * e + 2])
+    for k in range(basis.shape[0]):
+        acc = 0.0
+        for e in range(m):
+            i = seen_idx[e]
+            acc += basis[k, i, 0] * u[e, 0] + basis[k, i, 1] * u[e, 1] + basis[k, i, 2] * u[e, 2]
+        out[k] = acc
+
+
+@nb.njit(cache=True, inline="always")
+def _shape_derivative(basis, k, i, b, rot, out):  # pragma: no cover - compiled
+    """out (3,) = (1 - b) d + b R d for d = basis[k, i]: bundle i's derivative in shape k's weight."""
+    d0 = basis[k, i, 0]
+    d1 = basis[k, i, 1]
+    d2 = basis[k, i, 2]
+    for c in range(3):
+        out[c] = (1.0 - b) * basis[k, i, c] + b * (rot[c, 0] * d0 + rot[c, 1] * d1 + rot[c, 2] * d2)
+
+
+@nb.njit(cache=True)
+def global_rows(basis, seen_idx, rot, bw, rows, out):  # pragma: no cover - compiled
+    """``out[j] = J_rows[j]`` (3m,): the Jacobian rows of the shapes ``rows``."""
+    d = np.empty(3)
+    for j in range(rows.shape[0]):
+        for e in range(seen_idx.shape[0]):
+            _shape_derivative(basis, rows[j], seen_idx[e], bw[seen_idx[e]], rot, d)
+            for c in range(3):
+                out[j, 3 * e + c] = d[c]
+
+
+@nb.njit(cache=True)
+def global_col2(basis, seen_idx, rot, bw, out):  # pragma: no cover - compiled
+    """``out[k] = |J_k|^2`` for every shape k."""
+    d = np.empty(3)
+    for k in range(basis.shape[0]):
+        acc = 0.0
+        for e in range(seen_idx.shape[0]):
+            _shape_derivative(basis, k, seen_idx[e], bw[seen_idx[e]], rot, d)
+            acc += d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        out[k] = acc
+
+
+@nb.njit(cache=True)
+def sg_runs(x, left, mid, right, out):  # pragma: no cover - compiled
+    """Savitzky-Golay smoothing of every marker's trajectory, each run of seen frames on its own.
+
+    ``x`` (F, M, 3) with NaN rows for missing frames; ``mid`` (w,) the central coefficients, ``left`` and
+    ``right`` (h, w) the fitted values at the first and last h = w // 2 frames of a run from its first and
+    last w frames (scipy's ``mode="interp"``). Runs shorter than w are copied; ``out`` must hold a copy of
+    ``x`` on entry (missing rows stay NaN).
+    """
+    n_f, n_m = x.shape[0], x.shape[1]
+    w = mid.shape[0]
+    h = w // 2
+    for m in range(n_m):
+        t = 0
+        while t < n_f:
+            if not (np.isfinite(x[t, m, 0]) and np.isfinite(x[t, m, 1]) and np.isfinite(x[t, m, 2])):
+                t += 1
+                continue
+            a = t
+            while t < n_f and np.isfinite(x[t, m, 0]) and np.isfinite(x[t, m, 1]) and np.isfinite(x[t, m, 2]):
+                t += 1
+            b = t
+            if b - a < w:
+                continue
+            for c in range(3):
+                for f in range(a, b):
+                    acc = 0.0
+                    if f - a < h:
+                        for j in range(w):
+                            acc += left[f - a, j] * x[a + j, m, c]
+                    elif b - 1 - f < h:
+                        r = f - b + h  # row of ``right``: 0 .. h-1 for frames b-h .. b-1
+                        for j in range(w):
+                            acc += right[r, j] * x[b - w + j, m, c]
+                    else:
+                        for j in range(w):
+                            acc += mid[j] * x[f - h + j, m, c]
+                    out[f, m, c] = acc

@@ -340,6 +340,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     n = len(res.frames)
     print(f"reconstructed {n} frames x {index.n_vertices} vertices in {t2 - t1:.2f} s "
           f"({n / max(t2 - t1, 1e-9):.0f} frames/s; index loaded in {t1 - t0:.2f} s)")
+    if (d.status == "fitted").any():
+        print(f"bundles: {(d.status == 'fitted').mean() * 100:.1f} % fitted as measurements (noisy: no simplex "
+              "searched)")
     print(f"bundles: {(d.status == 'contained').mean() * 100:.1f} % contained, "
           f"{(d.status == 'projected').mean() * 100:.1f} % projected (median distance "
           f"{d.projection_mm[d.status == 'projected'].median() if (d.status == 'projected').any() else 0:.3f} mm), "

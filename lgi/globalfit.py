@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _kernels as K
-from .jaw import N_PARAMS, JawRig, jaw_matrix
+from .jaw import N_PARAMS, JawRig, jaw_matrix, jaw_matrix_derivatives
 
 log = logging.getLogger(__name__)
 
@@ -31,6 +31,20 @@ log = logging.getLogger(__name__)
 THETA_SCALE = np.array([1.0, 1.0, 1.0, 0.15])
 # A marker "moves with the jaw" from this rig weight on; the jaw is estimated only with 3 such markers.
 JAW_MIN_WEIGHT = 0.2
+# A shape joins the fit only if it lowers the squared residual by more than this (cm^2): with exact bundles
+# 1e-7 cm of residual, so the fit is exact; with noisy ones the noise variance (see ``join_gain``).
+EXACT_GAIN = 1e-14
+
+
+def join_gain(noise_mm: float) -> float:
+    """The least gain (cm^2) for which a shape joins the fit of bundles with this noise (mm per coordinate).
+
+    With noise of variance s^2 per coordinate, one more free weight lowers the squared residual by about s^2
+    even when the shape is not there (the residual's component along one more direction): a shape that gains
+    less is fitting noise (an Akaike-style penalty of one variance per weight). With hundreds of redundant
+    in-betweens the exact noisy fit would otherwise take tens of them, each for a vanishing gain, and the
+    working set would grow to hundreds of shapes."""
+    return max(EXACT_GAIN, (float(noise_mm) / 10.0) ** 2)
 
 
 @dataclass
@@ -72,16 +86,20 @@ class GlobalFit:
     l2 : float
         Ridge on the weights (cm^2 per unit weight^2): keeps the fit unique where shapes are redundant at
         the bundles.
+    gain : float
+        Least decrease of the squared residual (cm^2) for which a shape joins the fit (:func:`join_gain`;
+        the attribute may be changed between frames).
     """
 
     def __init__(self, table: np.ndarray, rig: JawRig | None = None, bundle_weights: np.ndarray | None = None,
-                 l2: float = 1e-6) -> None:
+                 l2: float = 1e-6, gain: float = EXACT_GAIN) -> None:
         tab = np.asarray(table, np.float64)
         self.rest = tab[0]
         self.basis = tab[1:] - tab[0][None]  # (S, M, 3)
         self.n_shapes, self.n_markers = self.basis.shape[:2]
         self.rig = rig
         self.l2 = float(l2)
+        self.gain = float(gain)
         if rig is not None:
             if bundle_weights is None:
                 raise ValueError("a rig needs the bundles' jaw weights")
@@ -114,30 +132,30 @@ class GlobalFit:
         return np.einsum("mij,mj->mi", m[:, :, :3], x) + m[:, :, 3]
 
     def _system(self, p: np.ndarray, seen: np.ndarray, weights: np.ndarray, theta: np.ndarray | None,
-                with_jaw: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals (3m,) of the seen bundles and their Jacobian (3m, [4 +] S) in the jaw (per unit of
-        THETA_SCALE) and the weights, at (theta, weights)."""
-        rest, basis = self.rest[seen], self.basis[:, seen]
-        x = rest + np.tensordot(weights, basis, axes=1)
+                with_jaw: bool, shape_col2: np.ndarray | None = None) -> tuple[np.ndarray, _Linearisation]:
+        """Residuals (3m,) of the seen bundles and the linearisation of the model at (theta, weights): the
+        jaw's Jacobian rows (per unit of THETA_SCALE) and the shapes' as an operator. ``shape_col2``: the
+        shapes' squared column norms from an earlier point of the same frame (they serve only the working
+        set's joining test, and a GN step's change of the jaw barely moves them)."""
+        seen_idx = np.flatnonzero(seen)
         if self.rig is None:
-            r = (x - p[seen]).ravel()
-            return r, basis.reshape(self.n_shapes, -1).T
-        bw = self.bw[seen]
-        eye = np.eye(4)[:3]
-        t0 = jaw_matrix(theta, self.rig.pivot)[:3]
-        m = (1 - bw)[:, None, None] * eye + bw[:, None, None] * t0
-        r = (np.einsum("mij,mj->mi", m[:, :, :3], x) + m[:, :, 3] - p[seen]).ravel()
-        jw = np.einsum("mij,kmj->mik", m[:, :, :3], basis).reshape(-1, self.n_shapes)
-        if not with_jaw:
-            return r, jw
-        xh = np.concatenate([x, np.ones((len(x), 1))], axis=1)
-        jt = np.empty((len(r), N_PARAMS))
-        for k in range(N_PARAMS):
-            step = np.zeros(N_PARAMS)
-            step[k] = 1e-6 * THETA_SCALE[k]
-            dt = (jaw_matrix(theta + step, self.rig.pivot)[:3] - t0) / 1e-6
-            jt[:, k] = (bw[:, None] * (xh @ dt.T)).ravel()
-        return r, np.concatenate([jt, jw], axis=1)
+            rot, trans, bw, t0 = np.eye(3), np.zeros(3), np.zeros(self.n_markers), None
+        else:
+            t0 = jaw_matrix(theta, self.rig.pivot)[:3]
+            rot, trans, bw = np.ascontiguousarray(t0[:, :3]), t0[:, 3].copy(), self.bw
+        w = np.asarray(weights, np.float64)
+        r = np.empty(3 * len(seen_idx))
+        K.global_residual(self.rest, self.basis, seen_idx, w, rot, trans, bw, p, r)
+        jaw_rows = np.zeros((0, len(r)))
+        if with_jaw:
+            nz = np.flatnonzero(w)
+            x = self.rest[seen_idx] + np.tensordot(w[nz], self.basis[nz][:, seen_idx], axes=1)
+            xh = np.concatenate([x, np.ones((len(x), 1))], axis=1)
+            b = bw[seen_idx][:, None]
+            jaw_rows = np.empty((N_PARAMS, len(r)))
+            for k, dt in enumerate(jaw_matrix_derivatives(theta, self.rig.pivot)):
+                jaw_rows[k] = (b * (xh @ (THETA_SCALE[k] * dt).T)).ravel()
+        return r, _Linearisation(self.basis, seen_idx, rot, bw, jaw_rows, shape_col2)
 
     def _gauss_newton(self, p: np.ndarray, seen: np.ndarray, weights: np.ndarray, theta: np.ndarray | None,
                       with_jaw: bool, max_iter: int = 30) -> tuple[np.ndarray, np.ndarray | None]:
@@ -161,22 +179,25 @@ class GlobalFit:
         c = cost(r, w)
         mu = 0.0
         for _ in range(max_iter):
-            dz = _working_set_step(jac, r, w, nj, reg + mu)
+            dz = _working_set_step(jac, r, w, nj, reg + mu, gain=self.gain)
             w_new = np.clip(w + dz[nj:], 0.0, 1.0)
             th_new = th if not with_jaw else th + dz[:nj] * THETA_SCALE
-            r_new, jac_new = self._system(p, seen, w_new, th_new, with_jaw)
+            r_new, jac_new = self._system(p, seen, w_new, th_new, with_jaw, jac.shape_col2)
             c_new = cost(r_new, w_new)
             if not with_jaw:
                 return w_new, th_new
             if c_new <= c:
                 step = max(np.abs(dz[:nj]).max(), np.abs(dz[nj:]).max())
+                stalled = c_new > c * (1 - 1e-10)
                 w, th, r, jac, c = w_new, th_new, r_new, jac_new, c_new
                 mu *= 0.1
-                if step < 1e-9 or c_new > c * (1 - 1e-12) and step < 1e-6:
+                # Stalled: redundant shapes can trade weight without changing the cost, so the step need
+                # not vanish; a relative gain of 1e-10 does not move the surface.
+                if step < 1e-9 or stalled:
                     break
             else:
                 # The jaw is nonlinear: damp toward gradient steps (in the scaled parameters) until it helps.
-                mu = max(mu * 10, 1e-6 * float(np.sum(jac**2)) / jac.shape[1])
+                mu = max(mu * 10, 1e-6 * float(np.mean(jac.col2)))
                 if mu > 1e12:
                     break
         return w, th
@@ -221,8 +242,43 @@ class GlobalFit:
                                source)
 
 
-def _working_set_step(jac: np.ndarray, r: np.ndarray, w: np.ndarray, nj: int, reg: np.ndarray,
-                      grow: int = 16, gain: float = 1e-14) -> np.ndarray:
+class _Linearisation:
+    """The global fit's Jacobian at one point, as an operator over the variables (jaw parameters first, then
+    the shapes): its shape rows are formed only for the working set (:mod:`lgi._kernels` ``global_*``)."""
+
+    def __init__(self, basis: np.ndarray, seen_idx: np.ndarray, rot: np.ndarray, bw: np.ndarray,
+                 jaw_rows: np.ndarray, shape_col2: np.ndarray | None = None) -> None:
+        self.basis, self.seen_idx, self.rot, self.bw = basis, seen_idx, rot, bw
+        self.jaw_rows = jaw_rows
+        self.nj = len(jaw_rows)
+        self.n = self.nj + len(basis)
+        if shape_col2 is None:
+            shape_col2 = np.empty(len(basis))
+            K.global_col2(basis, seen_idx, rot, bw, shape_col2)
+        self.shape_col2 = shape_col2
+        self.col2 = np.concatenate([np.einsum("ij,ij->i", jaw_rows, jaw_rows), shape_col2])
+
+    def rows(self, idx: np.ndarray) -> np.ndarray:
+        """(len(idx), 3m) Jacobian rows of the variables ``idx`` (sorted: the jaw's first)."""
+        idx = np.asarray(idx, np.int64)
+        out = np.empty((len(idx), self.jaw_rows.shape[1]))
+        jaw = idx < self.nj
+        out[jaw] = self.jaw_rows[idx[jaw]]
+        shape_rows = np.empty((int((~jaw).sum()), out.shape[1]))
+        K.global_rows(self.basis, self.seen_idx, self.rot, self.bw, idx[~jaw] - self.nj, shape_rows)
+        out[~jaw] = shape_rows
+        return out
+
+    def t_dot(self, v: np.ndarray) -> np.ndarray:
+        """(n,) J^T v for a residual-space vector v (3m,)."""
+        out = np.empty(self.n)
+        out[:self.nj] = self.jaw_rows @ v
+        K.global_gradient(self.basis, self.seen_idx, self.rot, self.bw, v, out[self.nj:])
+        return out
+
+
+def _working_set_step(jac: _Linearisation, r: np.ndarray, w: np.ndarray, nj: int, reg: np.ndarray,
+                      grow: int = 16, gain: float = EXACT_GAIN) -> np.ndarray:
     """The step dz minimising ``|r + J dz|^2 + sum reg (z + dz)^2`` (z: 0 for the jaw, ``w`` for the weights)
     with ``0 <= w + dz_w <= 1``, solved on a working set of variables.
 
@@ -233,7 +289,7 @@ def _working_set_step(jac: np.ndarray, r: np.ndarray, w: np.ndarray, nj: int, re
     outside the set could lower the objective by more than ``gain`` (cm^2, i.e. 1e-7 cm of residual) on its
     own.
     """
-    n = jac.shape[1]
+    n = jac.n
     z = np.zeros(n)
     z[nj:] = w
     lo = np.full(n, -1e30)
@@ -242,10 +298,20 @@ def _working_set_step(jac: np.ndarray, r: np.ndarray, w: np.ndarray, nj: int, re
     hi[nj:] = 1.0 - w
     dz = np.zeros(n)
 
-    def gradient(dz: np.ndarray) -> np.ndarray:
-        return jac.T @ (r + jac @ dz) + reg * (z + dz)
+    rows: dict[int, np.ndarray] = {}
 
-    col2 = np.sum(jac**2, axis=0) + reg
+    def working_rows(ws: np.ndarray) -> np.ndarray:
+        new = [k for k in ws if k not in rows]
+        if new:
+            for k, row in zip(new, jac.rows(np.array(new)), strict=True):
+                rows[k] = row
+        return np.array([rows[k] for k in ws]).reshape(len(ws), len(r))
+
+    def gradient(dz: np.ndarray) -> np.ndarray:
+        nz = np.flatnonzero(dz)
+        return jac.t_dot(r + dz[nz] @ working_rows(nz)) + reg * (z + dz)
+
+    col2 = jac.col2 + reg
     g = gradient(dz)
     wants = np.where(dz <= lo, -g, np.where(dz >= hi, g, np.abs(g)))
     work = set(range(nj)) | set((nj + np.flatnonzero(w > 0)).tolist())
@@ -253,11 +319,12 @@ def _working_set_step(jac: np.ndarray, r: np.ndarray, w: np.ndarray, nj: int, re
     dropped: set[int] = set()
     for _ in range(50):
         ws = np.array(sorted(work))
-        js = jac[:, ws]
-        h = js.T @ js + np.diag(reg[ws])
-        rhs = -(js.T @ r) - reg[ws] * z[ws]
-        sub = np.zeros(len(ws))
-        K.box_qp(h, rhs, lo[ws], hi[ws], sub)
+        js = working_rows(ws)
+        h = js @ js.T + np.diag(reg[ws])
+        rhs = -(js @ r) - reg[ws] * z[ws]
+        sub = dz[ws]  # warm start: the last round's solution, zero for the newcomers
+        # The QP's objective is half of this one: the same gain threshold for releasing a bound.
+        K.box_qp(h, rhs, lo[ws], hi[ws], sub, 0, 1e-13, 0.5 * gain)
         dz[:] = 0.0
         dz[ws] = sub
         g = gradient(dz)

@@ -52,6 +52,28 @@ def jaw_matrix(params: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     return m
 
 
+def jaw_matrix_derivatives(params: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """(4, 3, 4) derivatives of the top rows of :func:`jaw_matrix` in each parameter (per degree for the
+    three angles, per cm for the slide)."""
+    op, yaw, roll, _ = (np.deg2rad(float(v)) for v in params)
+    k = np.pi / 180.0
+    ca, sa = np.cos(op), np.sin(op)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    cz, sz = np.cos(roll), np.sin(roll)
+    rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    drx = k * np.array([[0, 0, 0], [0, -sa, -ca], [0, ca, -sa]])
+    dry = k * np.array([[-sy, 0, cy], [0, 0, 0], [-cy, 0, -sy]])
+    drz = k * np.array([[-sz, -cz, 0], [cz, -sz, 0], [0, 0, 0]])
+    out = np.zeros((4, 3, 4))
+    for i, dr in enumerate((ry @ rz @ drx, dry @ rz @ rx, ry @ drz @ rx)):
+        out[i, :, :3] = dr
+        out[i, :, 3] = -dr @ pivot
+    out[3, 2, 3] = 1.0
+    return out
+
+
 @dataclass
 class JawRig:
     """Pivot (3,) cm and skinning weights (V,) in [0, 1] on the neutral."""
@@ -68,8 +90,11 @@ class JawRig:
 
     def skin(self, x: np.ndarray, params: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Skinned positions (N, 3) of unskinned positions ``x`` (N, 3) (vertex weights by default)."""
-        m = self.blend_matrices(params, w)
-        return np.einsum("nij,nj->ni", m[:, :, :3], x) + m[:, :, 3]
+        w = self.weights if w is None else np.asarray(w, np.float64)
+        x = np.asarray(x, np.float64)
+        t = jaw_matrix(params, self.pivot)[:3]
+        # (1 - w) x + w (R x + t), without a 3 x 4 map per point (the mesh has tens of thousands).
+        return x + w[:, None] * (x @ t[:, :3].T + t[:, 3] - x)
 
     def unskin(self, x: np.ndarray, params: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Inverse of :meth:`skin` point by point (each blended map is an invertible affine map)."""

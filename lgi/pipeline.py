@@ -322,6 +322,7 @@ def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smoot
         "contained_share": float((d.status == "contained").mean()),
         "projected_share": float((d.status == "projected").mean()),
         "neighbour_share": float((d.status == "neighbour").mean()),
+        "fitted_share": float((d.status == "fitted").mean()),
         "missing_share": float(d.status.isin(["missing", "bridged"]).mean()),
         "max_residual_mm": float(np.nanmax(d.residual_mm)), "finish_s": time.perf_counter() - t0,
     }

@@ -26,7 +26,7 @@ from scipy.signal import savgol_coeffs
 from . import _kernels as K
 from .bundles import Bundles
 from .errors import InputError
-from .globalfit import GlobalFit, GlobalFitResult
+from .globalfit import GlobalFit, GlobalFitResult, join_gain
 from .index import LGIIndex
 from .progress import progress
 from .temporal import NoiseEstimate, denoise_trajectories, estimate_noise
@@ -42,7 +42,11 @@ NOISE_FLOOR = 0.05
 
 log = logging.getLogger(__name__)
 
-STATUS = {K.CONTAINED: "contained", K.PROJECTED: "projected", K.MISSING: "missing", K.BORROWED: "neighbour"}
+# FITTED: a noisy bundle fitted by the global weights; no simplex is searched for it (its cloud would be
+# matched to the noise, and the search is the costliest step of a frame).
+FITTED = 4
+STATUS = {K.CONTAINED: "contained", K.PROJECTED: "projected", K.MISSING: "missing", K.BORROWED: "neighbour",
+          FITTED: "fitted"}
 
 
 @dataclass
@@ -57,9 +61,10 @@ class FrameResult:
     weights : (M, 4) float64
         Their convex barycentric weights.
     n_containing : (M,) int64
-        Simplices that contained the bundle.
+        Simplices that contained the bundle (-1: not searched, noisy bundles).
     status : (M,) int64
-        0 contained, 1 projected, 2 missing, 3 neighbour (took a natural neighbour's mixture).
+        0 contained, 1 projected, 2 missing, 3 neighbour (took a natural neighbour's mixture), 4 fitted
+        (noisy bundles: the global fit's weights, no simplex searched; ``projection`` NaN).
     projection : (M,) float64, cm
         Distance from the bundle to where its chosen blend puts it before correction: to its cloud's
         volume when projected, to the neighbour's mixture when borrowed, 0 (or the snap offset) when
@@ -175,7 +180,6 @@ class LGISolver:
         self.local_prior = float(local_prior)
         self.noise_estimate: NoiseEstimate | None = None
         self.independent_poses = False
-        self.set_noise(noise)
         self.index = index
         a = index.arrays
         self._a = a
@@ -196,6 +200,7 @@ class LGISolver:
         self.layout = index.layout()
         self._x0 = np.asarray(a["neutral"], np.float64)
         self._deltas = np.asarray(index.deltas)  # read once: the blend touches all of it every frame
+        self._w_sum: np.ndarray | None = None  # (V,) total blend weight per vertex, for uniform blends
         nb_off, nb_idx = a["nb_off"], a["nb_idx"]
         self._neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(index.n_markers)]
         self._rest = a["ptab"][0]
@@ -207,6 +212,7 @@ class LGISolver:
         if self.rig is not None:
             self._bundle_w = self.layout.evaluate(self.rig.weights[:, None])[:, 0]
         self.global_fit = GlobalFit(a["ptab"], self.rig, self._bundle_w)
+        self.set_noise(noise)
         if self.rig is not None and not self.global_fit.jaw_observable:
             log.warning("%s", self.global_fit.jaw_note)
         self._basis = self.global_fit.basis
@@ -310,6 +316,13 @@ class LGISolver:
         if self.rig is not None:
             q = p.copy()
             q[seen] = self.rig.unskin(p[seen], theta, self._bundle_w[seen])
+        if self.method == "local" and self.noise > 0:
+            m = len(p)
+            shapes, lam, score, source, fallback = self._global(q, seen, fit)
+            return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, np.full(m, -1, np.int64),
+                               np.where(seen, FITTED, K.MISSING).astype(np.int64), np.full(m, np.nan), score,
+                               np.where(seen, 0.0, np.nan), fallback, theta, p, None, source, fit,
+                               np.zeros((m, 4), np.int64), np.zeros((m, 4)))
         prev_simplex = None
         if previous is not None:
             prev_simplex = FrameResult(previous.vertices, previous.simplex_shapes, previous.simplex_weights,
@@ -318,9 +331,7 @@ class LGISolver:
         q, seen, shapes, lam, n_contain, status, proj, score, fallback = self.select(q, prev_simplex)
         simplex_shapes, simplex_weights = shapes.copy(), lam.copy()
         source = np.full(len(p), "simplex", object)
-        if self.method == "local" and self.noise > 0:
-            shapes, lam, score, source, fallback = self._global(q, seen, fit, fallback)
-        elif self.method == "local":
+        if self.method == "local":
             shapes, lam, score, source, fallback = self._local(q, seen, fit, shapes, lam, score, fallback)
         return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, n_contain, status, proj, score,
                            np.where(seen, 0.0, np.nan), fallback, theta, p, None, source, fit, simplex_shapes,
@@ -338,7 +349,7 @@ class LGISolver:
         cnt = np.bincount(i, cw, minlength=len(q))
         return np.sqrt(tot / np.maximum(cnt, 1e-300))
 
-    def _global(self, q: np.ndarray, seen: np.ndarray, fit: GlobalFitResult, fallback: list[str]):
+    def _global(self, q: np.ndarray, seen: np.ndarray, fit: GlobalFitResult):
         """Every bundle takes the global fit's weights (noisy bundles: local refits would fit the noise)."""
         m = len(q)
         nz = np.flatnonzero(fit.weights > 0)
@@ -348,7 +359,13 @@ class LGISolver:
         out_s[:, :len(nz)] = nz + 1
         out_w[:, :len(nz)] = fit.weights[nz]
         notes = [("global fit" if not seen[i] else "") for i in range(m)]
-        score = self._misfits(q, seen, np.broadcast_to(fit.weights, (m, len(fit.weights))))
+        # One prediction for all bundles (the weights are shared), then each bundle's neighbourhood misfit.
+        pred = self._rest + np.tensordot(fit.weights[nz], self._basis[nz], axes=1)
+        i, j = self._pair_i, self._pair_j
+        ok = seen[j]
+        i, j, cw = i[ok], j[ok], self._pair_w[ok]
+        d2 = np.sum((pred[j] - q[j]) ** 2, axis=1)
+        score = np.sqrt(np.bincount(i, cw * d2, minlength=m) / np.maximum(np.bincount(i, cw, minlength=m), 1e-300))
         return out_s, out_w, score, np.full(m, "global fit", object), notes
 
     def _local(self, q: np.ndarray, seen: np.ndarray, fit: GlobalFitResult, shapes: np.ndarray, lam: np.ndarray,
@@ -404,7 +421,14 @@ class LGISolver:
         """(V, 3) float64: the natural-neighbour blend of the bundles' shapes, skinned when there is a rig."""
         a = self._a
         x = np.empty_like(self._x0)
-        K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, weights, x)
+        if (shapes == shapes[0]).all() and (weights == weights[0]).all():
+            # Every bundle has the same weights (noisy bundles: the global fit's): no per-vertex mixing.
+            if self._w_sum is None:
+                self._w_sum = np.add.reduceat(np.r_[a["w_data"], 0.0], a["w_indptr"][:-1]) * (
+                    np.diff(a["w_indptr"]) > 0)
+            K.blend_uniform(self._x0, self._deltas, self._w_sum, shapes[0], weights[0], x)
+        else:
+            K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, weights, x)
         return x if self.rig is None else self.rig.skin(x, jaw)
 
     def blend_frame(self, sel: FrameResult, shapes: np.ndarray, weights: np.ndarray,
@@ -493,6 +517,7 @@ class LGISolver:
         prior. Exact bundles are returned as they are."""
         self.denoise_windows = None
         self._fit_noise = self.noise
+        self.global_fit.gain = join_gain(self.noise)
         if self.noise <= 0:
             return positions
         out, windows = denoise_trajectories(positions, self.noise)
@@ -500,6 +525,7 @@ class LGISolver:
         c0 = np.array([savgol_coeffs(w, 2)[w // 2] if w > 1 else 1.0 for w in np.unique(windows)])
         share = np.array([(windows == w).mean() for w in np.unique(windows)])
         self._fit_noise = self.noise * float(np.sqrt(share @ c0))
+        self.global_fit.gain = join_gain(self._fit_noise)
         log.info("noisy bundles smoothed over %d-%d frames (median %d): about %.3f mm noise left", windows.min(),
                  windows.max(), int(np.median(windows)), self._fit_noise)
         return out
@@ -527,6 +553,7 @@ class LGISolver:
             raise InputError(f"noise must be a finite number of mm >= 0, not {noise_mm}")
         self.noise = float(noise_mm)
         self._fit_noise = self.noise
+        self.global_fit.gain = join_gain(self.noise)
         self.noise_gain = NOISE_GAIN if self.noise > 0 else 1.0
 
     def resolve_noise(self, positions: np.ndarray, noise: float | str = "auto") -> NoiseEstimate | None:
@@ -627,6 +654,7 @@ class LGISolver:
 
             resid = moving_average(resid, smooth)
         rows = []
+        labels: dict[tuple[bytes, bytes], tuple[str, str]] = {}
         names = self.index.marker_names
         shape_names = self.index.shape_names
         for f in range(len(pos)):
@@ -647,10 +675,13 @@ class LGISolver:
                 note = sel.fallback[i]
                 if bridged[f, i]:
                     status, note = "bridged", "interpolated between the frames around the gap"
+                key = (sel.shapes[i][nz].tobytes(), sel.weights[i][nz].tobytes())
+                if key not in labels:  # noisy bundles share the global weights: format them once
+                    labels[key] = (";".join(shape_names[k] for k in sel.shapes[i][nz]),
+                                   " ".join(f"{w:.4f}" for w in sel.weights[i][nz]))
                 rows.append((
                     int(frames[f]), names[i], status, int(sel.n_containing[i]),
-                    ";".join(shape_names[k] for k in sel.shapes[i][nz]),
-                    " ".join(f"{w:.4f}" for w in sel.weights[i][nz]), sel.projection[i] * 10, sel.score[i] * 10,
+                    *labels[key], sel.projection[i] * 10, sel.score[i] * 10,
                     before[f, i] * 10, r_final[i] * 10, note,
                     sel.source[i] if sel.source is not None else "simplex",
                     sel.fit.residual[i] * 10 if sel.fit is not None else np.nan, fit_rms, *jaw_cols,

@@ -234,19 +234,27 @@ def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None) -> No
 SG_WINDOWS = (1, 5, 7, 9, 11, 15, 21, 31)
 
 
-def _sg_segments(x: np.ndarray, window: int) -> np.ndarray:
-    """Savitzky-Golay (quadratic) smoothing of (F, 3) with NaN rows; each run of seen frames is smoothed
-    on its own (runs shorter than the window are left as they are)."""
-    from scipy.signal import savgol_filter
+def sg_matrix(window: int, order: int = 2) -> np.ndarray:
+    """(w, w) the least-squares polynomial fit over ``window`` equally spaced frames: row j gives the fitted
+    value at frame j (the middle row is the Savitzky-Golay smoothing filter; the others the ends of a run,
+    as scipy's ``savgol_filter(mode="interp")`` fits them)."""
+    t = np.arange(window, dtype=np.float64) - window // 2
+    v = np.vander(t, order + 1)
+    return v @ np.linalg.pinv(v)
 
-    out = x.copy()
+
+def _sg_all(x: np.ndarray, window: int) -> np.ndarray:
+    """Savitzky-Golay (quadratic) smoothing of every marker's trajectory (F, M, 3) with NaN rows; each run of
+    seen frames is smoothed on its own (runs shorter than the window are left as they are)."""
+    from . import _kernels as K
+
+    out = np.array(x, np.float64, copy=True)
     if window <= 1:
         return out
-    seen = np.all(np.isfinite(x), axis=1)
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], seen.astype(np.int8), [0]])))
-    for a, b in zip(edges[::2], edges[1::2], strict=True):
-        if b - a >= window:
-            out[a:b] = savgol_filter(x[a:b], window, 2, axis=0, mode="interp")
+    mat = sg_matrix(window)
+    h = window // 2
+    K.sg_runs(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(mat[:h]), np.ascontiguousarray(mat[h]),
+              np.ascontiguousarray(mat[window - h:]), out)
     return out
 
 
@@ -279,7 +287,6 @@ def denoise_trajectories(positions: np.ndarray, noise_mm: float, windows: tuple[
         The window used per frame and marker.
     """
     from scipy.ndimage import uniform_filter1d
-    from scipy.signal import savgol_coeffs
 
     p = np.asarray(positions, np.float64)
     s2 = (noise_mm / 10.0) ** 2
@@ -288,24 +295,21 @@ def denoise_trajectories(positions: np.ndarray, noise_mm: float, windows: tuple[
     if s2 <= 0:
         return out, chosen
     cand = [w for w in windows if w > 1]
-    for m in range(p.shape[1]):
-        x = p[:, m]
-        ok = np.all(np.isfinite(x), axis=1)
-        if ok.sum() < 8:
-            continue
-        ys = [x]
-        risks = [np.zeros(len(x))]  # no smoothing: the reference (its risk is 3 s^2 per frame)
-        for w in cand:
-            if w > ok.sum():
-                break
-            y = _sg_segments(x, w)
-            c0 = float(savgol_coeffs(w, 2)[w // 2])
-            smoothed = np.all(np.isfinite(y), axis=1) & np.any(y != x, axis=1)
-            r = np.where(smoothed, np.nansum((y - x) ** 2, axis=1) - 6 * s2 * (1.0 - c0), 0.0)
-            ys.append(y)
-            risks.append(r)
-        local = uniform_filter1d(np.stack(risks), 2 * span + 1, axis=1, mode="nearest")
-        best = np.argmin(local, axis=0)
-        out[:, m] = np.stack(ys)[best, np.arange(len(x))]
-        chosen[:, m] = np.array([1, *cand])[best]
+    ok = np.all(np.isfinite(p), axis=2)
+    n_ok = ok.sum(0)
+    ys = [p]
+    risks = [np.zeros(p.shape[:2])]  # no smoothing: the reference (its risk is 3 s^2 per frame)
+    for w in cand:
+        y = _sg_all(p, w)
+        c0 = float(sg_matrix(w)[w // 2, w // 2])
+        smoothed = np.all(np.isfinite(y), axis=2) & np.any(y != p, axis=2)
+        r = np.where(smoothed, np.nansum((y - p) ** 2, axis=2) - 6 * s2 * (1.0 - c0), 0.0)
+        r[:, w > n_ok] = 1e30  # a window longer than the marker's seen frames is not a candidate
+        ys.append(y)
+        risks.append(r)
+    local = uniform_filter1d(np.stack(risks), 2 * span + 1, axis=1, mode="nearest")
+    best = np.argmin(local, axis=0)  # (F, M)
+    best[:, n_ok < 8] = 0
+    out = np.take_along_axis(np.stack(ys), best[None, :, :, None], axis=0)[0]
+    chosen = np.array([1, *cand])[best]
     return out, chosen

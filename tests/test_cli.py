@@ -170,7 +170,7 @@ def test_build_reconstruct_verify(tmp_path: Path) -> None:
     assert np.sqrt(np.mean(np.sum((m["vertices"] - truth) ** 2, axis=2))) < 0.05  # cm
     diag = pd.read_csv(out / "diagnostics.csv")
     assert len(diag) == 15 * len(read_layout(s / "markers.csv")) and diag.residual_mm.max() < 1e-4
-    assert set(diag.status) <= {"contained", "projected", "neighbour", "missing"}
+    assert set(diag.status) <= {"contained", "projected", "neighbour", "missing", "fitted"}
     assert len(list((out / "obj").glob("frame_*.obj"))) == 15
 
 

@@ -40,6 +40,28 @@ def test_box_qp_matches_bounded_least_squares() -> None:
         assert np.abs(x - ref).max() < 1e-8
 
 
+def test_box_qp_on_redundant_columns_from_warm_starts() -> None:
+    # In-betweens are exact combinations of other shapes: with a ridge of 1e-6 the normal matrix has a
+    # condition of ~1e8, where a plain active-set method cycles on rounding (the case of the global fit).
+    rng = np.random.default_rng(1)
+    for trial in range(20):
+        base = rng.normal(size=(90, 12))
+        mix = rng.uniform(0, 1, (12, 60)) * (rng.uniform(size=(12, 60)) < 0.2)
+        a = np.hstack([base, base @ mix])
+        n = a.shape[1]
+        b = a @ (rng.uniform(0, 1, n) * (rng.uniform(size=n) < 0.1)) + rng.normal(0, 0.05, 90)
+        h = a.T @ a + 1e-6 * np.eye(n)
+        ref = lsq_linear(np.vstack([a, 1e-3 * np.eye(n)]), np.r_[b, np.zeros(n)], bounds=(0, 1), method="bvls").x
+        obj = lambda w: 0.5 * w @ h @ w - a.T @ b @ w  # noqa: E731
+        for start in (np.zeros(n), rng.uniform(0, 1, n), np.clip(ref + rng.normal(0, 0.05, n), 0, 1)):
+            x = start.copy()
+            its = K.box_qp(h, a.T @ b, np.zeros(n), np.ones(n), x)
+            assert 0 <= its < 10 * n + 10, trial
+            assert np.all((x >= 0) & (x <= 1))
+            # Redundant columns: the objective, not the weights, is unique up to the ridge.
+            assert obj(x) <= obj(ref) + 1e-9 * (1 + abs(obj(ref))), trial
+
+
 def test_jaw_estimated_with_the_shapes_on_the_synthetic_actor(synth_set) -> None:
     bs, index = synth_set
     res = LGISolver(index).solve_sequence(bs.bundles)

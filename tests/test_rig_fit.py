@@ -183,3 +183,17 @@ def test_cli_prints_the_hinge_report(actor, tmp_path: Path, capsys) -> None:
     captured = capsys.readouterr()
     assert "warning: jawOpen: the hinge needs a slide of 15.0 mm" in captured.out
     assert "jaw rig:" not in captured.err  # printed once, not again by logging's last-resort handler
+
+
+def test_jaw_matrix_derivatives_match_central_differences() -> None:
+    from lgi.jaw import jaw_matrix, jaw_matrix_derivatives
+
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        theta, pivot = rng.normal(0, 10, 4), rng.normal(0, 5, 3)
+        d = jaw_matrix_derivatives(theta, pivot)
+        for k in range(4):
+            e = np.zeros(4)
+            e[k] = 1e-6
+            fd = (jaw_matrix(theta + e, pivot)[:3] - jaw_matrix(theta - e, pivot)[:3]) / 2e-6
+            assert np.abs(fd - d[k]).max() < 1e-7
