@@ -343,7 +343,8 @@ class LGISolver:
         i, j = self._pair_i, self._pair_j
         ok = seen[j]
         i, j, cw = i[ok], j[ok], self._pair_w[ok]
-        pred = self._rest[j] + np.einsum("ek,kec->ec", w[i], self._basis[:, j])
+        used = np.flatnonzero(np.any(w != 0, axis=0))  # tens of shapes out of hundreds
+        pred = self._rest[j] + np.einsum("ek,kec->ec", w[i][:, used], self._basis[used][:, j])
         d2 = np.sum((pred - q[j]) ** 2, axis=1)
         tot = np.bincount(i, cw * d2, minlength=len(q))
         cnt = np.bincount(i, cw, minlength=len(q))
@@ -381,7 +382,7 @@ class LGISolver:
         col_off = np.zeros(m + 1, np.int64)
         col_off[1:] = np.cumsum([len(c) for c in cols])
         flat = np.concatenate(cols).astype(np.int64) if col_off[-1] else np.zeros(0, np.int64)
-        resid = np.where(seen[:, None], q - self._rest - np.tensordot(wg, self._basis, axes=1), 0.0)
+        resid = np.where(seen[:, None], q - self._rest - np.tensordot(wg[wg != 0], self._basis[wg != 0], axes=1), 0.0)
         w_local = np.empty((m, n_s))
         beta = np.full(m, self.local_prior)
         K.local_fits(resid, seen, self._basis, self._a["nb_off"], self._a["nb_idx"], col_off, flat, wg, beta,
