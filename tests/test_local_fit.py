@@ -52,14 +52,15 @@ def test_box_qp_on_redundant_columns_from_warm_starts() -> None:
         b = a @ (rng.uniform(0, 1, n) * (rng.uniform(size=n) < 0.1)) + rng.normal(0, 0.05, 90)
         h = a.T @ a + 1e-6 * np.eye(n)
         ref = lsq_linear(np.vstack([a, 1e-3 * np.eye(n)]), np.r_[b, np.zeros(n)], bounds=(0, 1), method="bvls").x
-        obj = lambda w: 0.5 * w @ h @ w - a.T @ b @ w  # noqa: E731
+        g = a.T @ b
         for start in (np.zeros(n), rng.uniform(0, 1, n), np.clip(ref + rng.normal(0, 0.05, n), 0, 1)):
             x = start.copy()
-            its = K.box_qp(h, a.T @ b, np.zeros(n), np.ones(n), x)
+            its = K.box_qp(h, g, np.zeros(n), np.ones(n), x)
             assert 0 <= its < 10 * n + 10, trial
             assert np.all((x >= 0) & (x <= 1))
             # Redundant columns: the objective, not the weights, is unique up to the ridge.
-            assert obj(x) <= obj(ref) + 1e-9 * (1 + abs(obj(ref))), trial
+            f_x, f_ref = 0.5 * x @ h @ x - g @ x, 0.5 * ref @ h @ ref - g @ ref
+            assert f_x <= f_ref + 1e-9 * (1 + abs(f_ref)), trial
 
 
 def test_jaw_estimated_with_the_shapes_on_the_synthetic_actor(synth_set) -> None:
