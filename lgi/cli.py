@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .csvio import write_csv
 from .errors import InputError, LgiError
 from .npz import save_npz
 
@@ -325,7 +326,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     try:
         extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
         save_npz(stage / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
-        res.diagnostics.to_csv(stage / "diagnostics.csv", index=False, float_format="%.6g")
+        write_csv(res.diagnostics, stage / "diagnostics.csv")
         if args.obj:
             a = index.arrays
             (stage / "obj").mkdir()
@@ -644,7 +645,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     with atomic_file(out / "meshes.npz") as tmp:
         save_npz(tmp, vertices=res.vertices, frames=res.frames)
-    _write_csv(res.diagnostics, out / "diagnostics.csv")
+    with atomic_file(out / "diagnostics.csv") as tmp:
+        write_csv(res.diagnostics, tmp)
     err = np.linalg.norm(res.vertices - r["truth"], axis=2) * 10
     print(f"[4/4] reconstructed the {args.frames}-frame performance (frames not in the dataset) at "
           f"{args.frames / dt:.0f} frames/s steady state (kernel compilation or cache load and 3 warm-up frames: "

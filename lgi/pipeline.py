@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from .cache import StageCache, hash_file, hash_tree
+from .csvio import write_csv
 from .dataset import ShapeDataset
 from .importers import RawShapes, assemble_dataset, read_shape_folder, stabilise_raw
 from .index import IndexOptions, LGIIndex, assemble_index, clouds_stage, natural_stage
@@ -308,7 +309,7 @@ def finish_shot(index_dir: str, bundles: str, chunks: list[str], out: str, smoot
     with atomic_dir(out) as tmp:
         extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
         save_npz(tmp / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
-        d.to_csv(tmp / "diagnostics.csv", index=False, float_format="%.6g")
+        write_csv(d, tmp / "diagnostics.csv")
         per_frame.to_csv(tmp / "per_frame.csv", index=False, float_format="%.6g")
         _plot_per_frame(per_frame, tmp / "per_frame.png")
         if usd:
