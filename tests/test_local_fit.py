@@ -96,6 +96,18 @@ def test_noise_is_estimated_and_handled(synth_set) -> None:
     sol = LGISolver(index)
     res = sol.solve_sequence(bs.noisy)
     assert abs(res.noise - 0.3) < 0.05 and sol.denoise_windows is not None
+    # Noisy bundles are fitted by the global weights, no simplex searched, and the diagnostics say so.
+    d = res.diagnostics
+    assert set(d.status) <= {"fitted", "missing"} and (d.status == "fitted").mean() > 0.9
+    assert (d.n_containing == -1).all() and d.projection_mm.isna().all()
+    # With every bundle on the same weights the single-combination blend equals the per-vertex one.
+    import lgi._kernels as K
+
+    sel = sol.select_frame(bs.noisy[5])
+    a = index.arrays
+    x = np.empty_like(sol._x0)
+    K.blend(sol._x0, sol._deltas, a["w_indptr"], a["w_indices"], a["w_data"], sel.shapes, sel.weights, x)
+    assert np.abs(sol.surface(sel.shapes, sel.weights, sel.jaw) - sol.rig.skin(x, sel.jaw)).max() < 1e-9
     fit = RiggedBlendshapeSolver(index).solve_sequence(bs.noisy)
     assert _rms(res.vertices, bs.truth, bs.mask) < _rms(fit, bs.truth, bs.mask)
     # Told the bundles are exact, the surface passes through every seen one (noise and all).
