@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
+from . import _kernels as K
 from .atomic import atomic_file
 from .errors import InputError
 from .npz import save_npz
@@ -37,40 +38,19 @@ log = logging.getLogger(__name__)
 
 
 def jaw_matrix(params: np.ndarray, pivot: np.ndarray) -> np.ndarray:
-    """(4, 4) rigid jaw motion for ``(open, yaw, roll, forward)`` about ``pivot`` (cm)."""
-    op, yaw, roll, fwd = (float(v) for v in params)
-    ca, sa = np.cos(np.deg2rad(op)), np.sin(np.deg2rad(op))
-    rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])
-    cy, sy = np.cos(np.deg2rad(yaw)), np.sin(np.deg2rad(yaw))
-    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    cz, sz = np.cos(np.deg2rad(roll)), np.sin(np.deg2rad(roll))
-    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    r = ry @ rz @ rx
+    """(4, 4) rigid jaw motion for ``(open, yaw, roll, forward)`` (deg, deg, deg, cm) about ``pivot`` (3,) cm:
+    ``R = R_yaw R_roll R_open`` about the pivot, then the slide along +z (:func:`lgi._kernels.jaw_map`)."""
     m = np.eye(4)
-    m[:3, :3] = r
-    m[:3, 3] = pivot - r @ pivot + np.array([0.0, 0.0, fwd])
+    K.jaw_map(np.asarray(params, np.float64).reshape(N_PARAMS), np.asarray(pivot, np.float64).reshape(3), m[:3])
     return m
 
 
 def jaw_matrix_derivatives(params: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     """(4, 3, 4) derivatives of the top rows of :func:`jaw_matrix` in each parameter (per degree for the
     three angles, per cm for the slide)."""
-    op, yaw, roll, _ = (np.deg2rad(float(v)) for v in params)
-    k = np.pi / 180.0
-    ca, sa = np.cos(op), np.sin(op)
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    cz, sz = np.cos(roll), np.sin(roll)
-    rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])
-    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
-    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
-    drx = k * np.array([[0, 0, 0], [0, -sa, -ca], [0, ca, -sa]])
-    dry = k * np.array([[-sy, 0, cy], [0, 0, 0], [-cy, 0, -sy]])
-    drz = k * np.array([[-sz, -cz, 0], [cz, -sz, 0], [0, 0, 0]])
-    out = np.zeros((4, 3, 4))
-    for i, dr in enumerate((ry @ rz @ drx, dry @ rz @ rx, ry @ drz @ rx)):
-        out[i, :, :3] = dr
-        out[i, :, 3] = -dr @ pivot
-    out[3, 2, 3] = 1.0
+    out = np.empty((N_PARAMS, 3, 4))
+    K.jaw_map_derivatives(np.asarray(params, np.float64).reshape(N_PARAMS), np.asarray(pivot, np.float64).reshape(3),
+                          out)
     return out
 
 
@@ -91,10 +71,12 @@ class JawRig:
     def skin(self, x: np.ndarray, params: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Skinned positions (N, 3) of unskinned positions ``x`` (N, 3) (vertex weights by default)."""
         w = self.weights if w is None else np.asarray(w, np.float64)
-        x = np.asarray(x, np.float64)
-        t = jaw_matrix(params, self.pivot)[:3]
-        # (1 - w) x + w (R x + t), without a 3 x 4 map per point (the mesh has tens of thousands).
-        return x + w[:, None] * (x @ t[:, :3].T + t[:, 3] - x)
+        x = np.ascontiguousarray(x, np.float64)
+        if x.ndim != 2 or x.shape[1] != 3 or w.shape != (len(x),):
+            raise ValueError(f"skin: positions {x.shape} and weights {w.shape} do not match (N, 3) and (N,)")
+        out = np.empty_like(x)
+        K.skin_points(x, np.ascontiguousarray(w), np.ascontiguousarray(jaw_matrix(params, self.pivot)[:3]), out)
+        return out
 
     def unskin(self, x: np.ndarray, params: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Inverse of :meth:`skin` point by point (each blended map is an invertible affine map)."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +29,7 @@ from .bundles import Bundles
 from .errors import InputError
 from .globalfit import GlobalFit, GlobalFitResult, join_gain
 from .index import LGIIndex
+from .jaw import PARAM_NAMES, jaw_matrix, smooth_parameters
 from .progress import progress
 from .temporal import NoiseEstimate, denoise_trajectories, estimate_noise
 from .threads import one_blas_thread
@@ -199,7 +201,8 @@ class LGISolver:
         self._no_first = np.zeros(index.n_markers)
         self.layout = index.layout()
         self._x0 = np.asarray(a["neutral"], np.float64)
-        self._deltas = np.asarray(index.deltas)  # read once: the blend touches all of it every frame
+        self._deltas = np.ascontiguousarray(index.deltas)  # read once: the blend touches all of it every frame
+        self._deltas_flat = self._deltas.reshape(len(self._deltas), -1)  # a view: rows of 3V for blend_uniform
         self._w_sum: np.ndarray | None = None  # (V,) total blend weight per vertex, for uniform blends
         nb_off, nb_idx = a["nb_off"], a["nb_idx"]
         self._neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(index.n_markers)]
@@ -210,6 +213,7 @@ class LGISolver:
                              "given parameters, or rebuild the index without a rig")
         self._bundle_w = None
         if self.rig is not None:
+            self._skin_w = np.ascontiguousarray(self.rig.weights, np.float64)
             self._bundle_w = self.layout.evaluate(self.rig.weights[:, None])[:, 0]
         self.global_fit = GlobalFit(a["ptab"], self.rig, self._bundle_w)
         self.set_noise(noise)
@@ -427,10 +431,13 @@ class LGISolver:
             if self._w_sum is None:
                 self._w_sum = np.add.reduceat(np.r_[a["w_data"], 0.0], a["w_indptr"][:-1]) * (
                     np.diff(a["w_indptr"]) > 0)
-            K.blend_uniform(self._x0, self._deltas, self._w_sum, shapes[0], weights[0], x)
+            K.blend_uniform(self._x0.reshape(-1), self._deltas_flat, self._w_sum,
+                            shapes[0], weights[0], x.reshape(-1))
         else:
             K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, weights, x)
-        return x if self.rig is None else self.rig.skin(x, jaw)
+        if self.rig is not None:
+            K.skin_points(x, self._skin_w, np.ascontiguousarray(jaw_matrix(jaw, self.rig.pivot)[:3]), x)
+        return x
 
     def blend_frame(self, sel: FrameResult, shapes: np.ndarray, weights: np.ndarray,
                     jaw: np.ndarray | None, bundles: np.ndarray | None = None) -> FrameResult:
@@ -630,71 +637,111 @@ class LGISolver:
         ``pos`` are the bundles as given (the diagnostics' residuals are measured to them); ``fit_pos`` the
         positions the frames were fitted to (denoised, :meth:`denoise`), which the correction aims at."""
         fit_pos = pos if fit_pos is None else fit_pos
-        from .temporal import window_slots
+        from .temporal import moving_average, window_slots
 
         shapes, lam = _stack_slots([r.shapes for r in sels], [r.weights for r in sels])
         thetas = None
         if self.rig is not None:
-            from .jaw import smooth_parameters
-
             thetas = smooth_parameters(np.stack([r.jaw for r in sels]), smooth if jaw_smooth is None else jaw_smooth)
         if smooth > 1:
             shapes, lam = window_slots(shapes, lam, smooth)
-        out = np.empty((len(pos), self.index.n_vertices, 3), np.float32)
-        surfaces = []
-        resid = np.zeros_like(pos)
-        for f in progress(range(len(pos)), "blending", disable=not show_progress):
-            x = self.surface(shapes[f], lam[f], None if thetas is None else thetas[f])
-            surfaces.append(x)
-            resid[f] = fit_pos[f] - self.layout.evaluate(x)  # NaN where missing
-        before = np.linalg.norm(resid, axis=2)
-        if smooth > 1:
-            # The correction follows the same moving average: corrected to each frame's raw residuals,
-            # the surface would carry the bundles' noise straight back.
-            from .temporal import moving_average
+        n_f, n_m = len(pos), self.index.n_markers
+        out = np.empty((n_f, self.index.n_vertices, 3), np.float32)
+        seen_all = np.all(np.isfinite(pos), axis=2)
+        before = np.empty((n_f, n_m))
+        r_final = np.empty((n_f, n_m))
 
-            resid = moving_average(resid, smooth)
-        rows = []
-        labels: dict[tuple[bytes, bytes], tuple[str, str]] = {}
-        names = self.index.marker_names
-        shape_names = self.index.shape_names
-        for f in range(len(pos)):
-            x = surfaces[f]
-            seen = np.all(np.isfinite(pos[f]), axis=1)
-            target = np.where(seen[:, None], self.layout.evaluate(x) + self.noise_gain * np.nan_to_num(resid[f]),
+        def finish(f: int, x: np.ndarray, resid_f: np.ndarray) -> None:
+            seen = seen_all[f]
+            target = np.where(seen[:, None], self.layout.evaluate(x) + self.noise_gain * np.nan_to_num(resid_f),
                               np.nan)
             self.correct(x, target, seen)
             out[f] = x
-            r_final = np.where(seen, np.linalg.norm(np.nan_to_num(pos[f]) - self.layout.evaluate(x), axis=1), np.nan)
-            sel = sels[f]
-            jaw_cols = () if thetas is None else (*(float(v) for v in thetas[f]),
-                                                  sel.fit.jaw_source if sel.fit is not None else "")
-            fit_rms = sel.fit.rms * 10 if sel.fit is not None else np.nan
-            for i in range(len(names)):
-                nz = sel.weights[i] > 0
-                status = STATUS[int(sel.status[i])] if not sel.fallback[i] else "missing"
-                note = sel.fallback[i]
-                if bridged[f, i]:
-                    status, note = "bridged", "interpolated between the frames around the gap"
-                key = (sel.shapes[i][nz].tobytes(), sel.weights[i][nz].tobytes())
-                if key not in labels:  # noisy bundles share the global weights: format them once
-                    labels[key] = (";".join(shape_names[k] for k in sel.shapes[i][nz]),
-                                   " ".join(f"{w:.4f}" for w in sel.weights[i][nz]))
-                rows.append((
-                    int(frames[f]), names[i], status, int(sel.n_containing[i]),
-                    *labels[key], sel.projection[i] * 10, sel.score[i] * 10,
-                    before[f, i] * 10, r_final[i] * 10, note,
-                    sel.source[i] if sel.source is not None else "simplex",
-                    sel.fit.residual[i] * 10 if sel.fit is not None else np.nan, fit_rms, *jaw_cols,
-                ))
-        from .jaw import PARAM_NAMES
+            r_final[f] = np.where(seen, np.linalg.norm(np.nan_to_num(pos[f]) - self.layout.evaluate(x), axis=1),
+                                  np.nan)
 
-        diag = pd.DataFrame(rows, columns=["frame", "marker", "status", "n_containing", "shapes", "weights",
-                                           "projection_mm", "score_mm", "residual_before_mm", "residual_mm",
-                                           "fallback", "source", "fit_residual_mm", "fit_rms_mm",
-                                           *([] if thetas is None else [*(f"jaw_{n}" for n in PARAM_NAMES),
-                                                                        "jaw_source"])])
+        if smooth > 1:
+            # The correction follows the same moving average: corrected to each frame's raw residuals, the
+            # surface would carry the bundles' noise straight back. So every surface is blended first.
+            surfaces = []
+            resid = np.zeros_like(pos)
+            for f in progress(range(n_f), "blending", disable=not show_progress):
+                x = self.surface(shapes[f], lam[f], None if thetas is None else thetas[f])
+                surfaces.append(x)
+                resid[f] = fit_pos[f] - self.layout.evaluate(x)  # NaN where missing
+            before[:] = np.linalg.norm(resid, axis=2)
+            resid = moving_average(resid, smooth)
+            for f in range(n_f):
+                finish(f, surfaces[f], resid[f])
+        else:
+            for f in progress(range(n_f), "blending", disable=not show_progress):
+                x = self.surface(shapes[f], lam[f], None if thetas is None else thetas[f])
+                resid_f = fit_pos[f] - self.layout.evaluate(x)
+                before[f] = np.linalg.norm(resid_f, axis=1)
+                finish(f, x, resid_f)
+        diag = self._diagnostics(sels, frames, bridged, before, r_final, thetas)
         return SequenceResult(np.asarray(frames), out, diag, thetas, self.noise, smooth)
+
+    def _diagnostics(self, sels: list[FrameResult], frames: np.ndarray, bridged: np.ndarray, before: np.ndarray,
+                     r_final: np.ndarray, thetas: np.ndarray | None) -> pd.DataFrame:
+        """One row per frame and bundle (the columns of ``diagnostics.csv``), built column by column."""
+        n_f, n_m = len(sels), self.index.n_markers
+        names = np.asarray(self.index.marker_names, object)
+        shape_names = self.index.shape_names
+        labels: dict[tuple[bytes, bytes], tuple[str, str]] = {}
+
+        def label(shapes: np.ndarray, weights: np.ndarray) -> tuple[str, str]:
+            nz = weights > 0
+            key = (shapes[nz].tobytes(), weights[nz].tobytes())
+            if key not in labels:
+                labels[key] = (";".join(shape_names[k] for k in shapes[nz]),
+                               " ".join(f"{w:.4f}" for w in weights[nz]))
+            return labels[key]
+
+        shape_col = np.empty((n_f, n_m), object)
+        weight_col = np.empty((n_f, n_m), object)
+        status = np.empty((n_f, n_m), object)
+        note = np.empty((n_f, n_m), object)
+        source = np.empty((n_f, n_m), object)
+        status_names = np.array([STATUS.get(k, "?") for k in range(max(STATUS) + 1)], object)
+        for f, sel in enumerate(sels):
+            if (sel.shapes == sel.shapes[0]).all() and (sel.weights == sel.weights[0]).all():
+                # Noisy bundles share the global weights: one label per frame.
+                shape_col[f], weight_col[f] = label(sel.shapes[0], sel.weights[0])
+            else:
+                for i in range(n_m):
+                    shape_col[f, i], weight_col[f, i] = label(sel.shapes[i], sel.weights[i])
+            note[f] = sel.fallback
+            status[f] = np.where(np.asarray(sel.fallback, object) != "", "missing", status_names[sel.status])
+            source[f] = "simplex" if sel.source is None else sel.source
+        status[bridged] = "bridged"
+        note[bridged] = "interpolated between the frames around the gap"
+
+        def stack(get: Callable[[FrameResult], np.ndarray | float]) -> np.ndarray:
+            return np.stack([np.broadcast_to(np.asarray(get(s), np.float64), (n_m,)) for s in sels]).ravel()
+
+        cols: dict[str, np.ndarray] = {
+            "frame": np.repeat(np.asarray(frames, np.int64), n_m),
+            "marker": np.tile(names, n_f),
+            "status": status.ravel(),
+            "n_containing": np.stack([s.n_containing for s in sels]).astype(np.int64).ravel(),
+            "shapes": shape_col.ravel(),
+            "weights": weight_col.ravel(),
+            "projection_mm": stack(lambda s: s.projection) * 10,
+            "score_mm": stack(lambda s: s.score) * 10,
+            "residual_before_mm": before.ravel() * 10,
+            "residual_mm": r_final.ravel() * 10,
+            "fallback": note.ravel(),
+            "source": source.ravel(),
+            "fit_residual_mm": stack(lambda s: s.fit.residual if s.fit is not None else np.nan) * 10,
+            "fit_rms_mm": stack(lambda s: s.fit.rms if s.fit is not None else np.nan) * 10,
+        }
+        if thetas is not None:
+            for k, n in enumerate(PARAM_NAMES):
+                cols[f"jaw_{n}"] = np.repeat(np.asarray(thetas[:, k], np.float64), n_m)
+            cols["jaw_source"] = np.repeat(np.array([s.fit.jaw_source if s.fit is not None else "" for s in sels],
+                                                    object), n_m)
+        return pd.DataFrame(cols)
 
     def align(self, bundles: Bundles) -> np.ndarray:
         """(F, M, 3) positions of a bundles file in this index's marker order (unknown markers rejected)."""
