@@ -512,7 +512,7 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
         out_pts[i, c] = bpts[c]
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, tinv,
                   hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
                   agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
@@ -546,7 +546,7 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
     return out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma: no cover - compiled
     """out[v] = x0[v] + sum_i w[v, i] sum_c lam[i, c] deltas[shapes[i, c], v] (deltas shape-major; any
     number of slots c per bundle)."""
@@ -571,7 +571,7 @@ def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma:
         out[v, 2] = a2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def blend_uniform(x0, deltas, w_sum, shapes, lam, out):  # pragma: no cover - compiled
     """:func:`blend` when every bundle has the same shapes (K,) and weights (K,): out[v] = x0[v] + w_sum[v]
     sum_c lam[c] deltas[shapes[c], v], with w_sum[v] the vertex's total blend weight (1 inside the bundles'
@@ -597,7 +597,7 @@ def blend_uniform(x0, deltas, w_sum, shapes, lam, out):  # pragma: no cover - co
             out[3 * v + d] = x0[3 * v + d] + ws * out[3 * v + d]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def skin_points(x, w, t, out):  # pragma: no cover - compiled
     """Linear blend skinning with one moving bone: ``out[n] = x[n] + w[n] (R x[n] + t - x[n])`` for the
     (3, 4) map ``t`` = [R|t]; ``x``, ``out`` (N, 3) float64 (may be the same array), ``w`` (N,) float64.
@@ -615,7 +615,7 @@ def skin_points(x, w, t, out):  # pragma: no cover - compiled
         out[i, 2] = p2 + b * (q2 - p2)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def agreement(points, lam, seen, alias_off, class_off, alias_shape, nb_off, nb_idx, n_shapes):  # pragma: no cover
     """(M, S+1) evidence for each shape from the first-pass choices: every corner's weight is split
     over all shapes merged into its cloud point (they are indistinguishable at that bundle), so only a
@@ -654,7 +654,7 @@ def agreement(points, lam, seen, alias_off, class_off, alias_shape, nb_off, nb_i
     return out
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def add_correction(x, c_indptr, c_indices, c_data, fix, resid):  # pragma: no cover - compiled
     """x[v] += sum_f resid[f] * corr[fix[f], v], the correction basis stored as sparse rows (one per
     bundle): the smooth field carrying the residuals of the bundles in ``fix``. Two threads each sum
@@ -846,7 +846,7 @@ def box_qp(h, g, lo, hi, x, max_iter=0, tol=1e-13, gain=0.0):  # pragma: no cove
     return max_iter
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, nogil=True)
 def local_fits(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight,
                out):  # pragma: no cover - compiled
     """Each bundle's local shape weights: the global weights changed, on the bundle's candidate shapes,
@@ -1288,7 +1288,7 @@ def working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, damp, co
     return dz
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_rig, with_jaw, l2, gain,
                         theta_scale, max_iter, w_out, theta_out, r_out):  # pragma: no cover - compiled
     """Minimise |r|^2 + l2 |w|^2 over the weights in [0, 1] (and, with ``with_jaw``, the jaw) by Gauss-Newton

@@ -55,6 +55,25 @@ def _row_ref(path: Path, df: pd.DataFrame, r: int, is_csv: bool) -> dict:
             "marker": None if "marker" not in df else str(df["marker"].iloc[r])}
 
 
+def _read_csv_typed(path: Path) -> pd.DataFrame | None:
+    """A well-formed bundles CSV read with typed columns by pyarrow (0.05 s for 108,000 rows, where reading
+    every field as text for the checks below took 0.8 s), or None when any field does not parse: the text
+    path then finds the row and says what is wrong with it."""
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    types = {"frame": pa.float64(), "marker": pa.string(), "x": pa.float64(), "y": pa.float64(), "z": pa.float64()}
+    try:
+        table = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(
+            column_types=types, include_columns=COLUMNS, null_values=["", "nan", "NaN", "NA"],
+            strings_can_be_null=False))
+    except (pa.ArrowInvalid, pa.ArrowTypeError, KeyError, UnicodeDecodeError):
+        return None
+    if table.column("frame").null_count:
+        return None
+    return table.to_pandas()
+
+
 def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None) -> Bundles:
     """Read and validate a bundles file.
 
@@ -76,10 +95,11 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None)
         raise InputError("bundles file not found", path=path)
     is_csv = path.suffix.lower() != ".parquet"
     try:
-        if is_csv:
+        df = _read_csv_typed(path) if is_csv else None
+        if is_csv and df is None:
             df = pd.read_csv(path, dtype={"marker": str, "frame": str, "x": str, "y": str, "z": str},
                              keep_default_na=False)
-        else:
+        elif not is_csv:
             df = pd.read_parquet(path)
     except Exception as exc:  # pandas raises many kinds for unreadable files
         raise InputError(f"cannot read bundles file: {exc}", path=path) from None

@@ -7,7 +7,6 @@ in order. Marker layouts refer to triangles by their index in it, so it must nev
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 
 def triangulate(face_vertices: np.ndarray, face_offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -136,6 +135,8 @@ class ClosestPointQuery:
         corners = self.vertices[self.triangles]
         self._centroids = corners.mean(axis=1)
         self._radius = float(np.linalg.norm(corners - self._centroids[:, None], axis=2).max())
+        from scipy.spatial import cKDTree  # here, not at the top: importing scipy.spatial costs every command 0.3 s
+
         self._tree = cKDTree(self._centroids)
 
     def query(self, points: np.ndarray, k: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

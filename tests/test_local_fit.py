@@ -13,6 +13,7 @@ from lgi import _kernels as K
 from lgi.baselines import RiggedBlendshapeSolver
 from lgi.bench import build_set_index
 from lgi.benchsets import ict_jaw_set, synthetic_set
+from lgi.errors import InputError
 from lgi.solver import LGISolver
 from lgi.temporal import denoise_trajectories, estimate_noise
 
@@ -164,3 +165,22 @@ def test_ict_layout_estimates_the_rotating_jaw_within_a_degree(ict_dir) -> None:
     assert np.abs(res.jaw[:, 0] - bs.true_jaw[:, 0]).max() < 1.0
     noisy = LGISolver(index).solve_sequence(bs.noisy)
     assert np.abs(noisy.jaw[:, 0] - bs.true_jaw[:, 0]).max() < 1.0
+
+
+def test_noisy_sequence_on_two_threads_equals_the_two_passes(synth_set) -> None:
+    # solve_sequence chooses frame f + 1 while it blends frame f; the result must be the one that choosing
+    # every frame and then blending them gives, and a failure in the choosing thread must reach the caller.
+    bs, index = synth_set
+    sol = LGISolver(index)
+    res = sol.solve_sequence(bs.noisy, noise=0.3)
+    pos, frames, bridged = sol.prepare_shot(bs.noisy, None, 0, 0.3)
+    fit_pos = sol.denoise(pos)
+    ref = sol.finish_sequence(sol.select_sequence(fit_pos, frames), pos, frames, bridged, fit_pos=fit_pos)
+    assert np.array_equal(res.vertices, ref.vertices)
+    assert res.diagnostics.equals(ref.diagnostics)
+    assert np.array_equal(res.jaw, ref.jaw)
+    bad = np.array(bs.noisy, copy=True)
+    bad[37] = np.nan  # no marker seen: the choice of frame 37 fails
+    with pytest.raises(InputError) as err:
+        sol.solve_sequence(bad, noise=0.3)
+    assert err.value.frame == 37 and "no marker seen" in err.value.message
