@@ -1290,10 +1290,11 @@ def working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, damp, co
 
 @nb.njit(cache=True, nogil=True)
 def global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_rig, with_jaw, l2, gain,
-                        theta_scale, max_iter, w_out, theta_out, r_out):  # pragma: no cover - compiled
+                        theta_scale, max_iter, grow, w_out, theta_out, r_out):  # pragma: no cover - compiled
     """Minimise |r|^2 + l2 |w|^2 over the weights in [0, 1] (and, with ``with_jaw``, the jaw) by Gauss-Newton
     steps from (w0, theta0), each a box QP on a working set (:func:`working_set_step`) with
-    Levenberg-Marquardt damping of the jaw. ``prod``: :func:`shape_products` of ``basis``. Writes ``w_out``
+    Levenberg-Marquardt damping of the jaw (``grow``: shapes joining the working set per round). ``prod``:
+    :func:`shape_products` of ``basis``. Writes ``w_out``
     (S,), ``theta_out`` (4,) and the residuals ``r_out`` (3m,) of the seen bundles at the result. Returns the
     Gauss-Newton steps taken.
 
@@ -1325,7 +1326,7 @@ def global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, h
     steps = 0
     for _ in range(max_iter):
         steps += 1
-        dz = working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, mu, col2, gain, 16)
+        dz = working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, mu, col2, gain, grow)
         w_new = np.minimum(np.maximum(w + dz[nj:], 0.0), 1.0)
         th_new = th.copy()
         for q in range(nj):
@@ -1365,4 +1366,20 @@ def global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, h
     w_out[:] = w
     theta_out[:] = th
     r_out[:] = r
+    return steps
+
+
+@nb.njit(cache=True, nogil=True)
+def global_fit_frame(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_rig, with_jaw, l2, gain,
+                     theta_scale, max_iter, grow, w_out, theta_out, r_out):  # pragma: no cover - compiled
+    """One frame's global fit (:class:`lgi.globalfit.GlobalFit`): :func:`global_gauss_newton` over the jaw
+    and the weights, then (with ``with_jaw``) the weights again at the final jaw exactly, since the joint
+    solve stops at a tolerance. Arguments as for :func:`global_gauss_newton`."""
+    steps = global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_rig, with_jaw, l2,
+                                gain, theta_scale, max_iter, grow, w_out, theta_out, r_out)
+    if with_jaw:
+        w1 = w_out.copy()
+        th1 = theta_out.copy()
+        steps += global_gauss_newton(rest, basis, prod, seen_idx, p, w1, th1, pivot, bw, has_rig, False, l2, gain,
+                                     theta_scale, max_iter, grow, w_out, theta_out, r_out)
     return steps

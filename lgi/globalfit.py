@@ -35,6 +35,9 @@ JAW_MIN_WEIGHT = 0.2
 # 1e-7 cm of residual, so the fit is exact; with noisy ones a share of the noise variance (``join_gain``).
 EXACT_GAIN = 1e-14
 JOIN_NOISE_SHARE = 0.01
+# Shapes that join the working set per round: those whose gradient most wants them.
+WORKING_SET_GROW = 16
+MAX_STEPS = 30  # Gauss-Newton steps per frame
 
 
 def join_gain(noise_mm: float) -> float:
@@ -104,6 +107,7 @@ class GlobalFit:
         self.rig = rig
         self.l2 = float(l2)
         self.gain = float(gain)
+        self.grow = WORKING_SET_GROW
         if rig is not None:
             if bundle_weights is None:
                 raise ValueError("a rig needs the bundles' jaw weights")
@@ -138,19 +142,6 @@ class GlobalFit:
         m = self._maps(theta)
         return np.einsum("mij,mj->mi", m[:, :, :3], x) + m[:, :, 3]
 
-    def _gauss_newton(self, p: np.ndarray, seen: np.ndarray, weights: np.ndarray, theta: np.ndarray | None,
-                      with_jaw: bool, max_iter: int = 30) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """Minimise |r|^2 + l2 |w|^2 over the weights in [0, 1] (and the jaw): weights (S,), jaw (4,) or None,
-        residuals (3m,) cm of the seen bundles (:func:`lgi._kernels.global_gauss_newton`)."""
-        seen_idx = np.flatnonzero(seen)
-        w = np.empty(self.n_shapes)
-        th = np.zeros(N_PARAMS) if theta is None else np.asarray(theta, np.float64).copy()
-        r = np.empty(3 * len(seen_idx))
-        K.global_gauss_newton(self.rest, self.basis, self._prod, seen_idx, np.where(seen[:, None], p, 0.0),
-                              np.asarray(weights, np.float64), th.copy(), self._pivot, self._bw, self.rig is not None,
-                              with_jaw, self.l2, self.gain, THETA_SCALE, max_iter, w, th, r)
-        return w, (None if theta is None else th), r
-
     # ------------------------------------------------------------------ frames
     def solve(self, bundles: np.ndarray, jaw: np.ndarray | None = None, init: GlobalFitResult | None = None
               ) -> GlobalFitResult:
@@ -179,10 +170,14 @@ class GlobalFit:
         with_jaw = self.rig is not None and jaw is None and self.jaw_observable
         if self.rig is not None and jaw is None and not self.jaw_observable:
             theta = np.zeros(N_PARAMS)
-        w, theta, r = self._gauss_newton(p, seen, w0, theta, with_jaw)
-        if with_jaw:
-            # The weights at the final jaw exactly (the joint solve stops at a tolerance).
-            w, _, r = self._gauss_newton(p, seen, w, theta, False)
+        seen_idx = np.flatnonzero(seen)
+        w = np.empty(self.n_shapes)
+        th = np.zeros(N_PARAMS) if theta is None else np.asarray(theta, np.float64).copy()
+        r = np.empty(3 * len(seen_idx))
+        K.global_fit_frame(self.rest, self.basis, self._prod, seen_idx, np.where(seen[:, None], p, 0.0),
+                           np.asarray(w0, np.float64), th.copy(), self._pivot, self._bw, self.rig is not None, with_jaw,
+                           self.l2, self.gain, THETA_SCALE, MAX_STEPS, self.grow, w, th, r)
+        theta = None if theta is None else th
         r = np.linalg.norm(r.reshape(-1, 3), axis=1)
         res = np.full(self.n_markers, np.nan)
         res[seen] = r
