@@ -33,7 +33,6 @@ import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import Delaunay, QhullError, cKDTree
 
 
 @dataclass
@@ -124,6 +123,8 @@ def _quality(p: np.ndarray) -> np.ndarray:
 
 def _delaunay(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Simplices and hull facets of a Delaunay tessellation in 1-3 dimensions."""
+    from scipy.spatial import Delaunay
+
     d = points.shape[1]
     if d == 1:
         order = np.argsort(points[:, 0])
@@ -141,6 +142,8 @@ def build_cloud(positions: np.ndarray, opts: CloudOptions, rng: np.random.Genera
     positions : (S + 1, 3) float
         The bundle on the neutral (row 0) and on every dataset shape, cm.
     """
+    from scipy.spatial import QhullError, cKDTree  # build time only: not imported by every command
+
     pos = np.asarray(positions, np.float64)
     n_shapes = len(pos) - 1
     motion = np.linalg.norm(pos - pos[0], axis=1)

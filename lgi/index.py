@@ -19,11 +19,10 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
-import scipy.sparse as sp
 
 from . import _kernels as K
 from .atomic import atomic_dir
@@ -32,10 +31,11 @@ from .dataset import ShapeDataset
 from .errors import InputError
 from .jaw import JawRig, fit_shape_parameters, unskin_deltas
 from .markers import MarkerLayout
-from .natural import natural_neighbour_weights
 from .npz import save_npz
+
+if TYPE_CHECKING:
+    import scipy.sparse
 from .progress import progress
-from .smooth import SmoothInterpolator
 
 FORMAT = "lgi-index"
 FORMAT_VERSION = 1
@@ -110,8 +110,10 @@ class LGIIndex:
         a = self.arrays
         return JawRig(a["jaw_pivot"], a["jaw_weights"]) if "jaw_pivot" in a else None
 
-    def nn_weights(self) -> sp.csr_matrix:
+    def nn_weights(self) -> scipy.sparse.csr_matrix:
         a = self.arrays
+        import scipy.sparse as sp
+
         return sp.csr_matrix((a["w_data"], a["w_indices"], a["w_indptr"]), shape=(self.n_vertices, self.n_markers))
 
     # --------------------------------------------------------------- disk
@@ -255,6 +257,12 @@ def natural_stage(dataset: ShapeDataset, layout: MarkerLayout, opts: IndexOption
     Depends only on the neutral mesh, the layout and the natural-neighbour and stiffness options (not on
     the shapes), so a pruning or simplex change never recomputes it.
     """
+    # Build-time modules (scipy.sparse, csgraph, spatial): imported here so that loading an index does not.
+    import scipy.sparse as sp
+
+    from .natural import natural_neighbour_weights
+    from .smooth import SmoothInterpolator
+
     layout.check_mesh(dataset.triangles)
     nn = natural_neighbour_weights(dataset.neutral, dataset.face_vertices, dataset.face_offsets, dataset.uvs,
                                    dataset.face_uvs, layout.triangles, layout.weights, opts.region_radius,

@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from . import _kernels as K
 from .atomic import atomic_file
@@ -89,6 +88,8 @@ class JawRig:
         Solved by robust (soft-L1) nonlinear least squares, so points that also carry an expression
         (a pucker on the lower lip) weigh less.
         """
+        from scipy.optimize import least_squares  # here: scipy.optimize costs every command 0.2 s to import
+
         rest = np.asarray(rest, np.float64)
         moved = np.asarray(moved, np.float64)
 

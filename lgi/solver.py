@@ -652,23 +652,26 @@ class LGISolver:
         class _Stopped(Exception):
             pass
 
-        def emit(f: int, sel: FrameResult) -> None:
-            while True:
-                if stop.is_set():
-                    raise _Stopped
+        def put(item: tuple) -> None:
+            # Never blocks for good: once the consumer has stopped (it failed or was interrupted), give up.
+            while not stop.is_set():
                 try:
-                    chosen.put((f, sel), timeout=0.1)
+                    chosen.put(item, timeout=0.1)
                     return
                 except queue.Full:
                     continue
+            raise _Stopped
 
         def produce() -> None:
             try:
-                self.select_sequence(fit_pos, frames, jaw, False, emit)
+                self.select_sequence(fit_pos, frames, jaw, False, lambda f, sel: put((f, sel)))
             except _Stopped:
                 return
             except BaseException as exc:  # handed to the consumer, which raises it
-                chosen.put((-1, exc))
+                try:
+                    put((-1, exc))
+                except _Stopped:
+                    return
 
         worker = threading.Thread(target=produce, name="lgi-select", daemon=True)
         fin = _Finisher(self, pos, fit_pos)

@@ -184,3 +184,20 @@ def test_noisy_sequence_on_two_threads_equals_the_two_passes(synth_set) -> None:
     with pytest.raises(InputError) as err:
         sol.solve_sequence(bad, noise=0.3)
     assert err.value.frame == 37 and "no marker seen" in err.value.message
+
+
+def test_a_failing_blend_stops_the_choosing_thread(synth_set, monkeypatch) -> None:
+    import threading
+
+    import lgi.solver as solver_mod
+
+    bs, index = synth_set
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("blend failed")
+
+    monkeypatch.setattr(solver_mod._Finisher, "frame", boom)
+    with pytest.raises(RuntimeError, match="blend failed"):
+        LGISolver(index).solve_sequence(bs.noisy, noise=0.3)
+    # The worker was blocked on a full queue (60 frames, 16 places): it must have given up, not hang.
+    assert not any(t.name == "lgi-select" for t in threading.enumerate())
