@@ -87,9 +87,9 @@ STAGES = [
     (0, "index load (LGIIndex.load)", "lgi.index", "LGIIndex.load"),
     (0, "read bundles (read_bundles)", "lgi.bundles", "read_bundles"),
     (0, "solver set-up (LGISolver.__init__)", "lgi.solver", "LGISolver.__init__"),
-    (0, "solve_sequence", "lgi.solver", "LGISolver.solve_sequence"),
-    (1, "prepare_shot (align, noise estimate, gaps)", "lgi.solver", "LGISolver.prepare_shot"),
-    (1, "denoise (trajectory smoothing)", "lgi.solver", "LGISolver.denoise"),
+    (0, "prepare_shot (align, noise estimate, gaps)", "lgi.solver", "LGISolver.prepare_shot"),
+    (0, "denoise (trajectory smoothing)", "lgi.solver", "LGISolver.denoise"),
+    (0, "solve (Shot.run -> LGISolver.solve_prepared)", "lgi.solver", "LGISolver.solve_prepared"),
     (1, "select_sequence (noisy shots: on a second thread)", "lgi.solver", "LGISolver.select_sequence"),
     (2, "select_frame", "lgi.solver", "LGISolver.select_frame"),
     (3, "global fit (GlobalFit.solve)", "lgi.globalfit", "GlobalFit.solve"),
@@ -107,9 +107,10 @@ STAGES = [
     (2, "correct (residual correction)", "lgi.solver", "LGISolver.correct"),
     (3, "_kernels.add_correction", "lgi._kernels", "add_correction"),
     (1, "diagnostics table (_diagnostics)", "lgi.solver", "LGISolver._diagnostics"),
-    (0, "write meshes.npz (save_npz)", "lgi.cli", "save_npz"),
-    (0, "write diagnostics.csv (write_csv)", "lgi.cli", "write_csv"),
-    (0, "move outputs into place (_commit)", "lgi.cli", "_commit"),
+    (0, "write outputs (write_reconstruction)", "lgi.jobs.reconstruct", "write_reconstruction"),
+    (1, "meshes.npz (save_npz)", "lgi.npz", "save_npz"),
+    (1, "diagnostics.csv (write_csv)", "lgi.csvio", "write_csv"),
+    (1, "per_frame.csv (per_frame_table)", "lgi.jobs.reconstruct", "per_frame_table"),
 ]
 
 STAGE_CHILD = r"""

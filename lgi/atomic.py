@@ -70,3 +70,45 @@ def atomic_file(final: str | os.PathLike[str], suffix: str = "") -> Iterator[Pat
         tmp.unlink(missing_ok=True)
         raise
     os.replace(tmp, final)
+
+
+@contextlib.contextmanager
+def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...]) -> Iterator[Path]:
+    """Yield a staging directory for a job whose outputs are the entries ``owned`` of directory ``out``.
+
+    The one output-directory policy of every job that writes a directory of outputs: on success each staged
+    entry replaces the one of the same name, and the job's entries this run did not write (an earlier run's
+    ``obj/`` when ``--obj`` is not given now) are removed, so ``out`` never mixes two runs; entries that are
+    not the job's are left alone. On error nothing in ``out`` changes and the staging directory is removed.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        from .errors import InputError
+
+        raise InputError("the output must be a directory; a file of that name exists", path=out)
+    out.mkdir(parents=True, exist_ok=True)
+    stage = make_temp_dir(out, ".lgi-staging-")
+    try:
+        yield stage
+        written = {e.name for e in stage.iterdir()}
+        unknown = written - set(owned)
+        if unknown:
+            raise RuntimeError(f"job wrote outputs it does not declare: {sorted(unknown)}")
+        for name in owned:
+            entry, target = stage / name, out / name
+            if name in written:
+                if target.is_dir() and not target.is_symlink():
+                    old = make_temp_dir(out, f".{name}.old-")
+                    os.replace(target, old / name)
+                    os.replace(entry, target)
+                    shutil.rmtree(old, ignore_errors=True)
+                else:
+                    os.replace(entry, target)
+            elif target.is_dir() and not target.is_symlink():
+                shutil.rmtree(target)
+            elif target.exists() or target.is_symlink():
+                target.unlink()
+        stage.rmdir()
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise

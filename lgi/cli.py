@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .csvio import write_csv
 from .errors import InputError, LgiError
 from .npz import save_npz
 
@@ -67,28 +66,8 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
-def _stage(out: Path) -> Path:
-    from .atomic import make_temp_dir
-
-    out.mkdir(parents=True, exist_ok=True)
-    return make_temp_dir(out, ".lgi-staging-")
-
-
-def _commit(stage: Path, out: Path) -> None:
-    """Move every staged entry into ``out`` (replacing same-named ones), then drop the stage."""
-    import os
-    import shutil
-
-    for entry in sorted(stage.iterdir()):
-        target = out / entry.name
-        if target.is_dir() and not target.is_symlink():
-            old = out / f".{entry.name}.old-{os.getpid()}"
-            os.replace(target, old)
-            os.replace(entry, target)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(entry, target)
-    stage.rmdir()
+#: What ``lgi synth`` writes into its output directory (an earlier run's ``hmc/`` goes when --hmc is not given).
+SYNTH_OUTPUTS = ("dataset", "markers.csv", "bundles.csv", "jaw_rig.npz", "truth.npz", "hmc")
 
 
 def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet: bool = False,
@@ -98,9 +77,8 @@ def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet:
     With ``hmc`` (keyword arguments of :func:`lgi.hmc.write_footage`), also render HMC footage into
     ``out/hmc``; the performance then starts from the neutral face (a 15-frame ramp), as a shot does.
     """
-    import shutil
-
     from . import synth
+    from .atomic import job_outputs
     from .bundles import Bundles, write_bundles
     from .markers import write_layout
 
@@ -113,8 +91,7 @@ def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet:
     truth = actor.evaluate_many(acts)
     bundles = Bundles(frames=np.arange(n_frames), markers=layout.names,
                       positions=layout.evaluate(truth.astype(np.float64)))
-    stage = _stage(out)
-    try:
+    with job_outputs(out, SYNTH_OUTPUTS) as stage:
         ds.save(stage / "dataset")
         write_layout(stage / "markers.csv", layout, neutral=actor.neutral)
         write_bundles(stage / "bundles.csv", bundles)
@@ -126,10 +103,6 @@ def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet:
             from .hmc import write_footage
 
             write_footage(stage / "hmc", actor, layout, acts, seed=seed, show_progress=not quiet, **hmc)
-        _commit(stage, out)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
     return {"actor": actor, "dataset": ds, "layout": layout, "activations": acts, "truth": truth,
             "marker_snap_cm": float(dist.max())}
 
@@ -252,113 +225,29 @@ def _solver(index, args: argparse.Namespace):
                      method=getattr(args, "method", "local"))
 
 
-def _read_jaw_file(path: str, frames: np.ndarray) -> np.ndarray:
-    """(F, 4) jaw parameters for ``frames`` from a CSV with columns frame, open_deg, yaw_deg, roll_deg,
-    forward_cm."""
-    import pandas as pd
+def _reconstruct_options(args: argparse.Namespace):
+    from .jobs.reconstruct import ReconstructOptions
 
-    from .jaw import PARAM_NAMES
-
-    p = Path(path)
-    if not p.is_file():
-        raise InputError("jaw parameter file not found", path=p)
-    df = pd.read_csv(p)
-    missing = [c for c in ["frame", *PARAM_NAMES] if c not in df.columns]
-    if missing:
-        raise InputError(f"missing columns {missing}", path=p)
-    df = df.set_index("frame")
-    absent = [int(f) for f in frames if int(f) not in df.index]
-    if absent:
-        raise InputError(f"no jaw parameters for {len(absent)} frames", path=p, frame=absent[0])
-    vals = df.loc[[int(f) for f in frames], PARAM_NAMES].to_numpy(float)
-    if not np.all(np.isfinite(vals)):
-        r = int(np.flatnonzero(~np.all(np.isfinite(vals), axis=1))[0])
-        raise InputError("non-finite jaw parameter", path=p, frame=int(frames[r]))
-    return vals
+    return ReconstructOptions(temporal_weight=args.temporal_weight, spatial_weight=args.spatial_weight,
+                              smooth=args.smooth, jaw_smooth=args.jaw_smooth, noise=args.noise, method=args.method,
+                              jaw=args.jaw, max_gap=args.max_gap, bilateral=args.bilateral, obj=args.obj,
+                              usd=args.usd, plot=args.plot, fps=args.fps, chunk_size=args.chunk_size)
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    import shutil
+    from .jobs.reconstruct import check_output, preflight, reconstruct, report_lines
 
-    from .bundles import read_bundles
-    from .index import LGIIndex
-    from .obj import write_obj
-
+    opts = _reconstruct_options(args)
     if args.flow:
-        unsupported = [o for o, v in (("--obj", args.obj), ("--bilateral", args.bilateral),
-                                      ("--jaw FILE", args.jaw not in ("auto", "none"))) if v]
-        if unsupported:
-            raise InputError(f"--flow does not take {', '.join(unsupported)} yet")
-        from flows.reconstruct_shot import reconstruct_shot
+        check_output(args.out)
+        preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
+        from .orchestration.reconstruct import reconstruct_shot
 
-        s = reconstruct_shot(args.index_dir, args.bundles, args.out, chunk_size=args.chunk_size, smooth=args.smooth,
-                             jaw_smooth=args.jaw_smooth, max_gap=args.max_gap, temporal_weight=args.temporal_weight,
-                             spatial_weight=args.spatial_weight, noise=args.noise, method=args.method)
-        print(f"reconstructed {s['frames']} frames through the reconstruct-shot flow; max bundle residual "
-              f"{s['max_residual_mm']:.2e} mm; outputs in {s['out']}")
-        return 0
-    t0 = time.perf_counter()
-    index = LGIIndex.load(args.index_dir)
-    bundles = read_bundles(args.bundles, index.marker_names)
-    if args.jaw not in ("auto", "none") and index.jaw_rig() is None:
-        raise InputError("--jaw FILE needs an index built with --jaw-rig", path=args.index_dir)
-    jaw = None if args.jaw in ("auto", "none") else _read_jaw_file(args.jaw, bundles.frames)
-    if args.bilateral:
-        from .temporal import bilateral_filter
-
-        try:
-            vals = [float(v) for v in args.bilateral.split(":")]
-            if len(vals) not in (2, 3):
-                raise ValueError
-        except ValueError:
-            raise InputError("--bilateral takes SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM], "
-                             f"got {args.bilateral!r}") from None
-        rest = index.layout().evaluate(index.arrays["neutral"])
-        bundles.positions = bilateral_filter(bundles.positions, vals[0], vals[1] / 10, rest,
-                                             vals[2] / 10 if len(vals) == 3 else None)
-    solver = _solver(index, args)
-    t1 = time.perf_counter()
-    res = solver.solve_sequence(bundles, show_progress=not args.quiet, smooth=args.smooth,
-                                jaw_smooth=args.jaw_smooth, jaw=jaw, max_gap=args.max_gap, noise=args.noise)
-    t2 = time.perf_counter()
-    out = Path(args.out)
-    stage = _stage(out)
-    try:
-        extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
-        save_npz(stage / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
-        write_csv(res.diagnostics, stage / "diagnostics.csv")
-        if args.obj:
-            a = index.arrays
-            (stage / "obj").mkdir()
-            for f, frame in enumerate(res.frames):
-                write_obj(stage / "obj" / f"frame_{int(frame):05d}.obj", res.vertices[f], a["face_vertices"],
-                          a["face_offsets"], a.get("uvs"), a.get("face_uvs"))
-        _commit(stage, out)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
-    d = res.diagnostics
-    n = len(res.frames)
-    print(f"reconstructed {n} frames x {index.n_vertices} vertices in {t2 - t1:.2f} s "
-          f"({n / max(t2 - t1, 1e-9):.0f} frames/s; index loaded in {t1 - t0:.2f} s)")
-    if (d.status == "fitted").any():
-        print(f"bundles: {(d.status == 'fitted').mean() * 100:.1f} % fitted as measurements (noisy: no simplex "
-              "searched)")
-    print(f"bundles: {(d.status == 'contained').mean() * 100:.1f} % contained, "
-          f"{(d.status == 'projected').mean() * 100:.1f} % projected (median distance "
-          f"{d.projection_mm[d.status == 'projected'].median() if (d.status == 'projected').any() else 0:.3f} mm), "
-          f"{(d.status == 'missing').mean() * 100:.1f} % missing; max bundle residual {d.residual_mm.max():.2e} mm")
-    est = solver.noise_estimate
-    how = (f"estimated {est.noise_mm:.3f} mm, neighbour correlation {est.coherence:.2f}" if est is not None
-           else "given")
-    mode = (f"measurements with {res.noise:.3f} mm noise (fitted, not interpolated)" if res.noise > 0
-            else "exact (the surface passes through every seen bundle)")
-    print(f"bundles treated as {mode} ({how}); local fits for {(d.source == 'local fit').mean() * 100:.1f} % of "
-          "bundle-frames")
-    if res.jaw is not None:
-        print(f"jaw: opening {res.jaw[:, 0].min():.1f} to {res.jaw[:, 0].max():.1f} deg; global fit residual median "
-              f"{d.fit_rms_mm.median():.3f} mm, max {d.fit_rms_mm.max():.3f} mm (per frame RMS)")
-    print(f"outputs in {out.resolve()}: meshes.npz, diagnostics.csv{', obj/' if args.obj else ''}")
+        summary = reconstruct_shot(args.index_dir, args.bundles, args.out, **opts.to_json())
+    else:
+        summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
+    for line in report_lines(summary):
+        print(line)
     return 0
 
 
@@ -620,7 +509,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
           f"max per frame: median {np.median(nl[:, 1]):.2f}, 95th pct {np.percentile(nl[:, 1], 95):.2f}, "
           f"worst {nl[:, 1].max():.2f}")
     from .index import build_index
-    from .solver import LGISolver
 
     t = time.perf_counter()
     index, reports = build_index(r["dataset"], r["layout"], show_progress=not args.quiet,
@@ -629,24 +517,19 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"[3/4] LGI index (jaw rig, unskinned shapes): {index.manifest['counts']['simplices']} simplices over "
           f"{len(r['layout'])} bundles "
           f"({time.perf_counter() - t:.1f} s)")
-    from .bundles import read_bundles
+    from .jobs.reconstruct import ReconstructOptions, Shot, write_reconstruction
 
-    bundles = read_bundles(out / "bundles.csv", index.marker_names)
-    solver = LGISolver(index, temporal_weight=0.02)
+    opts = ReconstructOptions()
+    shot = Shot(out / "index", out / "bundles.csv", opts)
     # A few frames first: the compiled kernels are built (first run) or loaded from their cache, so the
     # timed run below is the steady state.
     t = time.perf_counter()
-    solver.solve_sequence(solver.align(bundles)[:3], noise=0.0)
+    shot.finish(shot.choose(0, 3), 0, 3)
     warm = time.perf_counter() - t
     t = time.perf_counter()
-    res = solver.solve_sequence(bundles, show_progress=not args.quiet)
+    res = shot.run(show_progress=not args.quiet)
     dt = time.perf_counter() - t
-    from .atomic import atomic_file
-
-    with atomic_file(out / "meshes.npz") as tmp:
-        save_npz(tmp, vertices=res.vertices, frames=res.frames)
-    with atomic_file(out / "diagnostics.csv") as tmp:
-        write_csv(res.diagnostics, tmp)
+    write_reconstruction(out, res, index.arrays, opts)
     err = np.linalg.norm(res.vertices - r["truth"], axis=2) * 10
     print(f"[4/4] reconstructed the {args.frames}-frame performance (frames not in the dataset) at "
           f"{args.frames / dt:.0f} frames/s steady state (kernel compilation or cache load and 3 warm-up frames: "
@@ -767,7 +650,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("reconstruct", help="reconstruct meshes from a bundles file",
                        description="Write OUT_DIR/meshes.npz (vertices (F, V, 3) float32, frames), "
-                                   "OUT_DIR/diagnostics.csv and, with --obj, OUT_DIR/obj/frame_NNNNN.obj.")
+                                   "OUT_DIR/diagnostics.csv, OUT_DIR/per_frame.csv and, as asked, "
+                                   "OUT_DIR/obj/frame_NNNNN.obj, OUT_DIR/shot.usdc, OUT_DIR/per_frame.png. "
+                                   "A run replaces the outputs of an earlier one (and removes those it does "
+                                   "not write); other files in OUT_DIR are left alone.")
     s.add_argument("index_dir", metavar="INDEX_DIR")
     s.add_argument("--bundles", required=True, metavar="BUNDLES")
     s.add_argument("--out", required=True, metavar="OUT_DIR")
@@ -797,9 +683,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "around (0 = off, the default: a hidden marker's weights are fitted to its seen neighbours "
                         "in its own frame, which follows fast motion that interpolation misses)")
     s.add_argument("--flow", action="store_true",
-                   help="run the Prefect reconstruct-shot flow (chunks of frames as tasks, artifacts) instead "
-                        "of the plain functions")
-    s.add_argument("--chunk-size", type=int, default=60, metavar="N", help="frames per task with --flow (60)")
+                   help="run the job as the Prefect reconstruct-shot flow (chunks of frames as tasks, "
+                        "artifacts): the same options and the same files as without it")
+    s.add_argument("--chunk-size", type=int, default=60, metavar="N",
+                   help="frames per task with --flow (60; the results do not depend on it)")
+    s.add_argument("--usd", action="store_true", help="also write OUT_DIR/shot.usdc (animated mesh, see --fps)")
+    s.add_argument("--fps", type=float, default=30.0, help="USD time codes per second (30)")
+    s.add_argument("--plot", action="store_true", help="also write OUT_DIR/per_frame.png")
     s.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]",
                    help="bilateral filter of the bundles before solving: in time, and with the third value also "
                         "over the nearest markers (e.g. 1.5:0.5:10)")
@@ -927,6 +817,11 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("vertices", "frames"):
         if getattr(args, name, 1) is not None and getattr(args, name, 1) < 1:
             parser.error(f"--{name} must be positive")
+    if getattr(args, "flow", False):
+        import os
+
+        # A first run creates the local Prefect database, which takes longer than Prefect's default wait.
+        os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
     try:
         return int(args.func(args) or 0)
     except LgiError as exc:

@@ -26,3 +26,23 @@ def save_npz(path: str | os.PathLike[str], **arrays: np.ndarray) -> None:
             info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
             info.external_attr = 0o644 << 16
             zf.writestr(info, buf.getvalue())
+
+
+def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
+    """Every array of an npz (never unpickling), or an :class:`~lgi.errors.InputError` naming the file:
+    unreadable, truncated, holding a pickled object, or missing one of ``required``."""
+    from .errors import InputError
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            out = {k: z[k] for k in z.files}
+    except FileNotFoundError:
+        raise InputError("file not found", path=path) from None
+    except ValueError as exc:  # numpy refuses pickled members with a ValueError
+        raise InputError(f"holds an array that is not plain data ({exc})", path=path) from None
+    except (OSError, zipfile.BadZipFile, EOFError) as exc:
+        raise InputError(f"not a readable npz file ({exc})", path=path) from None
+    missing = [k for k in required if k not in out]
+    if missing:
+        raise InputError(f"missing arrays {missing}", path=path)
+    return out

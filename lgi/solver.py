@@ -112,7 +112,8 @@ class FrameResult:
 @dataclass
 class SequenceResult:
     """A reconstructed sequence: vertices (F, V, 3) float32 cm, frame numbers, per-bundle diagnostics,
-    and the jaw parameters used (F, 4) when the index has a rig."""
+    the jaw parameters used (F, 4) when the index has a rig, and each bundle's distance (F, M) cm to the
+    blend before the correction (``before``) and to the final surface (``after``; NaN where missing)."""
 
     frames: np.ndarray
     vertices: np.ndarray
@@ -120,6 +121,8 @@ class SequenceResult:
     jaw: np.ndarray | None = None
     noise: float = 0.0
     smooth: int = 1
+    before: np.ndarray | None = None
+    after: np.ndarray | None = None
 
 
 class LGISolver:
@@ -512,9 +515,15 @@ class LGISolver:
             (:func:`lgi.temporal.denoise_trajectories`, the window chosen by Stein's unbiased risk estimate).
         """
         pos, frames, bridged = self.prepare_shot(bundles, frames, max_gap, noise)
+        return self.solve_prepared(pos, frames, bridged, self.denoise(pos), smooth, jaw_smooth, jaw, show_progress)
+
+    @one_blas_thread
+    def solve_prepared(self, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray, fit_pos: np.ndarray,
+                       smooth: int = 1, jaw_smooth: int | None = None, jaw: np.ndarray | None = None,
+                       show_progress: bool = False) -> SequenceResult:
+        """:meth:`solve_sequence` of a shot already prepared (:meth:`prepare_shot`, :meth:`denoise`)."""
         if jaw is not None and len(jaw) != len(pos):
             raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
-        fit_pos = self.denoise(pos)
         if self.noise > 0 and smooth <= 1 and (jaw_smooth is None or jaw_smooth <= 1 or self.rig is None):
             # Noisy bundles: the choice is the global fit alone, which runs no parallel kernel of its own, so it
             # can run beside the blend's under any numba threading layer (the exact path's simplex search
@@ -622,11 +631,13 @@ class LGISolver:
     @one_blas_thread
     def select_sequence(self, pos: np.ndarray, frames: np.ndarray, jaw: np.ndarray | None = None,
                         show_progress: bool = False,
-                        emit: Callable[[int, FrameResult], None] | None = None) -> list[FrameResult]:
+                        emit: Callable[[int, FrameResult], None] | None = None,
+                        previous: FrameResult | None = None) -> list[FrameResult]:
         """Each frame's choice of shapes and weights, in order (the previous frame's carried into the next);
-        ``emit(f, choice)`` is called with each as it is made."""
+        ``emit(f, choice)`` is called with each as it is made. ``previous``: the choice of the frame before
+        ``pos[0]`` when a shot is chosen in chunks (the result is then the one a single call gives)."""
         sels = []
-        prev = None
+        prev = previous
         for f in progress(range(len(pos)), "choosing shapes", disable=not show_progress):
             try:
                 prev = self.select_frame(pos[f], prev, None if jaw is None else jaw[f])
@@ -689,41 +700,54 @@ class LGISolver:
             worker.join()
         thetas = None if self.rig is None else np.stack([s.jaw for s in sels]).astype(np.float64)
         diag = self._diagnostics(sels, frames, bridged, fin.before, fin.r_final, thetas)
-        return SequenceResult(np.asarray(frames), fin.out, diag, thetas, self.noise, 1)
+        return SequenceResult(np.asarray(frames), fin.out, diag, thetas, self.noise, 1, fin.before, fin.r_final)
 
     @one_blas_thread
     def finish_sequence(self, sels: list[FrameResult], pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
                         smooth: int = 1, jaw_smooth: int | None = None,
-                        show_progress: bool = False, fit_pos: np.ndarray | None = None) -> SequenceResult:
+                        show_progress: bool = False, fit_pos: np.ndarray | None = None,
+                        lo: int = 0, hi: int | None = None) -> SequenceResult:
         """Smooth the choices over time, blend, skin and correct every frame; diagnostics per bundle.
 
         ``pos`` are the bundles as given (the diagnostics' residuals are measured to them); ``fit_pos`` the
-        positions the frames were fitted to (denoised, :meth:`denoise`), which the correction aims at."""
+        positions the frames were fitted to (denoised, :meth:`denoise`), which the correction aims at.
+        ``sels``, ``pos``, ``frames`` and ``bridged`` cover the whole shot; only frames ``lo:hi`` are finished
+        and returned. A frame's result depends only on the frames in its smoothing windows, each computed on
+        its own, so finishing a shot in any ranges gives the same bits as finishing it whole (tested)."""
         fit_pos = pos if fit_pos is None else fit_pos
         from .temporal import moving_average, window_slots
 
+        n_f = len(sels)
+        hi = n_f if hi is None else hi
         shapes, lam = _stack_slots([r.shapes for r in sels], [r.weights for r in sels])
         thetas = None
         if self.rig is not None:
             thetas = smooth_parameters(np.stack([r.jaw for r in sels]), smooth if jaw_smooth is None else jaw_smooth)
         if smooth > 1:
             shapes, lam = window_slots(shapes, lam, smooth)
-        fin = _Finisher(self, pos, fit_pos)
+        # With smoothing, a frame's correction averages the residuals of its window: those frames are blended too.
+        a, b = (max(0, lo - smooth // 2), min(n_f, hi + smooth // 2)) if smooth > 1 else (lo, hi)
+        fin = _Finisher(self, pos[a:b], fit_pos[a:b])
         if smooth > 1:
             # The correction follows the same moving average: corrected to each frame's raw residuals, the
             # surface would carry the bundles' noise straight back. So every surface is blended first.
-            blends = [fin.blend(f, shapes[f], lam[f], None if thetas is None else thetas[f])
-                      for f in progress(range(len(pos)), "blending", disable=not show_progress)]
+            blends = [fin.blend(f - a, shapes[f], lam[f], None if thetas is None else thetas[f])
+                      for f in progress(range(a, b), "blending", disable=not show_progress)]
             resid = np.stack([r for _, r in blends])
             fin.before[:] = np.linalg.norm(resid, axis=2)
             resid = moving_average(resid, smooth)
-            for f, (x, _) in enumerate(blends):
-                fin.finish(f, x, resid[f])
+            for f in range(lo, hi):
+                fin.finish(f - a, blends[f - a][0], resid[f - a])
         else:
-            for f in progress(range(len(pos)), "blending", disable=not show_progress):
-                fin.frame(f, shapes[f], lam[f], None if thetas is None else thetas[f])
-        diag = self._diagnostics(sels, frames, bridged, fin.before, fin.r_final, thetas)
-        return SequenceResult(np.asarray(frames), fin.out, diag, thetas, self.noise, smooth)
+            for f in progress(range(lo, hi), "blending", disable=not show_progress):
+                fin.frame(f - a, shapes[f], lam[f], None if thetas is None else thetas[f])
+        keep = slice(lo - a, hi - a)
+        th = None if thetas is None else thetas[lo:hi]
+        diag = self._diagnostics(sels[lo:hi], np.asarray(frames)[lo:hi], bridged[lo:hi], fin.before[keep],
+                                 fin.r_final[keep], th)
+        out = fin.out if (a, b) == (lo, hi) else fin.out[keep].copy()
+        return SequenceResult(np.asarray(frames)[lo:hi], out, diag, th, self.noise, smooth, fin.before[keep],
+                              fin.r_final[keep])
 
     def _diagnostics(self, sels: list[FrameResult], frames: np.ndarray, bridged: np.ndarray, before: np.ndarray,
                      r_final: np.ndarray, thetas: np.ndarray | None) -> pd.DataFrame:

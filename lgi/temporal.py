@@ -145,12 +145,15 @@ def moving_average(values: np.ndarray, window: int) -> np.ndarray:
     h = window // 2
     ok = np.isfinite(v)
     z = np.where(ok, v, 0.0)
-    cs = np.concatenate([np.zeros_like(z[:1]), np.cumsum(z, axis=0)])
-    cn = np.concatenate([np.zeros_like(z[:1]), np.cumsum(ok, axis=0)])
-    idx = np.arange(len(v))
-    lo, hi = np.maximum(0, idx - h), np.minimum(len(v), idx + h + 1)
-    s = cs[hi] - cs[lo]
-    n = cn[hi] - cn[lo]
+    n_ok = ok.astype(np.float64)
+    s = np.empty_like(z)
+    n = np.empty_like(z)
+    # Each frame sums its own window (not a running sum): a frame's value then depends only on the frames in
+    # its window, so a shot finished in chunks gives the same bits as finished whole.
+    for f in range(len(v)):
+        lo, hi = max(0, f - h), min(len(v), f + h + 1)
+        s[f] = z[lo:hi].sum(0)
+        n[f] = n_ok[lo:hi].sum(0)
     out = np.divide(s, n, out=np.full_like(s, np.nan), where=n > 0)
     return np.where(ok, out, np.nan)
 

@@ -109,6 +109,7 @@ def test_joint_jaw_fit_recovers_the_jaw_and_stops_at_its_own_solution() -> None:
     seen_idx = np.arange(len(p))
     w, th, r = np.empty(len(basis)), np.empty(4), np.empty(3 * len(p))
     steps = K.global_gauss_newton(fit.rest, fit.basis, fit._prod, seen_idx, p, res.weights, res.jaw.copy(),
-                                  fit._pivot, fit._bw, True, True, fit.l2, fit.gain, THETA_SCALE, 30, fit.grow, w, th, r)
+                                  fit._pivot, fit._bw, True, True, fit.l2, fit.gain, THETA_SCALE, 30, fit.grow,
+                                  w, th, r)
     assert steps <= 2
     assert np.abs(th - res.jaw).max() < 1e-6

@@ -22,7 +22,7 @@ def test_shot_flow_thread_and_dask_agree(prefect_harness, shot: Path) -> None:
 
     from flows.reconstruct_shot import reconstruct_shot
 
-    args = dict(index_dir=str(shot / "idx"), bundles=str(shot / "s" / "bundles.csv"), chunk_size=15, usd=True)
+    args = dict(index_dir=str(shot / "idx"), bundles=str(shot / "s" / "bundles.csv"), chunk_size=15, usd=True, plot=True)
     summary = reconstruct_shot(out=str(shot / "thread"), **args)
     assert summary["frames"] == 40 and summary["max_residual_mm"] < 1e-4
     m = np.load(shot / "thread" / "meshes.npz")
@@ -30,11 +30,11 @@ def test_shot_flow_thread_and_dask_agree(prefect_harness, shot: Path) -> None:
     assert np.sqrt(np.mean(np.sum((m["vertices"] - truth) ** 2, axis=2))) * 10 < 0.2  # mm
     assert (shot / "thread" / "per_frame.png").stat().st_size > 5000
     assert len(pd.read_csv(shot / "thread" / "per_frame.csv")) == 40
-    assert not list(shot.glob(".thread.chunks/*"))
+    assert not list(shot.glob(".thread.chunks*"))
     dask_flow = reconstruct_shot.with_options(task_runner=DaskTaskRunner(
         cluster_kwargs={"n_workers": 2, "threads_per_worker": 1, "processes": True}))
     dask_flow(out=str(shot / "dask"), **args)
-    for name in ("meshes.npz", "diagnostics.csv", "per_frame.csv"):
+    for name in ("meshes.npz", "diagnostics.csv", "per_frame.csv", "shot.usdc"):
         assert filecmp.cmp(shot / "thread" / name, shot / "dask" / name, shallow=False), name
 
 

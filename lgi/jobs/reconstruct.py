@@ -1,0 +1,503 @@
+"""The reconstruct job: a shot's bundles to meshes, diagnostics and optional OBJ/USD/plot outputs.
+
+One implementation, three schedules:
+
+- :func:`reconstruct` runs the whole shot in this process (``lgi reconstruct``);
+- the reconstruct-shot flow runs the same stages as tasks: :func:`choose_chunk` over consecutive chunks
+  of frames, each starting from the last choice of the chunk before (so the choice is the one a single
+  pass makes), :func:`finish_chunk` over chunks in parallel (a frame's surface depends only on the
+  choices in its smoothing windows), then :func:`assemble` writes the outputs;
+- both write through :func:`write_reconstruction`.
+
+Results do not depend on the schedule: any chunk size, task runner or ``--flow`` gives the same files
+(tested).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from ..errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: Every entry a reconstruction writes into its output directory (see :func:`lgi.atomic.job_outputs`).
+OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "per_frame.png", "shot.usdc", "obj")
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    """Options of the reconstruct job (the ``lgi reconstruct`` flags; see its ``--help``).
+
+    Attributes
+    ----------
+    temporal_weight : float, mm
+        Preference for the previous frame's shapes (0 = none).
+    spatial_weight : float, mm
+        Tie-break toward the shapes the neighbours agree on (0 = none).
+    smooth : int
+        Moving average of each bundle's shape weights over this many frames (1 = none).
+    jaw_smooth : int or None
+        Moving average of the jaw parameters (None: ``smooth``).
+    noise : float (mm) or "auto"
+        Bundle noise per coordinate; 0 = exact bundles.
+    method : "local" or "simplex"
+    jaw : "auto", "none" or a CSV path
+        With a rigged index: estimate the jaw per frame, or read it (frame, open_deg, yaw_deg, roll_deg,
+        forward_cm); "none" needs an index without a rig.
+    max_gap : int
+        Bridge missing runs of up to this many frames (0 = off).
+    bilateral : str or None
+        ``SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]``: bilateral filter of the bundles before solving.
+    obj, usd, plot : bool
+        Also write ``obj/frame_NNNNN.obj``, ``shot.usdc`` (at ``fps``), ``per_frame.png``.
+    fps : float
+        USD time codes per second.
+    chunk_size : int
+        Frames per task when the job runs as a flow (scheduling only: results do not depend on it).
+    """
+
+    temporal_weight: float = 0.02
+    spatial_weight: float = 1e-3
+    smooth: int = 1
+    jaw_smooth: int | None = None
+    noise: float | str = "auto"
+    method: str = "local"
+    jaw: str = "auto"
+    max_gap: int = 0
+    bilateral: str | None = None
+    obj: bool = False
+    usd: bool = False
+    plot: bool = False
+    fps: float = 30.0
+    chunk_size: int = 60
+
+    def __post_init__(self) -> None:
+        def bad(flag: str, why: str) -> InputError:
+            return InputError(f"--{flag.replace('_', '-')} {why}")
+
+        for name in ("temporal_weight", "spatial_weight"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise bad(name, f"must be a finite number of mm >= 0, not {v!r}")
+        for name, least in (("smooth", 1), ("jaw_smooth", 1), ("max_gap", 0), ("chunk_size", 1)):
+            v = getattr(self, name)
+            if v is None and name == "jaw_smooth":
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+                raise bad(name, f"must be a whole number >= {least}, not {v!r}")
+        if self.noise != "auto":
+            try:
+                value = float(self.noise)
+            except (TypeError, ValueError):
+                raise bad("noise", f"takes a number of mm or 'auto', not {self.noise!r}") from None
+            if not math.isfinite(value) or value < 0:
+                raise bad("noise", f"must be a finite number of mm >= 0, not {self.noise!r}")
+        if self.method not in ("local", "simplex"):
+            raise bad("method", f"takes 'local' or 'simplex', not {self.method!r}")
+        if not isinstance(self.fps, (int, float)) or not math.isfinite(self.fps) or self.fps <= 0:
+            raise bad("fps", f"must be a positive number, not {self.fps!r}")
+        self.bilateral_sigmas()
+
+    def bilateral_sigmas(self) -> tuple[float, float, float | None] | None:
+        """(sigma_frames, sigma_cm, sigma_space_cm or None) of ``bilateral``, or None."""
+        if not self.bilateral:
+            return None
+        try:
+            vals = [float(v) for v in str(self.bilateral).split(":")]
+            if len(vals) not in (2, 3) or not all(math.isfinite(v) and v > 0 for v in vals):
+                raise ValueError
+        except ValueError:
+            raise InputError("--bilateral takes SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM], positive numbers, "
+                             f"got {self.bilateral!r}") from None
+        return vals[0], vals[1] / 10, vals[2] / 10 if len(vals) == 3 else None
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any] | None) -> ReconstructOptions:
+        """Options from a dict (a flow's parameters); unknown keys are refused by name."""
+        d = dict(d or {})
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise InputError(f"unknown reconstruct options {unknown}; known: {sorted(known)}")
+        return cls(**d)
+
+
+def read_jaw_file(path: str | Path, frames: np.ndarray) -> np.ndarray:
+    """(F, 4) jaw parameters for ``frames`` from a CSV with columns frame, open_deg, yaw_deg, roll_deg,
+    forward_cm."""
+    from ..jaw import PARAM_NAMES
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("jaw parameter file not found", path=p)
+    try:
+        df = pd.read_csv(p)
+    except (ValueError, pd.errors.ParserError) as exc:
+        raise InputError(f"not a readable CSV: {exc}", path=p) from None
+    missing = [c for c in ["frame", *PARAM_NAMES] if c not in df.columns]
+    if missing:
+        raise InputError(f"missing columns {missing}", path=p)
+    dup = df["frame"][df["frame"].duplicated()]
+    if len(dup):
+        raise InputError("frame listed twice", path=p, frame=int(dup.iloc[0]))
+    df = df.set_index("frame")
+    absent = [int(f) for f in frames if int(f) not in df.index]
+    if absent:
+        raise InputError(f"no jaw parameters for {len(absent)} frames", path=p, frame=absent[0])
+    vals = df.loc[[int(f) for f in frames], PARAM_NAMES].to_numpy(float)
+    if not np.all(np.isfinite(vals)):
+        r = int(np.flatnonzero(~np.all(np.isfinite(vals), axis=1))[0])
+        raise InputError("non-finite jaw parameter", path=p, frame=int(frames[r]))
+    return vals
+
+
+def preflight(index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> int:
+    """Check the inputs of a reconstruction before any work is scheduled (the index loads, the bundles name its
+    markers, the jaw option suits the index, a jaw file covers every frame); returns the number of frames."""
+    from ..bundles import read_bundles
+    from ..index import LGIIndex
+
+    index = LGIIndex.load(index_dir)
+    b = read_bundles(bundles, index.marker_names)
+    if index.jaw_rig() is not None and options.jaw == "none":
+        raise InputError("the index was built with a jaw rig (its shapes are unskinned): use --jaw auto or a jaw "
+                         "file, or rebuild the index without a rig", path=index_dir)
+    if options.jaw not in ("auto", "none"):
+        if index.jaw_rig() is None:
+            raise InputError("--jaw FILE needs an index built with --jaw-rig", path=index_dir)
+        read_jaw_file(options.jaw, b.frames)
+    return len(b.frames)
+
+
+class Shot:
+    """A shot prepared for reconstruction: the solver on the index, the bundles in layout order with gaps
+    bridged, the noise resolved and the trajectories denoised on the whole shot, the given jaw read.
+
+    Every stage of the job starts from one (each task of a flow prepares its own, identically).
+
+    Parameters
+    ----------
+    index_dir : path
+        The index directory (``lgi build``).
+    bundles : path
+        The bundles file (.csv or .parquet).
+    options : ReconstructOptions
+    """
+
+    def __init__(self, index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> None:
+        from ..bundles import read_bundles
+        from ..index import LGIIndex
+        from ..solver import LGISolver
+
+        self.options = o = options
+        self.index = index = LGIIndex.load(index_dir)
+        b = read_bundles(bundles, index.marker_names)
+        if o.jaw not in ("auto", "none") and index.jaw_rig() is None:
+            raise InputError("--jaw FILE needs an index built with --jaw-rig", path=index_dir)
+        self.given_jaw = None if o.jaw in ("auto", "none") else read_jaw_file(o.jaw, b.frames)
+        sig = o.bilateral_sigmas()
+        if sig is not None:
+            from ..temporal import bilateral_filter
+
+            rest = index.layout().evaluate(index.arrays["neutral"])
+            b.positions = bilateral_filter(b.positions, sig[0], sig[1], rest, sig[2])
+        self.solver = s = LGISolver(index, temporal_weight=o.temporal_weight, spatial_weight=o.spatial_weight,
+                                    jaw="none" if o.jaw == "none" else "auto", method=o.method)
+        self.pos, self.frames, self.bridged = s.prepare_shot(b, None, o.max_gap, o.noise)
+        self.fit_pos = s.denoise(self.pos)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frames)
+
+    def chunks(self) -> list[tuple[int, int]]:
+        """(lo, hi) frame ranges of ``chunk_size`` frames."""
+        n, c = self.n_frames, self.options.chunk_size
+        return [(lo, min(lo + c, n)) for lo in range(0, n, c)]
+
+    def choose(self, lo: int, hi: int, previous=None) -> list:
+        """The choices (:class:`~lgi.solver.FrameResult`, no vertices) of frames lo:hi, continuing from
+        ``previous``, the choice of frame lo - 1."""
+        jaw = None if self.given_jaw is None else self.given_jaw[lo:hi]
+        return self.solver.select_sequence(self.fit_pos[lo:hi], self.frames[lo:hi], jaw, previous=previous)
+
+    def finish(self, sels: list, lo: int, hi: int, show_progress: bool = False):
+        """Frames lo:hi blended, skinned and corrected from the whole shot's choices ``sels``
+        (a :class:`~lgi.solver.SequenceResult` of those frames)."""
+        o = self.options
+        return self.solver.finish_sequence(sels, self.pos, self.frames, self.bridged, o.smooth, o.jaw_smooth,
+                                           show_progress, self.fit_pos, lo, hi)
+
+    def run(self, show_progress: bool = False):
+        """The whole shot in this process (the solver's fastest schedule for it)."""
+        o = self.options
+        return self.solver.solve_prepared(self.pos, self.frames, self.bridged, self.fit_pos, o.smooth,
+                                          o.jaw_smooth, self.given_jaw, show_progress)
+
+
+# ------------------------------------------------------------------------------------------------ choices
+def save_choices(path: str | Path, sels: list) -> None:
+    """Write frames' choices to an npz, exactly (every field a later frame or the finish reads)."""
+    from ..atomic import atomic_file
+    from ..npz import save_npz
+    from ..solver import _stack_slots
+
+    a: dict[str, np.ndarray] = {}
+    a["width"] = np.array([r.shapes.shape[1] for r in sels], np.int64)
+    a["shapes"], a["weights"] = _stack_slots([r.shapes for r in sels], [r.weights for r in sels])
+    for k in ("n_containing", "status", "projection", "score", "residual", "bundles", "simplex_shapes",
+              "simplex_weights"):
+        a[k] = np.stack([getattr(r, k) for r in sels])
+    a["source"] = np.stack([np.asarray(r.source, object).astype(str) for r in sels])
+    a["fallback"] = np.array(json.dumps([r.fallback for r in sels]))
+    if sels[0].jaw is not None:
+        a["jaw"] = np.stack([r.jaw for r in sels])
+    a["fit_weights"] = np.stack([r.fit.weights for r in sels])
+    a["fit_residual"] = np.stack([r.fit.residual for r in sels])
+    a["fit_rms"] = np.array([r.fit.rms for r in sels], np.float64)
+    a["fit_jaw_source"] = np.array([r.fit.jaw_source for r in sels])
+    if sels[0].fit.jaw is not None:
+        a["fit_jaw"] = np.stack([r.fit.jaw for r in sels])
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(path, suffix=".npz") as tmp:
+        save_npz(tmp, **a)
+
+
+def load_choices(path: str | Path) -> list:
+    """The choices :func:`save_choices` wrote."""
+    from ..globalfit import GlobalFitResult
+    from ..npz import load_npz
+    from ..solver import FrameResult
+
+    a = load_npz(path)
+    notes = json.loads(str(a["fallback"]))
+    out = []
+    for f, k in enumerate(a["width"]):
+        fit = GlobalFitResult(a["fit_weights"][f], a["fit_jaw"][f] if "fit_jaw" in a else None,
+                              a["fit_residual"][f], float(a["fit_rms"][f]), str(a["fit_jaw_source"][f]))
+        out.append(FrameResult(np.zeros((0, 3), np.float32), a["shapes"][f, :, :k], a["weights"][f, :, :k],
+                               a["n_containing"][f], a["status"][f], a["projection"][f], a["score"][f],
+                               a["residual"][f], notes[f], a["jaw"][f] if "jaw" in a else None, a["bundles"][f],
+                               None, a["source"][f].astype(object), fit, a["simplex_shapes"][f],
+                               a["simplex_weights"][f]))
+    return out
+
+
+# ------------------------------------------------------------------------------------- flow stages
+def choose_chunk(index_dir: str, bundles: str, options: ReconstructOptions, lo: int, hi: int, out: str,
+                 previous: str | None = None) -> str:
+    """Choose frames lo:hi (continuing from the last choice in the ``previous`` chunk's file); write them to
+    ``out`` (npz). Chained over a shot's chunks, the choices are those a single pass makes."""
+    shot = Shot(index_dir, bundles, options)
+    prev = load_choices(previous)[-1] if previous else None
+    save_choices(out, shot.choose(lo, hi, prev))
+    return out
+
+
+def finish_chunk(index_dir: str, bundles: str, options: ReconstructOptions, choices: list[str], lo: int, hi: int,
+                 out: str) -> str:
+    """Blend, skin and correct frames lo:hi from the whole shot's choice files; write the vertices (float32,
+    cm), the bundles' distances before and after the correction (cm) and the jaw used to ``out`` (npz)."""
+    from ..atomic import atomic_file
+    from ..npz import save_npz
+
+    shot = Shot(index_dir, bundles, options)
+    sels = [s for path in choices for s in load_choices(path)]
+    res = shot.finish(sels, lo, hi)
+    extra = {} if res.jaw is None else {"jaw": res.jaw}
+    with atomic_file(out, suffix=".npz") as tmp:
+        save_npz(tmp, vertices=res.vertices, before=res.before, after=res.after, **extra)
+    return out
+
+
+def assemble(index_dir: str, bundles: str, options: ReconstructOptions, choices: list[str], parts: list[str],
+             out: str) -> dict[str, Any]:
+    """Join the finished chunks into the shot's result and write it (:func:`write_reconstruction`); returns
+    the summary."""
+    from ..npz import load_npz
+    from ..solver import SequenceResult
+
+    t0 = time.perf_counter()
+    shot = Shot(index_dir, bundles, options)
+    sels = [s for path in choices for s in load_choices(path)]
+    p = [load_npz(path) for path in parts]
+    jaw = np.concatenate([x["jaw"] for x in p]) if "jaw" in p[0] else None
+    before = np.concatenate([x["before"] for x in p])
+    after = np.concatenate([x["after"] for x in p])
+    diag = shot.solver._diagnostics(sels, shot.frames, shot.bridged, before, after, jaw)
+    res = SequenceResult(np.asarray(shot.frames), np.concatenate([x["vertices"] for x in p]), diag, jaw,
+                         shot.solver.noise, options.smooth)
+    write_reconstruction(out, res, shot.index.arrays, options)
+    return summarise(res, shot, out, {"finish": time.perf_counter() - t0})
+
+
+# ------------------------------------------------------------------------------------------------ outputs
+def per_frame_table(diagnostics: pd.DataFrame) -> pd.DataFrame:
+    """Per frame: share of bundles contained, bundles projected and missing, largest distance to the bundles
+    before and after the correction (mm)."""
+    d = diagnostics
+    frames, inv = np.unique(d.frame.to_numpy(), return_inverse=True)
+    n = np.bincount(inv)
+    status = d.status.to_numpy()
+
+    def count(mask: np.ndarray) -> np.ndarray:
+        return np.bincount(inv, weights=mask.astype(np.float64), minlength=len(frames))
+
+    def worst(col: str) -> np.ndarray:
+        out = np.full(len(frames), -np.inf)
+        v = d[col].to_numpy(np.float64)
+        ok = np.isfinite(v)
+        np.maximum.at(out, inv[ok], v[ok])
+        return np.where(np.isfinite(out), out, np.nan)
+
+    return pd.DataFrame({"frame": frames, "contained": count(status == "contained") / n,
+                         "projected": count(status == "projected").astype(np.int64),
+                         "missing": count(np.isin(status, ["missing", "bridged"])).astype(np.int64),
+                         "residual_before_mm": worst("residual_before_mm"), "residual_mm": worst("residual_mm")})
+
+
+def plot_per_frame(per_frame: pd.DataFrame, path: Path) -> None:
+    """The per-frame table as a two-panel PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(2, 1, figsize=(8, 4.5), sharex=True)
+    ax[0].plot(per_frame.frame, per_frame.residual_before_mm, label="max distance to bundles before correction")
+    ax[0].set_ylabel("mm")
+    ax[0].legend(fontsize=8)
+    ax[1].plot(per_frame.frame, per_frame.projected, label="bundles projected (outside the data)")
+    ax[1].plot(per_frame.frame, per_frame.missing, label="bundles missing or bridged")
+    ax[1].set_xlabel("frame")
+    ax[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], options: ReconstructOptions) -> None:
+    """The one writer of a reconstruction: ``meshes.npz`` (vertices (F, V, 3) float32 cm, frames, jaw (F, 4)
+    with a rig), ``diagnostics.csv``, ``per_frame.csv`` and, as asked, ``obj/``, ``shot.usdc`` and
+    ``per_frame.png``; through :func:`lgi.atomic.job_outputs` (an earlier run's outputs not written now are
+    removed)."""
+    from ..atomic import job_outputs
+    from ..csvio import write_csv
+    from ..npz import save_npz
+
+    with job_outputs(out, OUTPUTS) as stage:
+        extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
+        save_npz(stage / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
+        write_csv(res.diagnostics, stage / "diagnostics.csv")
+        per_frame = per_frame_table(res.diagnostics)
+        per_frame.to_csv(stage / "per_frame.csv", index=False, float_format="%.6g")
+        if options.plot:
+            plot_per_frame(per_frame, stage / "per_frame.png")
+        if options.obj:
+            from ..obj import write_obj
+
+            (stage / "obj").mkdir()
+            for f, frame in enumerate(res.frames):
+                write_obj(stage / "obj" / f"frame_{int(frame):05d}.obj", res.vertices[f], arrays["face_vertices"],
+                          arrays["face_offsets"], arrays.get("uvs"), arrays.get("face_uvs"))
+        if options.usd:
+            from ..export import write_usd
+
+            write_usd(stage / "shot.usdc", res.vertices, arrays["face_vertices"], arrays["face_offsets"],
+                      arrays.get("uvs"), arrays.get("face_uvs"), res.frames, fps=options.fps)
+
+
+def summarise(res, shot: Shot, out: str | Path, seconds: dict[str, float]) -> dict[str, Any]:
+    """The job's summary (JSON-friendly): counts, shares of bundle statuses, residuals, noise, jaw range."""
+    d = res.diagnostics
+    st = d.status.to_numpy()
+    proj = d.projection_mm.to_numpy()[st == "projected"]
+    est = shot.solver.noise_estimate
+    s: dict[str, Any] = {
+        "out": str(Path(out).resolve()), "frames": len(res.frames), "markers": shot.index.n_markers,
+        "vertices": shot.index.n_vertices,
+        "contained_share": float((st == "contained").mean()), "projected_share": float((st == "projected").mean()),
+        "neighbour_share": float((st == "neighbour").mean()), "fitted_share": float((st == "fitted").mean()),
+        "missing_share": float(np.isin(st, ["missing", "bridged"]).mean()),
+        "median_projection_mm": float(np.median(proj)) if proj.size else 0.0,
+        "max_residual_mm": float(np.nanmax(d.residual_mm)) if np.isfinite(d.residual_mm).any() else float("nan"),
+        "local_fit_share": float((d.source == "local fit").mean()),
+        "noise_mm": float(res.noise), "noise_estimated": est is not None,
+        "noise_estimate_mm": None if est is None else float(est.noise_mm),
+        "noise_coherence": None if est is None else float(est.coherence),
+        "seconds": seconds, "outputs": [n for n in OUTPUTS if (Path(out) / n).exists()],
+    }
+    if res.jaw is not None:
+        s["jaw_open_deg"] = [float(res.jaw[:, 0].min()), float(res.jaw[:, 0].max())]
+        s["fit_rms_mm"] = {"median": float(d.fit_rms_mm.median()), "max": float(d.fit_rms_mm.max())}
+    return s
+
+
+def report_lines(s: dict[str, Any]) -> list[str]:
+    """The summary as the lines ``lgi reconstruct`` prints (and the flow logs)."""
+    sec = s["seconds"]
+    lines = []
+    if "solve" in sec:
+        n = s["frames"]
+        lines.append(f"reconstructed {n} frames x {s['vertices']} vertices in {sec['solve']:.2f} s "
+                     f"({n / max(sec['solve'], 1e-9):.0f} frames/s; index loaded in {sec['load']:.2f} s)")
+    else:
+        lines.append(f"reconstructed {s['frames']} frames x {s['vertices']} vertices through the reconstruct-shot "
+                     "flow")
+    if s["fitted_share"] > 0:
+        lines.append(f"bundles: {s['fitted_share'] * 100:.1f} % fitted as measurements (noisy: no simplex searched)")
+    lines.append(f"bundles: {s['contained_share'] * 100:.1f} % contained, {s['projected_share'] * 100:.1f} % projected "
+                 f"(median distance {s['median_projection_mm']:.3f} mm), {s['missing_share'] * 100:.1f} % missing; "
+                 f"max bundle residual {s['max_residual_mm']:.2e} mm")
+    how = (f"estimated {s['noise_estimate_mm']:.3f} mm, neighbour correlation {s['noise_coherence']:.2f}"
+           if s["noise_estimated"] else "given")
+    mode = (f"measurements with {s['noise_mm']:.3f} mm noise (fitted, not interpolated)" if s["noise_mm"] > 0
+            else "exact (the surface passes through every seen bundle)")
+    lines.append(f"bundles treated as {mode} ({how}); local fits for {s['local_fit_share'] * 100:.1f} % of "
+                 "bundle-frames")
+    if "jaw_open_deg" in s:
+        lo, hi = s["jaw_open_deg"]
+        lines.append(f"jaw: opening {lo:.1f} to {hi:.1f} deg; global fit residual median "
+                     f"{s['fit_rms_mm']['median']:.3f} mm, max {s['fit_rms_mm']['max']:.3f} mm (per frame RMS)")
+    lines.append(f"outputs in {s['out']}: {', '.join(n + ('/' if n == 'obj' else '') for n in s['outputs'])}")
+    return lines
+
+
+def check_output(out: str | Path) -> None:
+    """Refuse an output path that cannot become the job's directory, before any work."""
+    p = Path(out)
+    if p.exists() and not p.is_dir():
+        raise InputError("the output must be a directory; a file of that name exists", path=p)
+    parent = p if p.exists() else next((q for q in p.parents if q.exists()), Path("."))
+    import os
+
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError("the output directory cannot be written (permission denied)", path=parent)
+
+
+def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
+                options: ReconstructOptions | None = None, show_progress: bool = False) -> dict[str, Any]:
+    """Reconstruct a shot in this process and write its outputs into ``out``; returns the summary
+    (:func:`summarise`; :func:`report_lines` formats it)."""
+    options = options or ReconstructOptions()
+    check_output(out)
+    t0 = time.perf_counter()
+    shot = Shot(index_dir, bundles, options)
+    t1 = time.perf_counter()
+    res = shot.run(show_progress)
+    t2 = time.perf_counter()
+    write_reconstruction(out, res, shot.index.arrays, options)
+    return summarise(res, shot, out, {"load": t1 - t0, "solve": t2 - t1, "write": time.perf_counter() - t2})

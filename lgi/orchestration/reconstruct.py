@@ -1,0 +1,154 @@
+"""The per-shot reconstruction as Prefect tasks and a flow: the stages of :mod:`lgi.jobs.reconstruct`.
+
+Frames are chosen in chunks chained one after another (each continues from the last choice of the chunk
+before, as a single pass does), then finished in chunks mapped over the task runner (a frame's surface
+depends only on the choices in its smoothing windows), then assembled and written by the job's one writer.
+So any chunk size and any task runner (threads, or Dask through prefect-dask: ``reconstruct_shot.with_options(
+task_runner=DaskTaskRunner(...))``) give the files ``lgi reconstruct`` writes, bit for bit (tested).
+"""
+
+from __future__ import annotations
+
+import shutil
+import uuid
+from dataclasses import fields
+from pathlib import Path
+
+from prefect import flow, get_run_logger, task, unmapped
+from prefect.artifacts import (
+    create_markdown_artifact,
+    create_progress_artifact,
+    create_table_artifact,
+    update_progress_artifact,
+)
+from prefect.cache_policies import NO_CACHE
+
+from ..jobs import reconstruct as job
+
+_T = {"cache_policy": NO_CACHE, "persist_result": False}
+
+
+@task(name="track-footage", **_T)
+def track_footage(footage: str, calib: str, markers: str, bundles: str, dataset: str | None = None,
+                  units: str = "cm", helmet: str | None = None, labels: str | None = None, reference: int = 0) -> dict:
+    """Stereo footage to the bundles file and the 2D tracks table (see :func:`lgi.footage.track_to_files`)."""
+    from ..footage import track_to_files
+
+    _, summary = track_to_files(footage, calib, markers, bundles, dataset=dataset, units=units, labels=labels,
+                                reference=reference, helmet=helmet)
+    return summary
+
+
+@task(name="choose-chunk", **_T)
+def choose_chunk(index_dir: str, bundles: str, options: dict, lo: int, hi: int, out: str,
+                 previous: str | None = None) -> str:
+    """Choose shapes and weights for frames lo:hi (see :func:`lgi.jobs.reconstruct.choose_chunk`)."""
+    return job.choose_chunk(index_dir, bundles, job.ReconstructOptions.from_json(options), lo, hi, out, previous)
+
+
+@task(name="finish-chunk", **_T)
+def finish_chunk(index_dir: str, bundles: str, options: dict, choices: list[str], lo: int, hi: int,
+                 out: str) -> str:
+    """Blend, skin and correct frames lo:hi (see :func:`lgi.jobs.reconstruct.finish_chunk`)."""
+    return job.finish_chunk(index_dir, bundles, job.ReconstructOptions.from_json(options), choices, lo, hi, out)
+
+
+@task(name="write-shot", **_T)
+def write_shot(index_dir: str, bundles: str, options: dict, choices: list[str], parts: list[str], out: str) -> dict:
+    """Join the chunks and write the outputs (see :func:`lgi.jobs.reconstruct.assemble`)."""
+    return job.assemble(index_dir, bundles, job.ReconstructOptions.from_json(options), choices, parts, out)
+
+
+@flow(name="reconstruct-shot")
+def reconstruct_shot(
+    index_dir: str,
+    bundles: str,
+    out: str,
+    temporal_weight: float = 0.02,
+    spatial_weight: float = 1e-3,
+    smooth: int = 1,
+    jaw_smooth: int | None = None,
+    noise: float | str = "auto",
+    method: str = "local",
+    jaw: str = "auto",
+    max_gap: int = 0,
+    bilateral: str | None = None,
+    obj: bool = False,
+    usd: bool = False,
+    plot: bool = False,
+    fps: float = 30.0,
+    chunk_size: int = 60,
+    footage: str | None = None,
+    calib: str | None = None,
+    markers: str | None = None,
+    helmet: str | None = None,
+) -> dict:
+    """Reconstruct a shot into ``out``: the options of ``lgi reconstruct`` (:class:`~lgi.jobs.reconstruct.
+    ReconstructOptions`), with the work in chunks of ``chunk_size`` frames.
+
+    With ``footage`` (stereo frames), ``calib`` and ``markers``, the shot starts from the cameras: the
+    ``track-footage`` task writes ``bundles`` (and its 2D tracks table) first, with ``helmet`` dots if given.
+    """
+    params = dict(locals())
+    opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
+    job.check_output(out)
+    tracking = None
+    if footage:
+        if not (calib and markers):
+            raise ValueError("a shot from footage needs calib and markers")
+        tracking = track_footage(footage, calib, markers, bundles, helmet=helmet)
+        create_table_artifact(table=[{k: v for k, v in tracking.items() if not isinstance(v, (list, dict))}],
+                              key="shot-tracking", description="footage to bundles: tracking summary")
+    n = job.preflight(index_dir, bundles, opts)
+    bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
+    # One working folder per run: two runs into the same OUT never touch each other's chunk files.
+    work = Path(out).parent / f".{Path(out).name}.chunks-{uuid.uuid4().hex[:12]}"
+    o = opts.to_json()
+    try:
+        progress = create_progress_artifact(progress=0.0, description=f"frames chosen, in chunks of {chunk_size}")
+        futures, prev = [], None
+        for lo, hi in bounds:
+            prev = choose_chunk.submit(index_dir, bundles, o, lo, hi, str(work / f"choice_{lo:06d}.npz"), prev)
+            futures.append(prev)
+        choices = []
+        for k, fut in enumerate(futures):
+            choices.append(fut.result())
+            update_progress_artifact(progress, progress=100.0 * (k + 1) / len(futures))
+        parts = finish_chunk.map(unmapped(index_dir), unmapped(bundles), unmapped(o), unmapped(choices),
+                                 [b[0] for b in bounds], [b[1] for b in bounds],
+                                 [str(work / f"part_{lo:06d}.npz") for lo, _ in bounds])
+        summary = write_shot(index_dir, bundles, o, choices, [p.result() for p in parts], out)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    _report(summary, out)
+    logger = get_run_logger()
+    for line in job.report_lines(summary):
+        logger.info(line)
+    if tracking:
+        summary["tracking"] = tracking
+    return summary
+
+
+def _report(summary: dict, out: str) -> None:
+    """Per-marker table and a markdown report as artifacts."""
+    import pandas as pd
+
+    d = pd.read_csv(Path(out) / "diagnostics.csv")
+    per_marker = d.groupby("marker").agg(
+        contained=("status", lambda s: round(float((s == "contained").mean()), 3)),
+        projected=("status", lambda s: int((s == "projected").sum())),
+        neighbour=("status", lambda s: int((s == "neighbour").sum())),
+        missing=("status", lambda s: int(s.isin(["missing", "bridged"]).sum())),
+        median_projection_mm=("projection_mm", "median")).reset_index()
+    create_table_artifact(table=per_marker.to_dict(orient="records"), key="shot-markers",
+                          description="per marker: share of frames contained in the data; frames projected, "
+                                      "taking a neighbour's blend, missing")
+    png = Path(out) / "per_frame.png"
+    plot = f"Per-frame plot: [per_frame.png]({png.resolve().as_uri()})  \n" if png.is_file() else ""
+    create_markdown_artifact(key="shot-report", markdown=(
+        f"# Shot reconstruction\n\n{summary['frames']} frames x {summary['markers']} markers -> `{summary['out']}`\n\n"
+        "| contained | projected | neighbour's blend | missing or bridged | max bundle residual |\n"
+        "|---|---|---|---|---|\n"
+        f"| {summary['contained_share']:.1%} | {summary['projected_share']:.1%} | {summary['neighbour_share']:.1%} "
+        f"| {summary['missing_share']:.1%} | {summary['max_residual_mm']:.2e} mm |\n\n"
+        f"{plot}Diagnostics: `diagnostics.csv`, `per_frame.csv`\n"))

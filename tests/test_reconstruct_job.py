@@ -1,0 +1,112 @@
+"""The reconstruct job: one implementation whatever the schedule (plain, flow, any chunk size)."""
+
+import filecmp
+import inspect
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lgi.cli import main
+from lgi.jobs.reconstruct import ReconstructOptions
+
+FILES = ("meshes.npz", "diagnostics.csv", "per_frame.csv")
+
+
+@pytest.fixture(scope="module")
+def shot(tmp_path_factory):
+    t = tmp_path_factory.mktemp("job")
+    assert main(["synth", "--out", str(t / "s"), "--vertices", "2500", "--frames", "30", "-q"]) == 0
+    for name, rig in (("idx", []), ("idxr", ["--jaw-rig", str(t / "s" / "jaw_rig.npz")])):
+        assert main(["build", str(t / "s" / "dataset"), "--markers", str(t / "s" / "markers.csv"), "--out",
+                     str(t / name), "-q", *rig]) == 0
+    d = pd.read_csv(t / "s" / "bundles.csv")
+    rng = np.random.default_rng(3)
+    for c in ("x", "y", "z"):
+        d[c] += rng.normal(0.0, 0.03, len(d))  # 0.3 mm
+    d = d.drop(index=rng.choice(len(d), len(d) // 30, replace=False))  # some markers missing
+    d.to_csv(t / "noisy.csv", index=False)
+    return t
+
+
+def _same(a: Path, b: Path, names=FILES) -> None:
+    for name in names:
+        assert filecmp.cmp(a / name, b / name, shallow=False), name
+
+
+def test_flow_signature_is_the_options() -> None:
+    """Every option of the job is a flow parameter with the same default (a new option cannot be forgotten)."""
+    from lgi.orchestration.reconstruct import reconstruct_shot
+
+    params = inspect.signature(reconstruct_shot.fn).parameters
+    for f in fields(ReconstructOptions):
+        assert f.name in params, f.name
+        assert params[f.name].default == f.default, f.name
+
+
+def test_plain_and_flow_agree_with_non_default_options(prefect_harness, shot: Path) -> None:
+    """--smooth, --obj, --jaw none and --bilateral, plain and through the flow in chunks of 7 and 30 frames:
+    identical files."""
+    common = [str(shot / "idx"), "--bundles", str(shot / "s" / "bundles.csv"), "--smooth", "3", "--obj",
+              "--jaw", "none", "--bilateral", "1.5:0.5", "-q"]
+    assert main(["reconstruct", *common, "--out", str(shot / "plain")]) == 0
+    for chunk in ("7", "30"):
+        out = shot / f"flow{chunk}"
+        assert main(["reconstruct", *common, "--out", str(out), "--flow", "--chunk-size", chunk]) == 0
+        _same(shot / "plain", out)
+        names = sorted(p.name for p in (shot / "plain" / "obj").iterdir())
+        assert sorted(p.name for p in (out / "obj").iterdir()) == names
+        for p in (shot / "plain" / "obj").iterdir():
+            assert filecmp.cmp(p, out / "obj" / p.name, shallow=False)
+    assert not list(shot.glob(".flow*.chunks-*")), "chunk files left behind"
+
+
+def test_noisy_rig_shot_same_on_every_schedule(prefect_harness, shot: Path) -> None:
+    """Noisy bundles with gaps on a rigged index: the plain two-thread path and the flow in chunks of 8 give the
+    same files, USD included; so do smoothed runs in chunks of 8 and 11."""
+    common = [str(shot / "idxr"), "--bundles", str(shot / "noisy.csv"), "-q", "--usd", "--fps", "24"]
+    assert main(["reconstruct", *common, "--out", str(shot / "np")]) == 0
+    assert main(["reconstruct", *common, "--out", str(shot / "nf"), "--flow", "--chunk-size", "8"]) == 0
+    _same(shot / "np", shot / "nf", (*FILES, "shot.usdc"))
+    smooth = [*common, "--smooth", "5", "--jaw-smooth", "3", "--flow"]
+    assert main(["reconstruct", *smooth, "--out", str(shot / "s8"), "--chunk-size", "8"]) == 0
+    assert main(["reconstruct", *smooth, "--out", str(shot / "s11"), "--chunk-size", "11"]) == 0
+    _same(shot / "s8", shot / "s11", (*FILES, "shot.usdc"))
+    a = np.load(shot / "np" / "meshes.npz")["vertices"]
+    b = np.load(shot / "s8" / "meshes.npz")["vertices"]
+    assert np.abs(a - b).max() > 1e-4  # the smoothing did something
+
+
+def test_jaw_none_on_a_rigged_index_refused_on_both_paths(prefect_harness, shot: Path, capsys) -> None:
+    for extra in ([], ["--flow"]):
+        code = main(["reconstruct", str(shot / "idxr"), "--bundles", str(shot / "s" / "bundles.csv"), "--out",
+                     str(shot / "refused"), "--jaw", "none", "-q", *extra])
+        assert code == 2
+        assert "jaw rig" in capsys.readouterr().err
+    assert not (shot / "refused" / "meshes.npz").exists()
+
+
+def test_rerun_replaces_the_jobs_outputs_only(shot: Path) -> None:
+    out = shot / "rerun"
+    args = ["reconstruct", str(shot / "idx"), "--bundles", str(shot / "s" / "bundles.csv"), "--out", str(out), "-q"]
+    assert main([*args, "--obj", "--plot"]) == 0
+    assert (out / "obj").is_dir() and (out / "per_frame.png").is_file()
+    (out / "notes.txt").write_text("mine")
+    assert main(args) == 0
+    assert not (out / "obj").exists() and not (out / "per_frame.png").exists()  # nothing stale from the first run
+    assert (out / "notes.txt").read_text() == "mine"  # not the job's: left alone
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize("flag,value", [("--smooth", "0"), ("--smooth", "-3"), ("--chunk-size", "0"),
+                                        ("--max-gap", "-1"), ("--temporal-weight", "nan"), ("--noise", "-1"),
+                                        ("--fps", "0"), ("--bilateral", "1:0")])
+def test_bad_options_refused_before_any_work(shot: Path, flag: str, value: str, capsys) -> None:
+    out = shot / "bad"
+    code = main(["reconstruct", str(shot / "idx"), "--bundles", str(shot / "s" / "bundles.csv"), "--out", str(out),
+                 "-q", flag, value])
+    assert code == 2
+    assert flag in capsys.readouterr().err
+    assert not out.exists()
