@@ -37,6 +37,7 @@ import pandas as pd
 
 from .baselines import BlendshapeSolver, RBFSolver, RiggedBlendshapeSolver, SmoothSolver
 from .evaluate import jitter, normal_angle_errors, vertex_errors
+from .units import MM_PER_CM
 
 ICT_HELD_OUT = ["mouthFunnel", "mouthSmile_L", "browInnerUp_R", "cheekPuff_R", "noseSneer_L", "jawLeft"]
 
@@ -123,7 +124,7 @@ def run_set(bench_set, methods: list[Method], noisy: bool = False, frames: int |
                "lips_rms_mm": float(np.sqrt(np.mean(err[:, bs.lips] ** 2))) if bs.lips.any() else np.nan,
                "wide_open_rms_mm": (float(np.sqrt(np.mean(e[bs.wide_open[:n]] ** 2)))
                                     if bs.wide_open[:n].any() else np.nan),
-               "bundle_residual_mm": float(np.nanmax(resid)) * 10, "frames_per_s": n / dt}
+               "bundle_residual_mm": float(np.nanmax(resid)) * MM_PER_CM, "frames_per_s": n / dt}
         if normal_frames:
             sel = np.unique(np.linspace(0, n - 1, min(normal_frames, n)).astype(int))
             row["normal_deg"] = float(normal_angle_errors(recon[sel], truth[sel], bs.triangles)[:, bs.mask].mean())

@@ -13,56 +13,33 @@ import numpy as np
 from . import __version__
 from .errors import InputError, LgiError
 from .npz import save_npz
+from .units import MM_PER_CM
 
 
-def _identity_weights(text: str | None) -> dict[str, float] | None:
-    if not text:
-        return None
-    out = {}
-    for part in text.split(","):
-        name, sep, w = part.partition("=")
-        try:
-            out[name.strip()] = float(w) if sep else 1.0
-        except ValueError:
-            raise InputError(f"--identity: weight {w!r} of {name!r} is not a number") from None
-    return out
+def _import_options(args: argparse.Namespace):
+    from .jobs.dataset import ImportOptions
+
+    return ImportOptions(neutral=args.neutral, include=args.include, exclude=args.exclude,
+                         rigid_vertices=args.rigid_vertices, units=args.units, deltas=args.deltas,
+                         identity=args.identity)
 
 
 def cmd_import(args: argparse.Namespace) -> int:
-    from .importers import import_obj_folder
+    from .jobs.dataset import import_dataset, import_report
 
+    opts = _import_options(args)
     if args.flow:
-        if args.identity:
-            raise InputError("--flow does not take --identity yet")
-        from flows.rebuild_dataset import rebuild_dataset
+        from .orchestration.rebuild import rebuild_dataset
+        from .pipeline import rebuild_report
 
-        s = rebuild_dataset(args.shapes_dir, args.out, neutral=args.neutral, include=args.include,
-                            exclude=args.exclude, rigid_vertices=args.rigid_vertices, units=args.units,
-                            deltas=args.deltas, markers=args.markers)
-        computed = [k for k, hit in s["stages"].items() if not hit]
-        print(f"rebuild-dataset flow: {s['n_shapes']} shapes -> {Path(args.out).resolve()} (dataset/"
-              f"{', index/, verification/' if args.markers else ''}); stages computed: {computed or 'none'}")
+        s = rebuild_dataset(args.shapes_dir, args.out, markers=args.markers, **opts.to_json())
+        for line in rebuild_report(s):
+            print(line)
         return 0 if "verification" not in s or s["verification"]["passed"] else 1
-
-    t0 = time.perf_counter()
-    rigid = args.rigid_vertices
-    ds = import_obj_folder(
-        args.shapes_dir, neutral=args.neutral, include=args.include, exclude=args.exclude, units=args.units,
-        rigid_vertices=rigid, deltas=args.deltas, identity_weights=_identity_weights(args.identity),
-        show_progress=not args.quiet,
-    )
-    ds.save(args.out)
-    st = ds.info["stabilisation"]
-    print(f"imported {ds.n_shapes} shapes, {ds.n_vertices} vertices, {len(ds.face_offsets) - 1} faces "
-          f"({ds.units}) in {time.perf_counter() - t0:.1f} s")
-    if st["method"] != "none":
-        angles = [np.degrees(np.arccos(np.clip((np.trace(m.rigid_transform[:3, :3]) - 1) / 2, -1, 1)))
-                  for m in ds.shape_meta]
-        shifts = [np.linalg.norm(m.rigid_transform[:3, 3]) for m in ds.shape_meta]
-        print(f"stabilised on {st['count']} rigid vertices ({st['method']}): removed up to "
-              f"{max(angles):.3g} deg and {max(shifts):.3g} {ds.units}; "
-              f"worst fit RMS {st['fit_rms_max']:.2g} {ds.units}")
-    print(f"dataset: {Path(args.out).resolve()}  (content hash {ds.content_hash()[:16]})")
+    if args.markers:
+        raise InputError("--markers builds and verifies an index: it needs --flow (or run lgi build and lgi verify)")
+    for line in import_report(import_dataset(args.shapes_dir, args.out, opts, show_progress=not args.quiet)):
+        print(line)
     return 0
 
 
@@ -190,39 +167,13 @@ def _index_options(args: argparse.Namespace):
 
 
 def cmd_build(args: argparse.Namespace) -> int:
-    from .dataset import ShapeDataset
-    from .index import build_index
-    from .markers import read_layout
+    from .jobs.index import build, build_report
 
-    t0 = time.perf_counter()
-    ds = ShapeDataset.load(args.dataset_dir)
-    layout = read_layout(args.markers, ds.triangles)
-    rig = None
-    if args.jaw_rig:
-        from .jaw import JawRig
-
-        rig = JawRig.load(args.jaw_rig, ds.n_vertices)
-    index, reports = build_index(ds, layout, _index_options(args), show_progress=not args.quiet, jaw_rig=rig)
-    index.save(args.out, reports)
-    c = index.manifest["counts"]
-    per = reports["bundles.csv"]
-    print(f"index of {c['shapes']} shapes x {c['markers']} markers built in {time.perf_counter() - t0:.1f} s")
-    print(f"points per bundle: {int(per.points_before.iloc[0])} before, {per.points_after.median():.0f} median after "
-          f"pruning ({per.points_after.min()}-{per.points_after.max()}); simplices: {c['simplices']} "
-          f"({per.simplices.median():.0f} median per bundle)")
-    for msg in index.manifest["nn_conflicts"]:
-        print(f"warning: {msg}")
-    print(f"index: {Path(args.out).resolve()}  (reports: bundles.csv, pruning.csv)")
+    summary = build(args.dataset_dir, args.markers, args.out, _index_options(args), args.jaw_rig,
+                    show_progress=not args.quiet)
+    for line in build_report(summary):
+        print(line)
     return 0
-
-
-def _solver(index, args: argparse.Namespace):
-    from .solver import LGISolver
-
-    jaw = getattr(args, "jaw", "auto")
-    return LGISolver(index, temporal_weight=getattr(args, "temporal_weight", 0.0),
-                     spatial_weight=args.spatial_weight, jaw="none" if jaw == "none" else "auto",
-                     method=getattr(args, "method", "local"))
 
 
 def _reconstruct_options(args: argparse.Namespace):
@@ -252,80 +203,27 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from .index import LGIIndex
-    from .verify import verify_index
+    from .jobs.index import VerifyOptions, verify, verify_report
 
-    index = LGIIndex.load(args.index_dir)
-    table = verify_index(index, _solver(index, args), args.shapes, show_progress=not args.quiet)
-    bad = table.rms_mm > args.tolerance
-    print(table.to_string(index=False, float_format=lambda v: f"{v:.5f}"))
-    worst = table["shape"].iloc[int(table.rms_mm.argmax())]
-    verdict = f"FAILED for {int(bad.sum())}" if bad.any() else "passed"
-    print(f"{len(table)} shapes, marked region ({int(index.arrays['nn_region'].sum())} vertices): worst RMS "
-          f"{table.rms_mm.max():.5f} mm ({worst}), worst max {table.max_mm.max():.4f} mm; whole mesh: worst RMS "
-          f"{table.rms_all_mm.max():.5f} mm; largest bundle residual {table.residual_mm.max():.2e} mm")
-    unseen = table[(table.rms_all_mm > args.tolerance) & ~bad]
-    if len(unseen):
-        print(f"{len(unseen)} shapes move vertices outside the marked region that no marker sees "
-              f"(whole-mesh RMS above tolerance), e.g. {', '.join(unseen['shape'].head(3))}")
-    print(f"tolerance {args.tolerance} mm RMS over the marked region: {verdict}")
-    return 1 if bad.any() else 0
+    table, summary = verify(args.index_dir, VerifyOptions(tolerance=args.tolerance, shapes=args.shapes,
+                                                          spatial_weight=args.spatial_weight),
+                            show_progress=not args.quiet)
+    for line in verify_report(table, summary):
+        print(line)
+    return 0 if summary["passed"] else 1
 
 
 def cmd_augment(args: argparse.Namespace) -> int:
-    from .augment import augmentation_report, linear_combinations, pick_combinations, simulated_combinations
-    from .dataset import ShapeDataset
+    from .jobs.dataset import AugmentOptions, augment_dataset, augment_report
 
-    if not (args.linear or args.simulate):
-        raise InputError("choose an augmentation: --linear and/or --simulate")
-    try:
-        levels = tuple(float(v) for v in args.levels.split(","))
-        orders = tuple(int(v) for v in args.orders.split(","))
-    except ValueError:
-        raise InputError(f"--levels/--orders: comma-separated numbers expected ({args.levels!r}, {args.orders!r})")\
-            from None
-    requires = None
-    if args.requires:
-        requires = dict(part.split("=", 1) for part in args.requires.split(",") if "=" in part)
-    ds = ShapeDataset.load(args.dataset_dir)
-    src = ds.select(include=args.include) if args.include else ds
-    picks = pick_combinations(src.names, args.budget, levels, orders, args.seed, requires)
-    aug = ds
-    if args.linear:
-        aug = linear_combinations(aug, 0, levels, orders, args.seed, picks=picks)
-    if args.simulate:
-        from .flesh import FleshOptions
-
-        rig = None
-        if args.jaw_rig:
-            from .jaw import JawRig
-
-            rig = JawRig.load(args.jaw_rig, ds.n_vertices)
-        opts = FleshOptions(thickness=args.thickness, iterations=args.iterations)
-        t0 = time.perf_counter()
-        try:
-            aug = simulated_combinations(aug, 0, levels, orders, args.seed, rig=rig, options=opts, picks=picks,
-                                         show_progress=not args.quiet)
-        except ValueError as e:  # e.g. a dataset in which nothing moves
-            raise InputError(f"cannot simulate in-betweens: {e}", path=args.dataset_dir) from e
-        dv = [abs(m.extra["volume_change"]) for m in aug.shape_meta if m.extra.get("method") == "simulated"]
-        print(f"{len(picks)} simulated in-betweens in {time.perf_counter() - t0:.1f} s; flesh volume change "
-              f"median {100 * np.median(dv):.2f} %, max {100 * np.max(dv):.2f} %"
-              + ("" if rig else " (no --jaw-rig: the jaw side is held at rest and the lips are not kept apart)"))
-    aug.save(args.out)
-    print(f"{aug.n_shapes - ds.n_shapes} in-betweens added ({len(picks)} combinations, budget {args.budget}) -> "
-          f"{aug.n_shapes} shapes in {Path(args.out).resolve()}")
-    if args.markers:
-        from .markers import read_layout
-
-        rep = augmentation_report(ds, aug, read_layout(args.markers, ds.triangles))
-        from .atomic import atomic_file
-
-        with atomic_file(Path(args.out) / "augmentation.csv") as tmp:
-            rep.to_csv(tmp, index=False)
-        print(f"per bundle, points after pruning: {rep.points_original.median():.0f} -> "
-              f"{rep.points_augmented.median():.0f} (median); the in-betweens added {rep.kept.sum()} points over "
-              f"{len(rep)} bundles (augmentation.csv)")
+    opts = AugmentOptions(linear=args.linear, simulate=args.simulate, budget=args.budget,
+                          levels=AugmentOptions.parse_list(args.levels, float, "--levels"),
+                          orders=AugmentOptions.parse_list(args.orders, int, "--orders"), seed=args.seed,
+                          include=args.include, requires=args.requires, thickness=args.thickness,
+                          iterations=args.iterations)
+    s = augment_dataset(args.dataset_dir, args.out, opts, args.jaw_rig, args.markers, show_progress=not args.quiet)
+    for line in augment_report(s):
+        print(line)
     return 0
 
 
@@ -381,63 +279,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
-    import logging
+    from .jobs.index import RigOptions, fit_jaw_rig, rig_report
 
-    from .dataset import ShapeDataset
-    from .jaw import PARAM_NAMES, fit_rig
-
-    ds = ShapeDataset.load(args.dataset_dir)
-    spec = args.jaw_vertices
-    if ":" in spec and not Path(spec).exists():
-        try:
-            lo, hi = (int(v) for v in spec.split(":"))
-        except ValueError:
-            raise InputError(f"--jaw-vertices takes FIRST:LAST or a file, got {spec!r}") from None
-        jv = np.arange(lo, hi + 1)
-        if lo < 0 or hi >= ds.n_vertices or hi < lo:
-            raise InputError(f"--jaw-vertices {spec}: out of range for {ds.n_vertices} vertices")
-    else:
-        from .importers import load_vertex_indices
-
-        jv = load_vertex_indices(spec, ds.n_vertices)
-    sel = ds.select(include=args.shapes)
-    if sel.n_shapes == 0:
-        raise InputError(f"no shape matches {args.shapes!r}", path=args.dataset_dir)
-    # fit_rig logs its warnings; they are printed below with the report, so keep Python's last-resort
-    # handler from printing them a second time on stderr (handlers an application set up still get them).
-    jaw_log = logging.getLogger("lgi.jaw")
-    quiet = logging.NullHandler()
-    jaw_log.addHandler(quiet)
-    jaw_log.propagate = False
-    try:
-        rig, params = fit_rig(ds.neutral, sel.deltas, jv, ds.triangles, names=sel.names)
-    finally:
-        jaw_log.removeHandler(quiet)
-        jaw_log.propagate = True
-    rep = rig.fit_report
-    rig.save(args.out)
-    print(f"jaw rig from {sel.n_shapes} shapes and {len(jv)} jaw vertices: pivot {np.round(rig.pivot, 3).tolist()} "
-          f"{ds.units}; {int((rig.weights > 0.5).sum())} vertices with weight > 0.5")
-    how = ("pivot and slides solved jointly" if rep.joint_slides
-           else f"pivot as the rotation{'s' if len(rep.used) > 1 else ''}' fixed point")
-    print(f"hinge from {len(rep.used)} opening shape{'s' if len(rep.used) > 1 else ''}: {', '.join(rep.used)} "
-          f"({how}); weights from {rep.widest}")
-    off = np.linalg.norm(rep.pivot - rep.centroid)
-    print(f"  pivot ({', '.join(f'{v * 10:.2f}' for v in rep.pivot)}) mm, {off * 10:.1f} mm from the jaw vertices' "
-          f"centroid")
-    for name in rep.used:
-        print(f"  opening {name}: {rep.angles_deg[name]:.2f} deg, slide {rep.slides[name] * 10:.2f} mm, hinge "
-              f"residual {rep.residual_rms[name] * 10:.3f} mm RMS")
-    for name, why in rep.skipped.items():
-        print(f"  skipped {name}: {why}")
-    for name, th in zip(sel.names, params, strict=True):
-        fit = rig.skin(ds.neutral, th) - ds.neutral
-        err = np.linalg.norm(fit - sel.deltas[sel.index(name)], axis=1)[rig.weights > 0.5]
-        vals = ", ".join(f"{n} {v:.3g}" for n, v in zip(PARAM_NAMES, th, strict=True))
-        print(f"  {name}: {vals}; skinning reproduces it to {np.sqrt(np.mean(err**2)) * 10:.2f} mm RMS on the jaw")
-    for msg in rep.warnings:
-        print(f"warning: {msg}")
-    print(f"rig: {Path(args.out).resolve()}")
+    for line in rig_report(fit_jaw_rig(args.dataset_dir, args.out, RigOptions(args.jaw_vertices, args.shapes))):
+        print(line)
     return 0
 
 
@@ -473,9 +318,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for name in names:
         bs = (benchsets.synthetic_set(frames=args.frames) if name == "synthetic"
               else benchsets.load_sets([name], ict)[name])
-        if args.noise != benchsets.NOISE_CM * 10:
+        if args.noise != benchsets.NOISE_CM * MM_PER_CM:
             bs = dataclasses.replace(bs, noisy=benchsets.tracking_noise(bs.bundles, bs.info.get("seed", 0),
-                                                                       noise_cm=args.noise / 10))
+                                                                       noise_cm=args.noise / MM_PER_CM))
         sets[name] = bs
     table, maps = accuracy_benchmark(sets, log=print)
     _write_csv(table, out / "accuracy.csv")
@@ -530,7 +375,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     res = shot.run(show_progress=not args.quiet)
     dt = time.perf_counter() - t
     write_reconstruction(out, res, index.arrays, opts)
-    err = np.linalg.norm(res.vertices - r["truth"], axis=2) * 10
+    err = np.linalg.norm(res.vertices - r["truth"], axis=2) * MM_PER_CM
     print(f"[4/4] reconstructed the {args.frames}-frame performance (frames not in the dataset) at "
           f"{args.frames / dt:.0f} frames/s steady state (kernel compilation or cache load and 3 warm-up frames: "
           f"{warm:.1f} s); error against the truth: RMS {np.sqrt(np.mean(err**2)):.3f} mm, "
@@ -598,7 +443,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, metavar="BUNDLES", help="bundles file (.csv or .parquet)")
     s.add_argument("--dataset", metavar="DIR", help="dataset whose neutral places the markers (and sets the units)")
     s.add_argument("--units", default="cm", choices=["mm", "cm", "m"],
-                   help="units of the marker positions and of the output without --dataset (cm)")
+                   help="units of the marker file's positions without --dataset (cm); the bundles are written "
+                        "in cm, as datasets are stored")
     s.add_argument("--labels", metavar="CSV", help="reference-frame labels: camera,x,y,marker")
     s.add_argument("--reference-frame", type=int, default=0, metavar="F", help="frame to label (0)")
     s.add_argument("--gate", type=float, default=12.0, metavar="PX", help="tracking search radius (12 px)")

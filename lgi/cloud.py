@@ -51,6 +51,25 @@ class CloudOptions:
     budget: int = 20000
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        from .errors import InputError
+
+        # (name, CLI flag, least, most, whole number)
+        checks = (("min_motion_rel", "--min-motion-rel", 0.0, 1.0, False),
+                  ("min_motion_abs", "--min-motion-abs", 0.0, None, False),
+                  ("merge_tol", "--merge-tol", 0.0, None, False), ("flat_tol", "flat_tol", 0.0, None, False),
+                  ("n_subsets", "--subsets", 0, None, True), ("subset_fraction", "--subset-fraction", 0.0, 1.0, False),
+                  ("knn", "--knn", 0, None, True), ("min_quality", "--min-quality", 0.0, 1.0, False),
+                  ("max_edge_rel", "--max-edge-rel", 0.0, None, False), ("budget", "--budget", 1, None, True),
+                  ("seed", "--seed", 0, None, True))
+        for name, flag, least, most, whole in checks:
+            v = getattr(self, name)
+            ok = (isinstance(v, (int, np.integer)) if whole else isinstance(v, (int, float, np.number)))
+            ok = ok and not isinstance(v, bool) and bool(np.isfinite(v)) and v >= least and (most is None or v <= most)
+            if not ok:
+                rng = f">= {least}" if most is None else f"in [{least}, {most}]"
+                raise InputError(f"{flag} must be {'a whole number' if whole else 'a number'} {rng}, not {v!r}")
+
     def to_json(self) -> dict:
         return dict(self.__dict__)
 

@@ -256,6 +256,9 @@ class ShapeDataset:
         if manifest.get("format_version", 0) > FORMAT_VERSION:
             raise InputError(f"dataset format version {manifest['format_version']} is newer than this lgi "
                              f"reads ({FORMAT_VERSION})", path=mpath)
+        if manifest.get("units", "cm") != "cm":
+            raise InputError(f"dataset in {manifest['units']!r}: datasets are stored in cm (lgi import converts); "
+                             f"re-import it with lgi import --units {manifest['units']}", path=mpath)
         with np.load(directory / "mesh.npz") as z:
             arrays = {k: z[k] for k in z.files}
         deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None)

@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from .mesh import vertex_normals
+from .units import MM_PER_CM
 
 
 def vertex_errors(recon: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """(F, V) float64 distances in mm between reconstructed and true vertices (both cm)."""
-    return np.linalg.norm(np.asarray(recon, np.float64) - np.asarray(truth, np.float64), axis=-1) * 10
+    return np.linalg.norm(np.asarray(recon, np.float64) - np.asarray(truth, np.float64), axis=-1) * MM_PER_CM
 
 
 def normal_angle_errors(recon: np.ndarray, truth: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -32,7 +33,7 @@ def jitter(vertices: np.ndarray, mask: np.ndarray | None = None) -> float:
     mask : (V,) bool, optional
         Vertices to measure.
     """
-    v = np.asarray(vertices, np.float64) * 10
+    v = np.asarray(vertices, np.float64) * MM_PER_CM
     if mask is not None:
         v = v[:, mask]
     acc = v[2:] - 2 * v[1:-1] + v[:-2]

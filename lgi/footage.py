@@ -219,29 +219,26 @@ def neutral_layout(markers: str | os.PathLike[str], dataset: str | os.PathLike[s
     return layout.names, df[["x", "y", "z"]].to_numpy(np.float64), units
 
 
-MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
-
-
 def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str], markers: str | os.PathLike[str],
                    out: str | os.PathLike[str], tracks: str | os.PathLike[str] | None = None,
                    dataset: str | os.PathLike[str] | None = None, units: str = "cm",
                    labels: str | os.PathLike[str] | None = None, reference: int = 0,
                    helmet: str | os.PathLike[str] | None = None, gate_px: float = 12.0, dot_size: float = 9.0
                    ) -> tuple[ShotTracks, dict]:
-    """``lgi track``: footage to the bundles file (dataset units) and the 2D tracks table (Parquet).
+    """``lgi track``: footage to the bundles file (cm, the library's unit, whatever ``units`` the marker file's
+    positions are in) and the 2D tracks table (Parquet).
 
     Returns the tracks and a summary (counts, reprojection error, anchors, rejections, speed, paths).
     """
     from .atomic import atomic_file
     from .bundles import Bundles, write_bundles
+    from .units import MM_PER_CM, check_units
 
     rig = StereoRig.load(calib)
     names, neutral, units = neutral_layout(markers, dataset, units)
-    if units not in MM_PER_UNIT:
-        raise InputError(f"dataset units {units!r}: expected mm, cm or m")
-    mm = MM_PER_UNIT[units]
+    neutral_mm = neutral * check_units(units, "--units") * MM_PER_CM  # the cameras are calibrated in mm
     t0 = time.perf_counter()
-    shot = track_footage(footage, rig, neutral * mm, names, labels=labels, reference=reference,
+    shot = track_footage(footage, rig, neutral_mm, names, labels=labels, reference=reference,
                          options=TrackOptions(gate_px=gate_px), helmet=read_helmet(helmet) if helmet else None,
                          dot_options=DotOptions.for_size(dot_size))
     dt = time.perf_counter() - t0
@@ -251,7 +248,7 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
     with atomic_file(tracks_out) as tmp:
         tracks_table(shot).to_parquet(tmp, index=False)
     try:
-        write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / mm))
+        write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / MM_PER_CM))
     except BaseException:
         tracks_out.unlink(missing_ok=True)  # the two files go together, or neither is left
         raise
@@ -264,7 +261,7 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
         "reprojection_p95_px": float(np.percentile(err, 95)) if len(err) else float("nan"),
         "rejected_epipolar": int((tr.rejected == 1).sum()), "rejected_neighbour": int((tr.rejected == 2).sum()),
         "stable_markers": [n for n, w in zip(names, shot.stable_weights, strict=True) if w > 0.5],
-        "frames_per_second": F / dt, "seconds": shot.seconds, "units": units,
+        "frames_per_second": F / dt, "seconds": shot.seconds, "units": "cm",
         "bundles": str(out.resolve()), "tracks": str(tracks_out.resolve()),
     }
     return shot, summary

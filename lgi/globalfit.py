@@ -23,6 +23,7 @@ import numpy as np
 
 from . import _kernels as K
 from .jaw import N_PARAMS, JawRig
+from .units import MM_PER_CM
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,7 @@ def join_gain(noise_mm: float) -> float:
     made it 17x faster but moved the benchmark's noisy figures by up to 11 % (p95, ICT combinations): shapes
     the bundles barely see still shape the vertices. A hundredth of it keeps every noisy figure within 0.4 %
     of the exact fit's at 24 ms per frame."""
-    return max(EXACT_GAIN, JOIN_NOISE_SHARE * (float(noise_mm) / 10.0) ** 2)
+    return max(EXACT_GAIN, JOIN_NOISE_SHARE * (float(noise_mm) / MM_PER_CM) ** 2)
 
 
 @dataclass

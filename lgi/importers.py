@@ -14,6 +14,7 @@ expressions: they are recorded in the dataset info and can be blended into the n
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
 import json
 import os
@@ -27,8 +28,7 @@ from .errors import InputError
 from .obj import PolyMesh, _lines, _parse_floats, read_obj, read_obj_positions
 from .progress import progress
 from .stabilize import find_rigid_vertices, stabilize
-
-UNITS_TO_CM = {"mm": 0.1, "cm": 1.0, "m": 100.0, "in": 2.54}
+from .units import check_units
 
 
 def load_vertex_indices(path: str | os.PathLike[str], n_vertices: int | None = None) -> np.ndarray:
@@ -125,8 +125,7 @@ def read_shape_folder(
 ) -> RawShapes:
     """Read a folder of OBJ shapes sharing one topology (parameters as :func:`import_obj_folder`)."""
     folder = Path(folder)
-    if units not in UNITS_TO_CM:
-        raise InputError(f"unknown units {units!r}; use one of {sorted(UNITS_TO_CM)}")
+    to_cm = check_units(units)
     if not folder.is_dir():
         raise InputError("shape folder not found or not a directory", path=folder)
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".obj" and p.is_file())
@@ -164,6 +163,11 @@ def read_shape_folder(
     # Expression displacements are measured on the source neutral; with an identity blend they are
     # carried over unchanged (the additive model ICT itself uses), so re-base them on the new neutral.
     positions += (x0 - mesh.vertices)[None]
+    if to_cm != 1.0:
+        # The library computes in cm (its tolerances and the reports' mm assume it): convert once, here.
+        x0 = x0 * to_cm
+        positions *= to_cm
+        mesh = dataclasses.replace(mesh, vertices=(mesh.vertices * to_cm).astype(mesh.vertices.dtype))
     info = {
         "name": folder.name,
         "imported_from": str(folder),
@@ -172,7 +176,8 @@ def read_shape_folder(
         "identity_modes": [f.stem for f in ident_files],
         "identity_weights": identity_used,
         "mtllib": mesh.mtllib,
-        "units": units,
+        "units": "cm",
+        "source_units": units,
     }
     return RawShapes(mesh, x0, positions, [f.stem for f in shape_files], [f.name for f in shape_files], info)
 
@@ -256,7 +261,8 @@ def import_obj_folder(
     include, exclude
         Shell patterns on file stems (comma-separated for several) selecting the shapes.
     units
-        Units of the files (``mm``, ``cm``, ``m``, ``in``); recorded, not converted.
+        Units of the files (``mm``, ``cm``, ``m``, ``in``); positions are converted to cm (the dataset records
+        ``cm`` and, in its info, ``source_units``).
     rigid_vertices
         Stabilisation, see :func:`stabilise_raw`.
     deltas

@@ -36,6 +36,7 @@ from .npz import save_npz
 if TYPE_CHECKING:
     import scipy.sparse
 from .progress import progress
+from .units import MM_PER_CM
 
 FORMAT = "lgi-index"
 FORMAT_VERSION = 1
@@ -56,14 +57,30 @@ class IndexOptions:
     ks: float = 1.0
     kb: float = 100.0
 
+    def __post_init__(self) -> None:
+        for name in ("region_radius", "grid_target", "class_tol", "ks", "kb"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not np.isfinite(v) or v <= 0:
+                flag = "--region-radius" if name == "region_radius" else name
+                raise InputError(f"{flag} must be a positive number, not {v!r}")
+        for name in ("nn_subdivisions", "grid_max_cells"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise InputError(f"{name} must be a whole number >= 1, not {v!r}")
+
     def to_json(self) -> dict:
         return {**{k: v for k, v in self.__dict__.items() if k != "cloud"}, "cloud": self.cloud.to_json()}
 
     @classmethod
     def from_json(cls, d: dict) -> IndexOptions:
         d = dict(d)
-        cloud = CloudOptions(**d.pop("cloud", {}))
-        return cls(cloud=cloud, **d)
+        cloud = d.pop("cloud", {})
+        for what, given, known in (("index", d, cls.__dataclass_fields__), ("cloud", cloud,
+                                                                            CloudOptions.__dataclass_fields__)):
+            unknown = sorted(set(given) - set(known) - ({"cloud"} if what == "index" else set()))
+            if unknown:
+                raise InputError(f"unknown {what} options {unknown}; known: {sorted(set(known) - {'cloud'})}")
+        return cls(cloud=CloudOptions(**cloud), **d)
 
 
 def layout_hash(layout: MarkerLayout) -> str:
@@ -344,7 +361,7 @@ def _reports(dataset: ShapeDataset, layout: MarkerLayout, clouds: list[BundleClo
                 status = f"merged into {dataset.names[r - 1]}"
             else:
                 status = "kept"
-            rows.append((layout.names[i], dataset.names[k], status, motion[k] * 10))
+            rows.append((layout.names[i], dataset.names[k], status, motion[k] * MM_PER_CM))
     pruning = pd.DataFrame(rows, columns=["marker", "shape", "status", "motion_mm"])
     per_bundle = pd.DataFrame({
         "marker": layout.names,

@@ -22,6 +22,7 @@ from . import _kernels as K
 from .atomic import atomic_file
 from .errors import InputError
 from .npz import save_npz
+from .units import MM_PER_CM
 
 N_PARAMS = 4
 PARAM_NAMES = ["open_deg", "yaw_deg", "roll_deg", "forward_cm"]
@@ -233,7 +234,7 @@ def _opening_or_reason(r: np.ndarray, t_mean: np.ndarray) -> str | None:
     axis, angle = _axis_angle(r)
     if angle <= OPENING_MIN_DEG:
         return (f"rotates the jaw vertices by {angle:.2f} deg (<= {OPENING_MIN_DEG:g}): mostly a translation "
-                f"of {np.linalg.norm(t_mean) * 10:.1f} mm, no hinge in it")
+                f"of {np.linalg.norm(t_mean) * MM_PER_CM:.1f} mm, no hinge in it")
     if abs(axis[0]) <= OPENING_MIN_AXIS_X:
         ax = ", ".join(f"{v:.2f}" for v in axis)
         return (f"rotates {angle:.1f} deg about axis ({ax}), not the lateral x axis (|x| {abs(axis[0]):.2f} <= "
@@ -272,22 +273,23 @@ def _fit_warnings(report: RigFitReport) -> list[str]:
     out = []
     for name, rms in report.residual_rms.items():
         if rms > WARN_RESIDUAL_CM:
-            out.append(f"{name}: the jaw vertices are {rms * 10:.2f} mm RMS from the hinge model (> "
-                       f"{WARN_RESIDUAL_CM * 10:g} mm): they do not move as a rotation about the fitted pivot plus "
-                       f"a slide; check the jaw vertices and the opening shapes")
+            out.append(f"{name}: the jaw vertices are {rms * MM_PER_CM:.2f} mm RMS from the hinge model (> "
+                       f"{WARN_RESIDUAL_CM * MM_PER_CM:g} mm): they do not move as a rotation about the fitted "
+                       f"pivot plus a slide; check the jaw vertices and the opening shapes")
     for name, f in report.slides.items():
         if abs(f) > WARN_SLIDE_CM:
-            out.append(f"{name}: the hinge needs a slide of {f * 10:.1f} mm along z (> {WARN_SLIDE_CM * 10:g} mm): "
-                       f"the pivot is probably misplaced")
+            out.append(f"{name}: the hinge needs a slide of {f * MM_PER_CM:.1f} mm along z "
+                       f"(> {WARN_SLIDE_CM * MM_PER_CM:g} mm): the pivot is probably misplaced")
     off = report.pivot - report.centroid
     dist = float(np.linalg.norm(off))
     where = []
     if dist > WARN_PIVOT_DISTANCE_CM:
-        where.append(f"{dist * 10:.0f} mm from the jaw vertices' centroid (> {WARN_PIVOT_DISTANCE_CM * 10:g} mm)")
+        where.append(f"{dist * MM_PER_CM:.0f} mm from the jaw vertices' centroid "
+                     f"(> {WARN_PIVOT_DISTANCE_CM * MM_PER_CM:g} mm)")
     if off[2] > 0:
-        where.append(f"{off[2] * 10:.0f} mm in front of the jaw vertices (a hinge is behind them)")
+        where.append(f"{off[2] * MM_PER_CM:.0f} mm in front of the jaw vertices (a hinge is behind them)")
     if off[1] < 0:
-        where.append(f"{-off[1] * 10:.0f} mm below the jaw vertices (a hinge is above them)")
+        where.append(f"{-off[1] * MM_PER_CM:.0f} mm below the jaw vertices (a hinge is above them)")
     if where:
         p = ", ".join(f"{v:.2f}" for v in report.pivot)
         out.append(f"the pivot ({p}) cm is " + " and ".join(where) + ": implausible for a jaw hinge")

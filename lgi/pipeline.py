@@ -29,8 +29,10 @@ import pandas as pd
 
 from .cache import StageCache, hash_file, hash_tree
 from .dataset import ShapeDataset
-from .importers import RawShapes, assemble_dataset, read_shape_folder, stabilise_raw
+from .importers import RawShapes
 from .index import IndexOptions, LGIIndex, assemble_index, clouds_stage, natural_stage
+from .jobs.dataset import AugmentOptions, ImportOptions, augment, read_shapes, stabilise_shapes
+from .jobs.index import VerifyOptions, verify
 from .markers import read_layout
 from .npz import save_npz
 from .obj import PolyMesh
@@ -41,15 +43,13 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
-def read_stage(cache: StageCache, shapes_dir: str, neutral: str | None = None, include: str | None = None,
-               exclude: str | None = None, units: str = "cm", deltas: bool = False) -> tuple[Path, bool]:
-    """Read a folder of OBJ shapes; result: ``raw.npz`` + ``raw.json``."""
-    inputs = {"objs": hash_tree(shapes_dir, "*.obj"), "neutral": neutral, "include": include, "exclude": exclude,
-              "units": units, "deltas": deltas}
+def read_stage(cache: StageCache, shapes_dir: str, options: ImportOptions) -> tuple[Path, bool]:
+    """Read a folder of OBJ shapes (:func:`lgi.jobs.dataset.read_shapes`); result: ``raw.npz`` + ``raw.json``."""
+    inputs = {"objs": hash_tree(shapes_dir, "*.obj"),
+              "options": {k: v for k, v in options.to_json().items() if k != "rigid_vertices"}}
 
     def make(out: Path) -> None:
-        raw = read_shape_folder(shapes_dir, neutral=neutral, include=include, exclude=exclude, units=units,
-                                deltas=deltas, show_progress=False)
+        raw = read_shapes(shapes_dir, options)
         m = raw.mesh
         arrays = {"neutral": raw.neutral, "positions": raw.positions, "vertices": m.vertices,
                   "face_vertices": m.face_vertices, "face_offsets": m.face_offsets, "face_material": m.face_material}
@@ -70,49 +70,33 @@ def _load_raw(path: Path) -> RawShapes:
     return RawShapes(mesh, a["neutral"], a["positions"], meta["names"], meta["sources"], meta["info"])
 
 
-def stabilise_stage(cache: StageCache, raw_dir: Path, rigid_vertices: str | None = "auto") -> tuple[Path, bool]:
-    """Remove head motion; result: a dataset directory."""
-    rigid = "none" if rigid_vertices in (None, "none") else rigid_vertices
-    rigid_id = rigid if rigid in ("auto", "none") else hash_file(rigid)
+def stabilise_stage(cache: StageCache, raw_dir: Path, options: ImportOptions) -> tuple[Path, bool]:
+    """Remove head motion (:func:`lgi.jobs.dataset.stabilise_shapes`); result: a dataset directory."""
+    rigid = options.rigid_vertices
+    rigid_id = rigid if rigid in (None, "auto", "none") else hash_file(rigid)
     inputs = {"raw": raw_dir.name, "rigid_vertices": rigid_id}
 
     def make(out: Path) -> None:
-        raw = _load_raw(raw_dir)
-        assemble_dataset(raw, *stabilise_raw(raw, None if rigid == "none" else rigid)).save(out / "dataset")
+        stabilise_shapes(_load_raw(raw_dir), options).save(out / "dataset")
 
     return cache.run("stabilise", inputs, make)
 
 
-def augment_stage(cache: StageCache, dataset_dir: Path, params: dict[str, Any],
+def augment_stage(cache: StageCache, dataset_dir: Path, options: AugmentOptions,
                   jaw_rig: str | None = None) -> tuple[Path, bool]:
-    """In-betweens (:mod:`lgi.augment`); result: a dataset directory with the captured shapes first.
-
-    ``params``: ``linear`` and/or ``simulate`` (bool), ``budget`` (combinations per method), ``levels``,
-    ``orders``, ``seed``, ``thickness`` and ``iterations`` (simulation).
-    """
-    from .augment import linear_combinations, pick_combinations, simulated_combinations
-    from .flesh import FleshOptions
-
-    p = {"linear": False, "simulate": False, "budget": 200, "levels": [0.25, 0.5, 0.75, 1.0], "orders": [2, 3],
-         "seed": 0, "thickness": 0.8, "iterations": 60, **params}
+    """In-betweens (:func:`lgi.jobs.dataset.augment`); result: a dataset directory with the captured shapes
+    first."""
     inputs = {"dataset": [hash_file(dataset_dir / f) for f in ("manifest.json", "mesh.npz", "deltas.npy")],
-              "params": p, "jaw_rig": hash_file(jaw_rig) if jaw_rig else None}
+              "options": options.to_json(), "jaw_rig": hash_file(jaw_rig) if jaw_rig else None}
 
     def make(out: Path) -> None:
         ds = ShapeDataset.load(dataset_dir)
-        picks = pick_combinations(ds.names, int(p["budget"]), tuple(p["levels"]), tuple(p["orders"]), int(p["seed"]))
-        aug = ds
-        if p["linear"]:
-            aug = linear_combinations(aug, 0, picks=picks)
-        if p["simulate"]:
-            rig = None
-            if jaw_rig:
-                from .jaw import JawRig
+        rig = None
+        if jaw_rig:
+            from .jaw import JawRig
 
-                rig = JawRig.load(jaw_rig, ds.n_vertices)
-            aug = simulated_combinations(aug, 0, rig=rig, picks=picks,
-                                         options=FleshOptions(thickness=p["thickness"], iterations=p["iterations"]))
-        aug.save(out / "dataset")
+            rig = JawRig.load(jaw_rig, ds.n_vertices)
+        augment(ds, options, rig).save(out / "dataset")
 
     return cache.run("augment", inputs, make)
 
@@ -173,19 +157,14 @@ def index_stage(cache: StageCache, dataset_dir: Path, markers: str, natural_dir:
     return cache.run("index", inputs, make)
 
 
-def verify_stage(cache: StageCache, index_dir: Path, tolerance: float = 0.01) -> tuple[Path, bool]:
-    """The paper's verification; result: ``verification.csv`` and ``summary.json``."""
-    inputs = {"index": index_dir.name, "tolerance": tolerance}
+def verify_stage(cache: StageCache, index_dir: Path, options: VerifyOptions) -> tuple[Path, bool]:
+    """The paper's verification (:func:`lgi.jobs.index.verify`); result: ``verification.csv`` and
+    ``summary.json``."""
+    inputs = {"index": index_dir.name, "options": options.to_json()}
 
     def make(out: Path) -> None:
-        from .verify import verify_index
-
-        table = verify_index(LGIIndex.load(index_dir / "index"))
+        table, summary = verify(index_dir / "index", options)
         table.to_csv(out / "verification.csv", index=False, float_format="%.6g")
-        summary = {"shapes": len(table), "worst_rms_mm": float(table.rms_mm.max()),
-                   "worst_shape": str(table["shape"].iloc[int(table.rms_mm.argmax())]),
-                   "worst_max_mm": float(table.max_mm.max()), "tolerance_mm": tolerance,
-                   "passed": bool((table.rms_mm <= tolerance).all())}
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
 
     return cache.run("verify", inputs, make)
@@ -194,9 +173,14 @@ def verify_stage(cache: StageCache, index_dir: Path, tolerance: float = 0.01) ->
 def options_from(params: dict[str, Any] | None) -> IndexOptions:
     """IndexOptions from a flat dict (cloud options and index options mixed, unknown keys refused)."""
     from .cloud import CloudOptions
+    from .errors import InputError
 
     params = dict(params or {})
     cloud_keys = set(asdict(CloudOptions()))
+    index_keys = set(IndexOptions.__dataclass_fields__) - {"cloud"}
+    unknown = sorted(set(params) - cloud_keys - index_keys)
+    if unknown:
+        raise InputError(f"unknown index options {unknown}; known: {sorted(cloud_keys | index_keys)}")
     cloud = CloudOptions(**{k: params.pop(k) for k in list(params) if k in cloud_keys})
     return IndexOptions(cloud=cloud, **params)
 
@@ -211,3 +195,62 @@ def publish(src: Path, dest: str | os.PathLike[str]) -> Path:
     with atomic_dir(dest) as tmp:
         shutil.copytree(src, tmp, dirs_exist_ok=True)
     return dest
+
+
+def rebuild_report(s: dict[str, Any]) -> list[str]:
+    """The rebuild-dataset flow's summary as the lines ``lgi import --flow`` prints."""
+    lines = [f"rebuild-dataset flow: {s['n_shapes']} shapes -> {s['path']}"]
+    if "augmented" in s:
+        lines.append(f"augmented: {s['augmented']['n_shapes']} shapes -> {s['augmented']['path']}")
+    if "verification" in s:
+        v = s["verification"]
+        lines.append(f"index: {s['index']}; verification of {v['shapes']} shapes: worst RMS {v['worst_rms_mm']:.5f} mm "
+                     f"({v['worst_shape']}), tolerance {v['tolerance_mm']} mm: {'passed' if v['passed'] else 'FAILED'}")
+    lines.append(f"stages computed: {[k for k, hit in s['stages'].items() if not hit] or 'none (all cached)'}")
+    return lines
+
+
+def rebuild_markdown(summary: dict[str, Any], out_dir: Path) -> tuple[str, Path | None]:
+    """The rebuild's markdown report (relative links; also written to ``OUT/report.md``) and, with an index, the
+    heat map of the worst verification error (``OUT/verification/worst.png``)."""
+    lines = ["# Dataset rebuild\n", f"`dataset/`: {summary['n_shapes']} shapes, {summary['n_vertices']} "
+             f"vertices, content hash `{summary['content_hash'][:16]}`, stabilisation: {summary['stabilisation']}.\n",
+             "| stage | " + " | ".join(summary["stages"]) + " |", "|---|" + "---|" * len(summary["stages"]),
+             "| cached | " + " | ".join("yes" if v else "computed" for v in summary["stages"].values()) + " |\n"]
+    png = None
+    if "verification" in summary:
+        v = summary["verification"]
+        bundles = pd.read_csv(out_dir / "index" / "bundles.csv")
+        png = verification_heatmap(out_dir, v["worst_shape"])
+        lines += [f"Verification of {v['shapes']} shapes: worst RMS {v['worst_rms_mm']:.5f} mm ({v['worst_shape']}), "
+                  f"worst max {v['worst_max_mm']:.4f} mm; tolerance {v['tolerance_mm']} mm: "
+                  f"{'passed' if v['passed'] else 'FAILED'}.\n",
+                  f"Points per bundle after pruning: median {bundles.points_after.median():.0f} of "
+                  f"{bundles.points_before.iloc[0]}; simplices: {bundles.simplices.sum()}.\n",
+                  "![worst verification error](verification/worst.png)\n"]
+    md = "\n".join(lines)
+    (out_dir / "report.md").write_text(md)
+    return md, png
+
+
+def verification_heatmap(out_dir: Path, shape: str) -> Path:
+    """PNG of the vertex error of ``shape`` reconstructed from its own bundles with ``OUT/index``."""
+    from .mesh import triangulate
+    from .render import heatmap_row
+    from .solver import LGISolver
+    from .units import MM_PER_CM
+
+    index = LGIIndex.load(out_dir / "index")
+    k = index.manifest["shapes"].index(shape)
+    truth = np.asarray(index.arrays["neutral"], np.float64) + np.asarray(index.deltas[k + 1], np.float64)
+    jaw = None
+    if index.jaw_rig() is not None:
+        jaw = index.arrays["jaw_shape_params"][k]
+        truth = index.jaw_rig().skin(truth, jaw)
+    solver = LGISolver(index)
+    r = solver.solve_frame(solver.layout.evaluate(truth), jaw=jaw)
+    err = np.linalg.norm(r.vertices - truth, axis=1) * MM_PER_CM
+    tris, _ = triangulate(index.arrays["face_vertices"], index.arrays["face_offsets"])
+    return heatmap_row(out_dir / "verification" / "worst.png", index.arrays["neutral"], tris,
+                       {f"{shape} (worst)": err}, mask=index.arrays["nn_region"],
+                       title="verification: vertex error of the worst shape", label="error (mm)").resolve()

@@ -32,6 +32,7 @@ from .jaw import PARAM_NAMES, jaw_matrix, smooth_parameters
 from .progress import progress
 from .temporal import NoiseEstimate, denoise_trajectories, estimate_noise, sg_matrix
 from .threads import one_blas_thread
+from .units import MM_PER_CM
 
 # With noisy bundles (noise > 0): the share of the remaining bundle residual the correction removes (none:
 # what remains after the fit is mostly the noise).
@@ -249,7 +250,7 @@ class LGISolver:
         seen = np.all(np.isfinite(p), axis=1)
         pk = np.where(seen[:, None], p, 0.0)
         prev = previous.shapes if previous is not None else np.full((len(p), 4), -1, np.int64)
-        mu = self.temporal_weight / 10.0 if previous is not None else 0.0
+        mu = self.temporal_weight / MM_PER_CM if previous is not None else 0.0
         args = (pk, seen, a["dim"], a["origin"], a["basis"], a["pts"], a["pt_off"], a["pt_shape"], a["alias_off"],
                 a["class_off"], a["alias_shape"], a["sx"], a["tinv"], a["hull"], a["hull_off"], a["grid_lo"],
                 a["grid_h"], a["grid_dims"], a["cell_off"], a["cell_start"], a["cell_items"], a["ptab"],
@@ -265,7 +266,7 @@ class LGISolver:
             # Bundles with no containing simplex in the first pass scan again (their projection).
             cand[cand[:, 0] < 0] = -2
             shapes, lam, pts, n_contain, status, proj, score, _, _ = K.solve_bundles(
-                *args, agree, self.spatial_weight / 10, shapes, lam, *tail, cand, cand_score,
+                *args, agree, self.spatial_weight / MM_PER_CM, shapes, lam, *tail, cand, cand_score,
                 np.nan_to_num(score, nan=np.inf))
         fallback = self._fill_missing(seen, shapes, lam, previous)
         return p, seen, shapes, lam, n_contain, status, proj, score, fallback
@@ -794,14 +795,14 @@ class LGISolver:
             "n_containing": np.stack([s.n_containing for s in sels]).astype(np.int64).ravel(),
             "shapes": shape_col.ravel(),
             "weights": weight_col.ravel(),
-            "projection_mm": stack(lambda s: s.projection) * 10,
-            "score_mm": stack(lambda s: s.score) * 10,
-            "residual_before_mm": before.ravel() * 10,
-            "residual_mm": r_final.ravel() * 10,
+            "projection_mm": stack(lambda s: s.projection) * MM_PER_CM,
+            "score_mm": stack(lambda s: s.score) * MM_PER_CM,
+            "residual_before_mm": before.ravel() * MM_PER_CM,
+            "residual_mm": r_final.ravel() * MM_PER_CM,
             "fallback": note.ravel(),
             "source": source.ravel(),
-            "fit_residual_mm": stack(lambda s: s.fit.residual if s.fit is not None else np.nan) * 10,
-            "fit_rms_mm": stack(lambda s: s.fit.rms if s.fit is not None else np.nan) * 10,
+            "fit_residual_mm": stack(lambda s: s.fit.residual if s.fit is not None else np.nan) * MM_PER_CM,
+            "fit_rms_mm": stack(lambda s: s.fit.rms if s.fit is not None else np.nan) * MM_PER_CM,
         }
         if thetas is not None:
             for k, n in enumerate(PARAM_NAMES):

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .units import MM_PER_CM
+
 
 def bridge_gaps(positions: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.ndarray]:
     """Fill runs of missing frames of each marker by linear interpolation between the frames around them.
@@ -217,7 +219,7 @@ def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None) -> No
     if not ok.any():
         return NoiseEstimate(float("nan"), 0, float("nan"))
     mad = float(np.median(np.abs(r[ok])))
-    noise = mad / 0.6745 / np.sqrt(1.0 - _SG7[3]) * 10.0
+    noise = mad / 0.6745 / np.sqrt(1.0 - _SG7[3]) * MM_PER_CM
     coherence = 0.0
     if pairs is not None and len(pairs):
         corr = []
@@ -299,7 +301,7 @@ def denoise_trajectories(positions: np.ndarray, noise_mm: float, windows: tuple[
         The window used per frame and marker.
     """
     p = np.asarray(positions, np.float64)
-    s2 = (noise_mm / 10.0) ** 2
+    s2 = (noise_mm / MM_PER_CM) ** 2
     out = p.copy()
     chosen = np.ones(p.shape[:2], np.int64)
     if s2 <= 0:

@@ -10,6 +10,7 @@ import pandas as pd
 from .index import LGIIndex
 from .progress import progress
 from .solver import LGISolver
+from .units import MM_PER_CM
 
 
 def verify_index(index: LGIIndex, solver: LGISolver | None = None, shapes: str | None = None,
@@ -56,9 +57,9 @@ def verify_index(index: LGIIndex, solver: LGISolver | None = None, shapes: str |
             theta = index.arrays["jaw_shape_params"][k]
             truth = rig.skin(truth, theta)
             r = solver.solve_frame(layout.evaluate(truth), jaw=theta)
-        err = np.linalg.norm(r.vertices.astype(np.float64) - truth, axis=1) * 10
+        err = np.linalg.norm(r.vertices.astype(np.float64) - truth, axis=1) * MM_PER_CM
         er = err[region]
         rows.append((names[k], float(np.sqrt(np.mean(er**2))), float(er.max()), float(np.sqrt(np.mean(err**2))),
-                     float(err.max()), float(np.nanmax(r.residual)) * 10, int((r.status == 1).sum())))
+                     float(err.max()), float(np.nanmax(r.residual)) * MM_PER_CM, int((r.status == 1).sum())))
     return pd.DataFrame(rows, columns=["shape", "rms_mm", "max_mm", "rms_all_mm", "max_all_mm", "residual_mm",
                                        "projected"])

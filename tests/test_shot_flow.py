@@ -22,7 +22,8 @@ def test_shot_flow_thread_and_dask_agree(prefect_harness, shot: Path) -> None:
 
     from flows.reconstruct_shot import reconstruct_shot
 
-    args = dict(index_dir=str(shot / "idx"), bundles=str(shot / "s" / "bundles.csv"), chunk_size=15, usd=True, plot=True)
+    args = dict(index_dir=str(shot / "idx"), bundles=str(shot / "s" / "bundles.csv"), chunk_size=15, usd=True,
+                plot=True)
     summary = reconstruct_shot(out=str(shot / "thread"), **args)
     assert summary["frames"] == 40 and summary["max_residual_mm"] < 1e-4
     m = np.load(shot / "thread" / "meshes.npz")

@@ -19,7 +19,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,8 @@ import numpy as np
 import pandas as pd
 
 from ..errors import InputError
+from ..units import MM_PER_CM
+from . import options_from_dict
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +121,7 @@ class ReconstructOptions:
         except ValueError:
             raise InputError("--bilateral takes SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM], positive numbers, "
                              f"got {self.bilateral!r}") from None
-        return vals[0], vals[1] / 10, vals[2] / 10 if len(vals) == 3 else None
+        return vals[0], vals[1] / MM_PER_CM, vals[2] / MM_PER_CM if len(vals) == 3 else None
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -127,12 +129,7 @@ class ReconstructOptions:
     @classmethod
     def from_json(cls, d: dict[str, Any] | None) -> ReconstructOptions:
         """Options from a dict (a flow's parameters); unknown keys are refused by name."""
-        d = dict(d or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise InputError(f"unknown reconstruct options {unknown}; known: {sorted(known)}")
-        return cls(**d)
+        return options_from_dict(cls, d, "reconstruct")
 
 
 def read_jaw_file(path: str | Path, frames: np.ndarray) -> np.ndarray:

@@ -1,0 +1,305 @@
+"""The dataset jobs: import a folder of OBJ shapes, and augment a dataset with in-between shapes.
+
+``lgi import`` / ``lgi augment`` and the rebuild-dataset flow's read, stabilise and augment stages call
+these functions with the same options objects, so the flow's dataset is the command's, byte for byte.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from . import options_from_dict
+
+
+# --------------------------------------------------------------------------------------------- import
+@dataclass(frozen=True)
+class ImportOptions:
+    """Options of ``lgi import`` (see its ``--help``).
+
+    Attributes
+    ----------
+    neutral : str or None
+        File stem of the neutral (default: the one file named ``*neutral*``).
+    include, exclude : str or None
+        Shell patterns (comma-separated) on file stems.
+    rigid_vertices : str or None
+        Vertex index file of the skull, "auto" or "none" (stabilisation).
+    units : "mm", "cm", "m" or "in"
+        Units of the files; positions are converted to cm (the library's unit) on import.
+    deltas : bool
+        Shape files hold displacements.
+    identity : str or None
+        ``NAME=W,...``: identity modes (``identity*.obj``) blended into the neutral.
+    """
+
+    neutral: str | None = None
+    include: str | None = None
+    exclude: str | None = None
+    rigid_vertices: str | None = "auto"
+    units: str = "cm"
+    deltas: bool = False
+    identity: str | None = None
+
+    def __post_init__(self) -> None:
+        from ..units import check_units
+
+        check_units(self.units, "--units")
+        self.identity_weights()
+
+    def identity_weights(self) -> dict[str, float] | None:
+        """``{stem: weight}`` of ``identity``, or None."""
+        if not self.identity:
+            return None
+        out = {}
+        for part in self.identity.split(","):
+            name, sep, w = part.partition("=")
+            try:
+                out[name.strip()] = float(w) if sep else 1.0
+            except ValueError:
+                raise InputError(f"--identity: weight {w!r} of {name!r} is not a number") from None
+            if not math.isfinite(out[name.strip()]):
+                raise InputError(f"--identity: weight of {name!r} must be finite")
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any] | None) -> ImportOptions:
+        return options_from_dict(cls, d, "import")
+
+
+def read_shapes(shapes_dir: str | Path, options: ImportOptions, show_progress: bool = False):
+    """The import's first stage: the OBJ files read and converted to cm (a :class:`~lgi.importers.RawShapes`)."""
+    from ..importers import read_shape_folder
+
+    o = options
+    return read_shape_folder(shapes_dir, neutral=o.neutral, include=o.include, exclude=o.exclude, units=o.units,
+                             deltas=o.deltas, identity_weights=o.identity_weights(), show_progress=show_progress)
+
+
+def stabilise_shapes(raw, options: ImportOptions):
+    """The import's second stage: head motion removed; the dataset."""
+    from ..importers import assemble_dataset, stabilise_raw
+
+    rigid = None if options.rigid_vertices in (None, "none") else options.rigid_vertices
+    return assemble_dataset(raw, *stabilise_raw(raw, rigid))
+
+
+def import_dataset(shapes_dir: str | Path, out: str | Path, options: ImportOptions | None = None,
+                   show_progress: bool = False) -> dict[str, Any]:
+    """``lgi import``: read, stabilise and save a dataset directory; returns a summary (:func:`import_report`)."""
+    options = options or ImportOptions()
+    t0 = time.perf_counter()
+    ds = stabilise_shapes(read_shapes(shapes_dir, options, show_progress), options)
+    ds.save(out)
+    return dataset_summary(ds, out, time.perf_counter() - t0)
+
+
+def dataset_summary(ds, out: str | Path, seconds: float | None = None) -> dict[str, Any]:
+    """Counts, units, the stabilisation's figures and the content hash of a saved dataset."""
+    st = ds.info.get("stabilisation", {"method": "none"})
+    s: dict[str, Any] = {"path": str(Path(out).resolve()), "n_shapes": ds.n_shapes, "n_vertices": ds.n_vertices,
+                         "n_faces": len(ds.face_offsets) - 1, "units": ds.units,
+                         "source_units": ds.info.get("source_units", ds.units), "content_hash": ds.content_hash(),
+                         "stabilisation": st, "seconds": seconds}
+    if st.get("method", "none") != "none":
+        s["removed_max_deg"] = max(
+            float(np.degrees(np.arccos(np.clip((np.trace(m.rigid_transform[:3, :3]) - 1) / 2, -1, 1))))
+            for m in ds.shape_meta)
+        s["removed_max_shift"] = max(float(np.linalg.norm(m.rigid_transform[:3, 3])) for m in ds.shape_meta)
+    return s
+
+
+def import_report(s: dict[str, Any]) -> list[str]:
+    lines = [f"imported {s['n_shapes']} shapes, {s['n_vertices']} vertices, {s['n_faces']} faces "
+             f"({s['units']}{'' if s['source_units'] == s['units'] else ', converted from ' + s['source_units']}) "
+             f"in {s['seconds']:.1f} s"]
+    st = s["stabilisation"]
+    if st.get("method", "none") != "none":
+        lines.append(f"stabilised on {st['count']} rigid vertices ({st['method']}): removed up to "
+                     f"{s['removed_max_deg']:.3g} deg and {s['removed_max_shift']:.3g} {s['units']}; "
+                     f"worst fit RMS {st['fit_rms_max']:.2g} {s['units']}")
+    lines.append(f"dataset: {s['path']}  (content hash {s['content_hash'][:16]})")
+    return lines
+
+
+# -------------------------------------------------------------------------------------------- augment
+@dataclass(frozen=True)
+class AugmentOptions:
+    """Options of ``lgi augment`` (see its ``--help``); ``levels`` and ``orders`` as tuples (lists accepted).
+
+    Attributes
+    ----------
+    linear, simulate : bool
+        Linear blends and/or simulated in-betweens of the same combinations.
+    budget : int
+        Combinations to add at most, per method.
+    levels : tuple of float
+        Weights a source shape may take, in (0, 1].
+    orders : tuple of int
+        Sources per combination (2 or 3).
+    seed : int
+    include : str or None
+        Shell patterns of the source shapes.
+    requires : str or None
+        ``SHAPE=PARTNER,...``: shapes that appear only with a partner (None: mouthClose=jawOpen).
+    thickness : float, cm
+        Flesh thickness of the simulation.
+    iterations : int
+        Solver iterations of the simulation.
+    """
+
+    linear: bool = False
+    simulate: bool = False
+    budget: int = 200
+    levels: tuple[float, ...] = (0.25, 0.5, 0.75, 1.0)
+    orders: tuple[int, ...] = (2, 3)
+    seed: int = 0
+    include: str | None = None
+    requires: str | None = None
+    thickness: float = 0.8
+    iterations: int = 60
+
+    def __post_init__(self) -> None:
+        try:
+            levels = tuple(float(v) for v in self.levels)
+            orders = tuple(int(v) for v in self.orders)
+        except (TypeError, ValueError):
+            raise InputError(f"--levels/--orders: numbers expected ({self.levels!r}, {self.orders!r})") from None
+        if not levels or not all(math.isfinite(v) and 0 < v <= 1 for v in levels):
+            raise InputError(f"--levels must be weights in (0, 1], not {list(self.levels)}")
+        if not orders or not all(k in (2, 3) for k in orders):
+            raise InputError(f"--orders takes 2 and/or 3 sources per combination, not {list(self.orders)}")
+        object.__setattr__(self, "levels", levels)
+        object.__setattr__(self, "orders", orders)
+        if not (self.linear or self.simulate):
+            raise InputError("choose an augmentation: --linear and/or --simulate")
+        for name, least in (("budget", 1), ("iterations", 1), ("seed", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+                raise InputError(f"--{name} must be a whole number >= {least}, not {v!r}")
+        if not isinstance(self.thickness, (int, float)) or not math.isfinite(self.thickness) or self.thickness <= 0:
+            raise InputError(f"--thickness must be a positive length, not {self.thickness!r}")
+        self.requires_map()
+
+    def requires_map(self) -> dict[str, str] | None:
+        if not self.requires:
+            return None
+        pairs = [p for p in self.requires.split(",") if p.strip()]
+        if not all("=" in p for p in pairs):
+            raise InputError(f"--requires takes SHAPE=PARTNER,..., not {self.requires!r}")
+        return dict(p.split("=", 1) for p in pairs)
+
+    @staticmethod
+    def parse_list(text: str, kind: type, flag: str) -> tuple:
+        try:
+            return tuple(kind(v) for v in text.split(","))
+        except ValueError:
+            raise InputError(f"{flag}: comma-separated numbers expected, not {text!r}") from None
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["levels"], d["orders"] = list(self.levels), list(self.orders)
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any] | None) -> AugmentOptions:
+        return options_from_dict(cls, d, "augmentation")
+
+
+def augment(ds, options: AugmentOptions, rig=None, show_progress: bool = False):
+    """``ds`` plus the in-betweens ``options`` ask for (the captured shapes first, then linear, then simulated
+    ones); ``rig`` (:class:`~lgi.jaw.JawRig`) carries the flesh's jaw side in the simulation."""
+    from ..augment import linear_combinations, pick_combinations, simulated_combinations
+
+    o = options
+    src = ds.select(include=o.include) if o.include else ds
+    if src.n_shapes == 0:
+        raise InputError(f"--include {o.include!r} matches no shape")
+    picks = pick_combinations(src.names, o.budget, o.levels, o.orders, o.seed, o.requires_map())
+    aug = ds
+    if o.linear:
+        aug = linear_combinations(aug, 0, o.levels, o.orders, o.seed, picks=picks)
+    if o.simulate:
+        from ..flesh import FleshOptions
+
+        try:
+            aug = simulated_combinations(aug, 0, o.levels, o.orders, o.seed, rig=rig, picks=picks,
+                                         options=FleshOptions(thickness=o.thickness, iterations=o.iterations),
+                                         show_progress=show_progress)
+        except ValueError as e:  # e.g. a dataset in which nothing moves
+            raise InputError(f"cannot simulate in-betweens: {e}") from e
+    return aug
+
+
+AUGMENT_REPORT = "augmentation.csv"
+
+
+def augment_dataset(dataset_dir: str | Path, out: str | Path, options: AugmentOptions,
+                    jaw_rig: str | Path | None = None, markers: str | Path | None = None,
+                    show_progress: bool = False) -> dict[str, Any]:
+    """``lgi augment``: the augmented dataset saved to ``out`` (with ``markers``, also the per-bundle
+    report ``augmentation.csv`` in it); returns a summary (:func:`augment_report`)."""
+    from ..dataset import ShapeDataset
+
+    ds = ShapeDataset.load(dataset_dir)
+    rig = None
+    if jaw_rig:
+        from ..jaw import JawRig
+
+        rig = JawRig.load(jaw_rig, ds.n_vertices)
+    t0 = time.perf_counter()
+    aug = augment(ds, options, rig, show_progress)
+    seconds = time.perf_counter() - t0
+    rep = None
+    if markers:
+        from ..augment import augmentation_report
+        from ..markers import read_layout
+
+        rep = augmentation_report(ds, aug, read_layout(markers, ds.triangles))
+    aug.save(out)
+    if rep is not None:
+        from ..atomic import atomic_file
+
+        with atomic_file(Path(out) / AUGMENT_REPORT) as tmp:
+            rep.to_csv(tmp, index=False)
+    dv = [abs(m.extra["volume_change"]) for m in aug.shape_meta if m.extra.get("method") == "simulated"]
+    info = aug.info.get("augmented", {})
+    s: dict[str, Any] = {"path": str(Path(out).resolve()), "n_shapes": aug.n_shapes,
+                         "added": aug.n_shapes - ds.n_shapes,
+                         "combinations": int(max(info.get("linear_combinations", 0),
+                                                 info.get("simulated_combinations", 0))),
+                         "budget": options.budget, "seconds": seconds, "simulated": bool(dv), "jaw_rig": bool(rig)}
+    if dv:
+        s["volume_change_median_pct"] = 100 * float(np.median(dv))
+        s["volume_change_max_pct"] = 100 * float(np.max(dv))
+    if rep is not None:
+        s["report"] = {"points_original_median": float(rep.points_original.median()),
+                       "points_augmented_median": float(rep.points_augmented.median()),
+                       "kept": int(rep.kept.sum()), "bundles": len(rep)}
+    return s
+
+
+def augment_report(s: dict[str, Any]) -> list[str]:
+    lines = []
+    if s["simulated"]:
+        lines.append(f"{s['combinations']} simulated in-betweens in {s['seconds']:.1f} s; flesh volume change median "
+                     f"{s['volume_change_median_pct']:.2f} %, max {s['volume_change_max_pct']:.2f} %"
+                     + ("" if s["jaw_rig"] else " (no --jaw-rig: the jaw side is held at rest and the lips are not "
+                        "kept apart)"))
+    lines.append(f"{s['added']} in-betweens added ({s['combinations']} combinations, budget {s['budget']}) -> "
+                 f"{s['n_shapes']} shapes in {s['path']}")
+    if "report" in s:
+        r = s["report"]
+        lines.append(f"per bundle, points after pruning: {r['points_original_median']:.0f} -> "
+                     f"{r['points_augmented_median']:.0f} (median); the in-betweens added {r['kept']} points over "
+                     f"{r['bundles']} bundles ({AUGMENT_REPORT})")
+    return lines

@@ -1,0 +1,178 @@
+"""The dataset rebuild as Prefect tasks and a flow: read, stabilise, (augment,) and with markers the index
+stages and the verification; one task per stage of :mod:`lgi.pipeline`, each cached by content.
+
+A re-run with nothing changed computes nothing; changing one option recomputes only the stages that depend
+on it. The stages run the job layer's functions (:mod:`lgi.jobs.dataset`, :mod:`lgi.jobs.index`) with the
+same options objects as ``lgi import`` / ``lgi augment`` / ``lgi verify``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields
+from pathlib import Path
+
+import pandas as pd
+from prefect import flow, get_run_logger, task
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
+from prefect.cache_policies import NO_CACHE
+
+from .. import pipeline
+from ..cache import StageCache
+from ..index import IndexOptions
+from ..jobs.dataset import AugmentOptions, ImportOptions
+from ..jobs.index import VerifyOptions
+
+_T = {"cache_policy": NO_CACHE, "persist_result": False}
+
+
+@task(name="read-shapes", **_T)
+def read_shapes(cache_dir: str, shapes_dir: str, options: dict) -> tuple[str, bool]:
+    """Read a folder of OBJ shapes (see :func:`lgi.pipeline.read_stage`)."""
+    path, hit = pipeline.read_stage(StageCache(cache_dir), shapes_dir, ImportOptions.from_json(options))
+    return str(path), hit
+
+
+@task(name="stabilise", **_T)
+def stabilise(cache_dir: str, raw_dir: str, options: dict) -> tuple[str, bool]:
+    """Remove head motion and save the dataset (see :func:`lgi.pipeline.stabilise_stage`)."""
+    path, hit = pipeline.stabilise_stage(StageCache(cache_dir), Path(raw_dir), ImportOptions.from_json(options))
+    return str(path), hit
+
+
+@task(name="augment", **_T)
+def augment(cache_dir: str, dataset_dir: str, options: dict, jaw_rig: str | None = None) -> tuple[str, bool]:
+    """Linear and/or simulated in-betweens (see :func:`lgi.pipeline.augment_stage`)."""
+    path, hit = pipeline.augment_stage(StageCache(cache_dir), Path(dataset_dir), AugmentOptions.from_json(options),
+                                       jaw_rig)
+    return str(path), hit
+
+
+@task(name="natural-neighbours", **_T)
+def natural_neighbours(cache_dir: str, dataset_dir: str, markers: str, options: dict) -> tuple[str, bool]:
+    """Geodesic Voronoi, Sibson weights and the correction basis."""
+    path, hit = pipeline.natural_stage_cached(StageCache(cache_dir), Path(dataset_dir), markers,
+                                              IndexOptions.from_json(options))
+    return str(path), hit
+
+
+@task(name="point-clouds-and-simplices", **_T)
+def point_clouds(cache_dir: str, dataset_dir: str, markers: str, natural_dir: str, options: dict,
+                 jaw_rig: str | None = None) -> tuple[str, bool]:
+    """Per-bundle point clouds (pruned), overlapping simplices and grids."""
+    path, hit = pipeline.clouds_stage_cached(StageCache(cache_dir), Path(dataset_dir), markers, Path(natural_dir),
+                                             IndexOptions.from_json(options), jaw_rig)
+    return str(path), hit
+
+
+@task(name="assemble-index", **_T)
+def assemble(cache_dir: str, dataset_dir: str, markers: str, natural_dir: str, clouds_dir: str, options: dict,
+             jaw_rig: str | None = None) -> tuple[str, bool]:
+    """The index directory from the stages above."""
+    path, hit = pipeline.index_stage(StageCache(cache_dir), Path(dataset_dir), markers, Path(natural_dir),
+                                     Path(clouds_dir), IndexOptions.from_json(options), jaw_rig)
+    return str(path), hit
+
+
+@task(name="verify", **_T)
+def verify(cache_dir: str, index_dir: str, options: dict) -> tuple[str, bool]:
+    """Every dataset shape reconstructed from its own bundles (see :func:`lgi.jobs.index.verify`)."""
+    path, hit = pipeline.verify_stage(StageCache(cache_dir), Path(index_dir), VerifyOptions(**options))
+    return str(path), hit
+
+
+@task(name="publish", **_T)
+def publish(src: str, dest: str) -> str:
+    """Copy a cached result to its user-facing place, atomically."""
+    return str(pipeline.publish(Path(src), dest))
+
+
+@flow(name="rebuild-dataset")
+def rebuild_dataset(
+    shapes_dir: str,
+    out: str,
+    neutral: str | None = None,
+    include: str | None = None,
+    exclude: str | None = None,
+    rigid_vertices: str | None = "auto",
+    units: str = "cm",
+    deltas: bool = False,
+    identity: str | None = None,
+    markers: str | None = None,
+    index_options: dict | None = None,
+    jaw_rig: str | None = None,
+    tolerance: float = 0.01,
+    verify_shapes: str | None = None,
+    cache_dir: str | None = None,
+    augmentation: dict | None = None,
+) -> dict:
+    """Build ``OUT/dataset`` and, with ``markers``, ``OUT/index`` and ``OUT/verification/``.
+
+    The import options are those of ``lgi import`` (:class:`~lgi.jobs.dataset.ImportOptions`);
+    ``augmentation`` those of ``lgi augment`` (:class:`~lgi.jobs.dataset.AugmentOptions`, e.g. ``{"simulate":
+    true, "budget": 100}``; unknown keys are refused), which adds ``OUT/dataset_augmented`` and builds the index
+    from it; ``index_options`` those of ``lgi build`` (:class:`~lgi.index.IndexOptions`, cloud options
+    flat); ``tolerance`` and ``verify_shapes`` those of ``lgi verify``.
+
+    Returns a summary: paths, the dataset's content hash, counts, verification figures, and which stages
+    were cache hits (``stages``: name -> true if nothing was computed).
+    """
+    params = dict(locals())
+    imp = ImportOptions(**{f.name: params[f.name] for f in fields(ImportOptions)})
+    aug_opts = AugmentOptions.from_json(augmentation) if augmentation else None
+    idx_opts = pipeline.options_from(index_options).to_json() if markers else None
+    ver_opts = VerifyOptions(tolerance=tolerance, shapes=verify_shapes).to_json()
+    out_dir = Path(out)
+    cache = cache_dir or str(out_dir / ".cache")
+    stages: dict[str, bool] = {}
+    raw, stages["read"] = read_shapes(cache, shapes_dir, imp.to_json())
+    staged, stages["stabilise"] = stabilise(cache, raw, imp.to_json())
+    dataset_dir = str(Path(staged) / "dataset")
+    publish(dataset_dir, str(out_dir / "dataset"))
+    manifest = json.loads((Path(dataset_dir) / "manifest.json").read_text())
+    summary = {"path": str((out_dir / "dataset").resolve()), "content_hash": manifest["content_hash"],
+               "n_shapes": manifest["n_shapes"], "n_vertices": manifest["n_vertices"],
+               "stabilisation": manifest["info"].get("stabilisation", {}).get("method", "none"), "stages": stages}
+    if aug_opts is not None:
+        aug, stages["augment"] = augment(cache, dataset_dir, aug_opts.to_json(), jaw_rig)
+        dataset_dir = str(Path(aug) / "dataset")
+        publish(dataset_dir, str(out_dir / "dataset_augmented"))
+        aug_manifest = json.loads((Path(dataset_dir) / "manifest.json").read_text())
+        summary["augmented"] = {"path": str((out_dir / "dataset_augmented").resolve()),
+                                "n_shapes": aug_manifest["n_shapes"], **aug_manifest["info"].get("augmented", {})}
+    if markers:
+        nat, stages["natural"] = natural_neighbours(cache, dataset_dir, markers, idx_opts)
+        clouds, stages["clouds"] = point_clouds(cache, dataset_dir, markers, nat, idx_opts, jaw_rig)
+        idx, stages["index"] = assemble(cache, dataset_dir, markers, nat, clouds, idx_opts, jaw_rig)
+        ver, stages["verify"] = verify(cache, idx, ver_opts)
+        publish(str(Path(idx) / "index"), str(out_dir / "index"))
+        publish(ver, str(out_dir / "verification"))
+        summary["verification"] = json.loads((Path(ver) / "summary.json").read_text())
+        summary["index"] = str((out_dir / "index").resolve())
+    _artifacts(summary, out_dir)
+    logger = get_run_logger()
+    for line in pipeline.rebuild_report(summary):
+        logger.info(line)
+    return summary
+
+
+def _artifacts(summary: dict, out_dir: Path) -> None:
+    """Table artifacts (shapes, bundles, verification) and the markdown report (:func:`lgi.pipeline.
+    rebuild_markdown`) with absolute links."""
+    manifest = json.loads((out_dir / "dataset" / "manifest.json").read_text())
+    shapes = [{"shape": s["name"], "source": s["source"], "tags": ",".join(s["tags"]),
+               "removed_translation": round(float(sum(r[3] ** 2 for r in s["rigid_transform"][:3]) ** 0.5), 6)}
+              for s in manifest["shapes"]]
+    create_table_artifact(table=shapes, key="dataset-shapes", description="shapes and the head motion removed")
+    md, png = pipeline.rebuild_markdown(summary, out_dir)
+    if "verification" in summary:
+        bundles = pd.read_csv(out_dir / "index" / "bundles.csv")
+        create_table_artifact(table=bundles.to_dict(orient="records"), key="index-bundles",
+                              description="per bundle: points before/after pruning, simplices by kind")
+        table = pd.read_csv(out_dir / "verification" / "verification.csv")
+        create_table_artifact(table=table.round(6).to_dict(orient="records"), key="verification",
+                              description="every shape from its own bundles: error in mm")
+    absolute = md.replace("`dataset/`", f"`{summary['path']}`")
+    if png is not None:
+        absolute = absolute.replace("(verification/worst.png)", f"({png.as_uri()})")
+    create_markdown_artifact(markdown=absolute, key="rebuild-report")
