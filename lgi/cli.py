@@ -5,15 +5,9 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import time
-from pathlib import Path
-
-import numpy as np
 
 from . import __version__
 from .errors import InputError, LgiError
-from .npz import save_npz
-from .units import MM_PER_CM
 
 
 def _import_options(args: argparse.Namespace):
@@ -43,116 +37,33 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
-#: What ``lgi synth`` writes into its output directory (an earlier run's ``hmc/`` goes when --hmc is not given).
-SYNTH_OUTPUTS = ("dataset", "markers.csv", "bundles.csv", "jaw_rig.npz", "truth.npz", "hmc")
-
-
-def write_synthetic(out: Path, n_vertices: int, n_frames: int, seed: int, quiet: bool = False,
-                    hmc: dict | None = None) -> dict:
-    """Write the synthetic actor's dataset, markers, performance bundles and truth into ``out``.
-
-    With ``hmc`` (keyword arguments of :func:`lgi.hmc.write_footage`), also render HMC footage into
-    ``out/hmc``; the performance then starts from the neutral face (a 15-frame ramp), as a shot does.
-    """
-    from . import synth
-    from .atomic import job_outputs
-    from .bundles import Bundles, write_bundles
-    from .markers import write_layout
-
-    actor = synth.make_actor(n_vertices)
-    ds = synth.make_dataset(actor)
-    layout, dist = synth.default_layout(actor)
-    acts = synth.random_performance(n_frames, seed=seed)
-    if hmc is not None:
-        acts = acts * np.clip(np.arange(n_frames) / 15.0, 0.0, 1.0)[:, None]
-    truth = actor.evaluate_many(acts)
-    bundles = Bundles(frames=np.arange(n_frames), markers=layout.names,
-                      positions=layout.evaluate(truth.astype(np.float64)))
-    with job_outputs(out, SYNTH_OUTPUTS) as stage:
-        ds.save(stage / "dataset")
-        write_layout(stage / "markers.csv", layout, neutral=actor.neutral)
-        write_bundles(stage / "bundles.csv", bundles)
-        synth.jaw_rig(actor).save(stage / "jaw_rig.npz")
-        save_npz(stage / "truth.npz", vertices=truth, activations=acts.astype(np.float32),
-                 controls=np.asarray(synth.CONTROLS), jaw=actor.jaw_parameters(acts).astype(np.float32),
-                 frames=np.arange(n_frames))
-        if hmc is not None:
-            from .hmc import write_footage
-
-            write_footage(stage / "hmc", actor, layout, acts, seed=seed, show_progress=not quiet, **hmc)
-    return {"actor": actor, "dataset": ds, "layout": layout, "activations": acts, "truth": truth,
-            "marker_snap_cm": float(dist.max())}
-
-
 def cmd_synth(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    hmc = None
-    if args.hmc:
-        hmc = {"model": args.lens, "size": _parse_size(args.image_size), "dot_noise_px": args.dot_noise,
-               "board_views": args.board_views, "flex_deg": args.rig_flex}
-    r = write_synthetic(out, args.vertices, args.frames, args.seed, args.quiet, hmc)
-    print(f"synthetic actor: {r['actor'].n_vertices} vertices, {r['dataset'].n_shapes} shapes, "
-          f"{len(r['layout'])} markers, {args.frames} frames (seed {args.seed})")
-    names = ["dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz"]
-    if hmc:
-        names += ["hmc/cam0", "hmc/cam1", "hmc/calib", "hmc/cameras_true.json", "hmc/helmet.csv", "hmc/truth.npz"]
-    for name in names:
-        print(f"  {out / name}")
+    from .jobs.synthetic import SynthOptions, synth_report, write_synthetic
+
+    opts = SynthOptions(vertices=args.vertices, frames=args.frames, seed=args.seed, hmc=args.hmc, lens=args.lens,
+                        image_size=args.image_size, dot_noise=args.dot_noise, board_views=args.board_views,
+                        rig_flex=args.rig_flex)
+    for line in synth_report(write_synthetic(args.out, opts, show_progress=not args.quiet), opts):
+        print(line)
     return 0
 
 
-def _parse_size(text: str) -> tuple[int, int]:
-    import re
-
-    m = re.fullmatch(r"(\d+)x(\d+)", text.strip())
-    if not m or int(m[1]) < 64 or int(m[2]) < 64:
-        raise InputError(f"image size {text!r}: expected WIDTHxHEIGHT, at least 64x64")
-    return int(m[1]), int(m[2])
-
-
 def cmd_track(args: argparse.Namespace) -> int:
-    from .footage import track_to_files
+    from .jobs.capture import TrackFootageOptions, track, track_report
 
-    _, r = track_to_files(args.footage_dir, args.calib, args.markers, args.out, args.tracks, args.dataset, args.units,
-                          args.labels, args.reference_frame, args.helmet, args.gate, args.dot_size)
-    print(f"{r['frames']} frames x {r['markers']} markers: {r['triangulated_share']:.1%} triangulated, "
-          f"{r['one_camera_observations']} observations in one camera only (kept in the tracks table), "
-          f"{r['anchors']} anchor frames")
-    print(f"reprojection error: median {r['reprojection_median_px']:.3f} px, p95 {r['reprojection_p95_px']:.3f} px; "
-          f"rejected {r['rejected_epipolar']} epipolar, {r['rejected_neighbour']} neighbour inconsistencies")
-    if r["reprojection_median_px"] > 0.5:
-        print(f"warning: the median reprojection error is {r['reprojection_median_px']:.2f} px: the rig may have "
-              "moved since its calibration"
-              + ("" if args.helmet else " (pass --helmet to refine it from the helmet markers)"))
-    print(f"stable markers for head stabilisation: {', '.join(r['stable_markers'])}")
-    sec = r["seconds"]
-    print(f"{r['frames_per_second']:.1f} frames/s (detect {sec['detect']:.2f} s, track {sec['track']:.2f} s, "
-          f"stabilise {sec['stabilise']:.2f} s)")
-    print(f"bundles ({r['units']}): {r['bundles']}\n2D tracks: {r['tracks']}")
+    opts = TrackFootageOptions(tracks=args.tracks, dataset=args.dataset, units=args.units, labels=args.labels,
+                               reference_frame=args.reference_frame, helmet=args.helmet, gate=args.gate,
+                               dot_size=args.dot_size)
+    for line in track_report(track(args.footage_dir, args.calib, args.markers, args.out, opts)):
+        print(line)
     return 0
 
 
 def cmd_bundles(args: argparse.Namespace) -> int:
-    import pandas as pd
+    from .jobs.dataset import dataset_bundles
 
-    from .atomic import atomic_file
-    from .bundles import Bundles, write_bundles
-    from .dataset import ShapeDataset
-    from .markers import read_layout
-
-    ds = ShapeDataset.load(args.dataset_dir)
-    if args.shapes:
-        ds = ds.select(include=args.shapes)
-        if ds.n_shapes == 0:
-            raise InputError(f"no shape matches {args.shapes!r}", path=args.dataset_dir)
-    layout = read_layout(args.markers, ds.triangles)
-    pos = layout.evaluate(ds.neutral[None] + np.asarray(ds.deltas, np.float64))
-    out = Path(args.out)
-    write_bundles(out, Bundles(frames=np.arange(ds.n_shapes), markers=layout.names, positions=pos))
-    side = out.with_name(out.stem + ".shapes.csv")
-    with atomic_file(side) as tmp:
-        pd.DataFrame({"frame": np.arange(ds.n_shapes), "shape": ds.names}).to_csv(tmp, index=False)
-    print(f"{ds.n_shapes} frames x {len(layout)} markers -> {out}\nframe -> shape map -> {side}")
+    r = dataset_bundles(args.dataset_dir, args.markers, args.out, args.shapes)
+    print(f"{r['frames']} frames x {r['markers']} markers -> {r['bundles']}\nframe -> shape map -> {r['shapes']}")
     return 0
 
 
@@ -228,53 +139,20 @@ def cmd_augment(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .calibration import Board, calibrate_stereo
+    from .jobs.capture import CalibrateOptions, calibrate, calibrate_report
 
-    calib = calibrate_stereo(args.images_dir, Board.parse(args.board), rational=args.rational, fisheye=args.fisheye)
-    calib.save(args.out, args.yaml)
-    print(f"stereo calibration from {len(calib.used)} image pairs ({calib.image_size[0]}x{calib.image_size[1]}, "
-          f"{calib.model}): RMS left {calib.rms_camera[0]:.3f} px, right {calib.rms_camera[1]:.3f} px, "
-          f"stereo {calib.rms_stereo:.3f} px; baseline {calib.baseline_mm:.3f} mm")
-    for name, (el, er) in calib.per_view.items():
-        print(f"  {name}: {el:.3f} / {er:.3f} px")
-    for name, why in calib.rejected.items():
-        print(f"  rejected {name}: {why}")
-    print(f"calibration: {Path(args.out).resolve()}" + (f", {Path(args.yaml).resolve()}" if args.yaml else ""))
+    opts = CalibrateOptions(board=args.board, rational=args.rational, fisheye=args.fisheye, yaml=args.yaml)
+    for line in calibrate_report(calibrate(args.images_dir, args.out, opts)):
+        print(line)
     return 0
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from .atomic import atomic_dir
-    from .export import displacement_map, write_exr, write_usd
-    from .index import LGIIndex
-    from .progress import progress
+    from .jobs.export import ExportOptions, export, export_report
 
-    src = Path(args.recon_dir) / "meshes.npz"
-    if not src.is_file():
-        raise InputError("no meshes.npz (run lgi reconstruct first)", path=args.recon_dir)
-    with np.load(src) as z:
-        vertices, frames = z["vertices"], z["frames"]
-    index = LGIIndex.load(args.index)
-    a = index.arrays
-    if vertices.shape[1] != index.n_vertices:
-        raise InputError(f"meshes have {vertices.shape[1]} vertices, the index {index.n_vertices}", path=src)
-    if not (args.usd or args.exr):
-        raise InputError("nothing to export: give --usd FILE and/or --exr DIR")
-    if args.exr:
-        if "uvs" not in a:
-            raise InputError("the mesh has no texture coordinates: no displacement maps", path=args.index)
-        x0 = np.asarray(a["neutral"], np.float64)
-        with atomic_dir(args.exr) as tmp:
-            for f, v in progress(list(zip(frames, vertices, strict=True)), "displacement maps", disable=args.quiet):
-                img, _ = displacement_map(v - x0, a["face_vertices"], a["face_offsets"], a["uvs"], a["face_uvs"],
-                                          args.exr_size)
-                write_exr(tmp / f"frame_{int(f):05d}.exr", img)
-        print(f"displacement maps: {Path(args.exr).resolve()} ({len(frames)} x {args.exr_size}^2 RGB float32, cm)")
-    if args.usd:
-        # Written last: each output is atomic on its own, and no USD appears if the maps fail.
-        write_usd(args.usd, vertices, a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"),
-                  frames, fps=args.fps)
-        print(f"USD: {Path(args.usd).resolve()} ({len(frames)} time samples at {args.fps:g} fps)")
+    opts = ExportOptions(usd=args.usd, exr=args.exr, exr_size=args.exr_size, fps=args.fps)
+    for line in export_report(export(args.recon_dir, args.index, opts, show_progress=not args.quiet), opts):
+        print(line)
     return 0
 
 
@@ -286,103 +164,18 @@ def cmd_rig(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write_csv(df, path: Path) -> None:
-    from .atomic import atomic_file
-
-    with atomic_file(path) as tmp:
-        df.to_csv(tmp, index=False, float_format="%.6g")
-
-
 def cmd_bench(args: argparse.Namespace) -> int:
-    import dataclasses
+    from .jobs.bench import BenchOptions, bench
 
-    from . import benchsets
-    from .bench import accuracy_benchmark
-    from .paths import shared_data
-    from .render import heatmap_row
-
-    if args.noise < 0 or not np.isfinite(args.noise):
-        raise InputError(f"--noise must be a number of mm >= 0, not {args.noise}")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    names = ["synthetic"]
-    ict = Path(args.ict) if args.ict else shared_data("ict-facekit")
-    if args.no_ict:
-        pass
-    elif not (ict / "generic_neutral_mesh.obj").is_file():
-        print(f"ICT FaceKit not found at {ict}: the ICT sets are skipped")
-    else:
-        names += ["ict_jaw", "ict_heldout", "ict_combination"]
-    sets = {}
-    for name in names:
-        bs = (benchsets.synthetic_set(frames=args.frames) if name == "synthetic"
-              else benchsets.load_sets([name], ict)[name])
-        if args.noise != benchsets.NOISE_CM * MM_PER_CM:
-            bs = dataclasses.replace(bs, noisy=benchsets.tracking_noise(bs.bundles, bs.info.get("seed", 0),
-                                                                       noise_cm=args.noise / MM_PER_CM))
-        sets[name] = bs
-    table, maps = accuracy_benchmark(sets, log=print)
-    _write_csv(table, out / "accuracy.csv")
-    for name, bs in sets.items():
-        if name != "synthetic":
-            continue  # ICT pictures derive from ICT data: written only on request of the ICT sets below
-        png = heatmap_row(out / "heatmaps_synthetic.png", bs.dataset.neutral, bs.triangles, maps["synthetic_clean"],
-                          title=f"synthetic held-out performance ({bs.n_frames} frames, clean bundles): mean "
-                                "vertex error")
-        print(f"heat maps: {png}")
-    for name, bs in sets.items():
-        if name.startswith("ict"):
-            heatmap_row(out / f"heatmaps_{name}.png", bs.dataset.neutral, bs.triangles, maps[f"{name}_clean"],
-                        mask=bs.mask, title=f"{name} (clean bundles): mean vertex error")
-    print(f"({time.perf_counter() - t0:.0f} s; tables and pictures in {out.resolve()})")
+    bench(args.out, BenchOptions(frames=args.frames, noise=args.noise, ict=args.ict, no_ict=args.no_ict))
     return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from . import synth
+    from .jobs.synthetic import DemoOptions, demo
 
-    out = Path(args.out)
-    t0 = time.perf_counter()
-    r = write_synthetic(out, args.vertices, args.frames, args.seed, args.quiet)
-    actor = r["actor"]
-    print(f"[1/4] synthetic actor: {actor.n_vertices} vertices, {r['dataset'].n_shapes} dataset shapes, "
-          f"{len(r['layout'])} markers, {args.frames}-frame performance ({time.perf_counter() - t0:.1f} s)")
-    nl = synth.nonlinearity(actor, r["activations"])
-    print("[2/4] how far the truth is from a linear blend of the extreme shapes (mm), over the performance:")
-    print(f"      RMS per frame: median {np.median(nl[:, 0]):.2f}, 95th pct {np.percentile(nl[:, 0], 95):.2f}; "
-          f"max per frame: median {np.median(nl[:, 1]):.2f}, 95th pct {np.percentile(nl[:, 1], 95):.2f}, "
-          f"worst {nl[:, 1].max():.2f}")
-    from .index import build_index
-
-    t = time.perf_counter()
-    index, reports = build_index(r["dataset"], r["layout"], show_progress=not args.quiet,
-                                 jaw_rig=synth.jaw_rig(r["actor"]))
-    index.save(out / "index", reports)
-    print(f"[3/4] LGI index (jaw rig, unskinned shapes): {index.manifest['counts']['simplices']} simplices over "
-          f"{len(r['layout'])} bundles "
-          f"({time.perf_counter() - t:.1f} s)")
-    from .jobs.reconstruct import ReconstructOptions, Shot, write_reconstruction
-
-    opts = ReconstructOptions()
-    shot = Shot(out / "index", out / "bundles.csv", opts)
-    # A few frames first: the compiled kernels are built (first run) or loaded from their cache, so the
-    # timed run below is the steady state.
-    t = time.perf_counter()
-    shot.finish(shot.choose(0, 3), 0, 3)
-    warm = time.perf_counter() - t
-    t = time.perf_counter()
-    res = shot.run(show_progress=not args.quiet)
-    dt = time.perf_counter() - t
-    write_reconstruction(out, res, index.arrays, opts)
-    err = np.linalg.norm(res.vertices - r["truth"], axis=2) * MM_PER_CM
-    print(f"[4/4] reconstructed the {args.frames}-frame performance (frames not in the dataset) at "
-          f"{args.frames / dt:.0f} frames/s steady state (kernel compilation or cache load and 3 warm-up frames: "
-          f"{warm:.1f} s); error against the truth: RMS {np.sqrt(np.mean(err**2)):.3f} mm, "
-          f"95th pct {np.percentile(err, 95):.3f} mm, max {err.max():.2f} mm; "
-          f"max bundle residual {np.nanmax(res.diagnostics.residual_mm):.1e} mm")
-    print(f"outputs in {out.resolve()}: dataset/, markers.csv, bundles.csv, truth.npz, index/, meshes.npz, "
-          f"diagnostics.csv")
+    demo(args.out, DemoOptions(vertices=args.vertices, frames=args.frames, seed=args.seed),
+         show_progress=not args.quiet)
     return 0
 
 

@@ -1,4 +1,8 @@
-"""Where the files the project ships (``data/``) and the shared test data are found."""
+"""Where the files the project ships and the shared test data are found.
+
+The shipped files (marker layouts) are package resources in ``lgi/data/`` (the repository's top-level
+``data/`` links to them), so an installed wheel has them wherever it runs.
+"""
 
 from __future__ import annotations
 
@@ -11,10 +15,10 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def shipped(name: str) -> Path:
-    """Path of a file shipped in the repository's ``data/`` (lgi is installed from its source tree)."""
-    path = REPO_ROOT / "data" / name
+    """Path of a file lgi ships (a package resource in ``lgi/data/``)."""
+    path = Path(__file__).resolve().parent / "data" / name
     if not path.is_file():
-        raise InputError("shipped data file missing: install lgi from its source tree (pip install -e .)", path=path)
+        raise InputError("shipped data file missing: the lgi installation is incomplete (reinstall it)", path=path)
     return path
 
 

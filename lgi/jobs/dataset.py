@@ -303,3 +303,30 @@ def augment_report(s: dict[str, Any]) -> list[str]:
                      f"{r['points_augmented_median']:.0f} (median); the in-betweens added {r['kept']} points over "
                      f"{r['bundles']} bundles ({AUGMENT_REPORT})")
     return lines
+
+
+# -------------------------------------------------------------------------------------------- bundles
+def dataset_bundles(dataset_dir: str | Path, markers: str | Path, out: str | Path,
+                    shapes: str | None = None) -> dict[str, Any]:
+    """``lgi bundles``: the markers evaluated on every (selected) dataset shape, one frame per shape, and
+    ``OUT.shapes.csv`` mapping frames to shape names."""
+    import pandas as pd
+
+    from ..atomic import atomic_file
+    from ..bundles import Bundles, write_bundles
+    from ..dataset import ShapeDataset
+    from ..markers import read_layout
+
+    ds = ShapeDataset.load(dataset_dir)
+    if shapes:
+        ds = ds.select(include=shapes)
+        if ds.n_shapes == 0:
+            raise InputError(f"no shape matches {shapes!r}", path=dataset_dir)
+    layout = read_layout(markers, ds.triangles)
+    pos = layout.evaluate(ds.neutral[None] + np.asarray(ds.deltas, np.float64))
+    out = Path(out)
+    side = out.with_name(out.stem + ".shapes.csv")
+    write_bundles(out, Bundles(frames=np.arange(ds.n_shapes), markers=layout.names, positions=pos))
+    with atomic_file(side) as tmp:
+        pd.DataFrame({"frame": np.arange(ds.n_shapes), "shape": ds.names}).to_csv(tmp, index=False)
+    return {"frames": ds.n_shapes, "markers": len(layout), "bundles": str(out), "shapes": str(side)}

@@ -1,0 +1,86 @@
+"""The bench job: LGI against the baselines on the same frames (``lgi bench``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+from ..units import MM_PER_CM
+
+
+@dataclass(frozen=True)
+class BenchOptions:
+    """Options of ``lgi bench``: synthetic performance length ``frames``, bundle ``noise`` (mm per coordinate)
+    of the noisy sets, the ICT FaceKit folder ``ict`` (default: the shared data) or ``no_ict``."""
+
+    frames: int = 300
+    noise: float = 0.3
+    ict: str | None = None
+    no_ict: bool = False
+
+    def __post_init__(self) -> None:
+        if isinstance(self.frames, bool) or not isinstance(self.frames, int) or self.frames < 1:
+            raise InputError(f"--frames must be a whole number >= 1, not {self.frames!r}")
+        if not isinstance(self.noise, (int, float)) or not math.isfinite(self.noise) or self.noise < 0:
+            raise InputError(f"--noise must be a number of mm >= 0, not {self.noise}")
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> dict[str, Any]:
+    """``lgi bench``: the accuracy tables (``accuracy.csv``) and heat maps in ``out``; progress and tables
+    through ``log``."""
+    from .. import benchsets
+    from ..atomic import atomic_file
+    from ..bench import accuracy_benchmark
+    from ..paths import shared_data
+    from ..render import heatmap_row
+
+    o = options or BenchOptions()
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError("the output must be a directory; a file of that name exists", path=out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    names = ["synthetic"]
+    ict = Path(o.ict) if o.ict else shared_data("ict-facekit")
+    skipped = None
+    if o.no_ict:
+        skipped = "--no-ict"
+    elif not (ict / "generic_neutral_mesh.obj").is_file():
+        skipped = f"ICT FaceKit not found at {ict}"
+        log(f"{skipped}: the ICT sets are skipped")
+    else:
+        names += ["ict_jaw", "ict_heldout", "ict_combination"]
+    sets = {}
+    for name in names:
+        bs = (benchsets.synthetic_set(frames=o.frames) if name == "synthetic"
+              else benchsets.load_sets([name], ict)[name])
+        if o.noise != benchsets.NOISE_CM * MM_PER_CM:
+            bs = dataclasses.replace(bs, noisy=benchsets.tracking_noise(bs.bundles, bs.info.get("seed", 0),
+                                                                       noise_cm=o.noise / MM_PER_CM))
+        sets[name] = bs
+    table, maps = accuracy_benchmark(sets, log=log)
+    with atomic_file(out / "accuracy.csv") as tmp:
+        table.to_csv(tmp, index=False, float_format="%.6g")
+    pictures = []
+    for name, bs in sets.items():
+        if name == "synthetic":
+            pictures.append(heatmap_row(out / "heatmaps_synthetic.png", bs.dataset.neutral, bs.triangles,
+                                        maps["synthetic_clean"],
+                                        title=f"synthetic held-out performance ({bs.n_frames} frames, clean "
+                                              "bundles): mean vertex error"))
+        else:  # ICT pictures derive from ICT data: written only on request of the ICT sets
+            pictures.append(heatmap_row(out / f"heatmaps_{name}.png", bs.dataset.neutral, bs.triangles,
+                                        maps[f"{name}_clean"], mask=bs.mask,
+                                        title=f"{name} (clean bundles): mean vertex error"))
+    log(f"heat maps: {', '.join(str(p) for p in pictures)}")
+    log(f"({time.perf_counter() - t0:.0f} s; tables and pictures in {out.resolve()})")
+    return {"sets": names, "ict_skipped": skipped, "table": str((out / "accuracy.csv").resolve()),
+            "pictures": [str(p) for p in pictures]}

@@ -1,0 +1,127 @@
+"""The capture jobs: ``lgi calibrate`` (a stereo pair from board images) and ``lgi track`` (stereo footage to
+bundles and a 2D tracks table)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: Median reprojection error (px) above which a shot's calibration is suspect.
+MOVED_RIG_PX = 0.5
+
+
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """Options of ``lgi calibrate``: the ``board`` spec (:meth:`lgi.calibration.Board.parse`), OpenCV's
+    ``rational`` or the ``fisheye`` lens model, and an OpenCV ``yaml`` file to write beside the JSON."""
+
+    board: str
+    rational: bool = False
+    fisheye: bool = False
+    yaml: str | None = None
+
+    def __post_init__(self) -> None:
+        from ..calibration import Board
+
+        Board.parse(self.board)
+        if self.rational and self.fisheye:
+            raise InputError("--rational and --fisheye are two lens models: choose one")
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def calibrate(images_dir: str | Path, out: str | Path, options: CalibrateOptions) -> dict[str, Any]:
+    """``lgi calibrate``: detect the board, calibrate both cameras and the pair; write the JSON (and YAML)."""
+    from ..calibration import Board, calibrate_stereo
+
+    o = options
+    for path in (out, o.yaml):
+        if path and Path(path).is_dir():
+            raise InputError("the output is a directory; give a file name", path=path)
+    calib = calibrate_stereo(images_dir, Board.parse(o.board), rational=o.rational, fisheye=o.fisheye)
+    calib.save(out, o.yaml)
+    return {"path": str(Path(out).resolve()), "yaml": str(Path(o.yaml).resolve()) if o.yaml else None,
+            "views": len(calib.used), "image_size": list(calib.image_size), "model": calib.model,
+            "rms_camera_px": [float(v) for v in calib.rms_camera], "rms_stereo_px": float(calib.rms_stereo),
+            "baseline_mm": float(calib.baseline_mm),
+            "per_view_px": {k: [float(a), float(b)] for k, (a, b) in calib.per_view.items()},
+            "rejected": dict(calib.rejected)}
+
+
+def calibrate_report(s: dict[str, Any]) -> list[str]:
+    lines = [f"stereo calibration from {s['views']} image pairs ({s['image_size'][0]}x{s['image_size'][1]}, "
+             f"{s['model']}): RMS left {s['rms_camera_px'][0]:.3f} px, right {s['rms_camera_px'][1]:.3f} px, "
+             f"stereo {s['rms_stereo_px']:.3f} px; baseline {s['baseline_mm']:.3f} mm"]
+    lines += [f"  {name}: {el:.3f} / {er:.3f} px" for name, (el, er) in s["per_view_px"].items()]
+    lines += [f"  rejected {name}: {why}" for name, why in s["rejected"].items()]
+    lines.append(f"calibration: {s['path']}" + (f", {s['yaml']}" if s["yaml"] else ""))
+    return lines
+
+
+@dataclass(frozen=True)
+class TrackFootageOptions:
+    """Options of ``lgi track`` (see its ``--help``)."""
+
+    tracks: str | None = None
+    dataset: str | None = None
+    units: str = "cm"
+    labels: str | None = None
+    reference_frame: int = 0
+    helmet: str | None = None
+    gate: float = 12.0
+    dot_size: float = 9.0
+
+    def __post_init__(self) -> None:
+        from ..units import check_units
+
+        check_units(self.units, "--units")
+        for name in ("gate", "dot_size"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise InputError(f"--{name.replace('_', '-')} must be a positive number of px, not {v!r}")
+        if isinstance(self.reference_frame, bool) or not isinstance(self.reference_frame, int) or \
+                self.reference_frame < 0:
+            raise InputError(f"--reference-frame must be a frame number >= 0, not {self.reference_frame!r}")
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def track(footage_dir: str | Path, calib: str | Path, markers: str | Path, out: str | Path,
+          options: TrackFootageOptions | None = None) -> dict[str, Any]:
+    """``lgi track``: footage to the bundles file (cm) and the 2D tracks table; returns the summary of
+    :func:`lgi.footage.track_to_files`. A median reprojection error above :data:`MOVED_RIG_PX` is logged as a
+    warning (the rig may have moved since its calibration) and flagged in the summary."""
+    from ..footage import track_to_files
+
+    o = options or TrackFootageOptions()
+    _, r = track_to_files(footage_dir, calib, markers, out, o.tracks, o.dataset, o.units, o.labels,
+                          o.reference_frame, o.helmet, o.gate, o.dot_size)
+    r["rig_may_have_moved"] = bool(r["reprojection_median_px"] > MOVED_RIG_PX)
+    r["helmet"] = bool(o.helmet)
+    if r["rig_may_have_moved"]:
+        log.warning("the median reprojection error is %.2f px: the rig may have moved since its calibration%s",
+                    r["reprojection_median_px"],
+                    "" if o.helmet else " (pass --helmet to refine it from the helmet markers)")
+    return r
+
+
+def track_report(r: dict[str, Any]) -> list[str]:
+    sec = r["seconds"]
+    return [f"{r['frames']} frames x {r['markers']} markers: {r['triangulated_share']:.1%} triangulated, "
+            f"{r['one_camera_observations']} observations in one camera only (kept in the tracks table), "
+            f"{r['anchors']} anchor frames",
+            f"reprojection error: median {r['reprojection_median_px']:.3f} px, p95 {r['reprojection_p95_px']:.3f} px; "
+            f"rejected {r['rejected_epipolar']} epipolar, {r['rejected_neighbour']} neighbour inconsistencies",
+            f"stable markers for head stabilisation: {', '.join(r['stable_markers'])}",
+            f"{r['frames_per_second']:.1f} frames/s (detect {sec['detect']:.2f} s, track {sec['track']:.2f} s, "
+            f"stabilise {sec['stabilise']:.2f} s)",
+            f"bundles ({r['units']}): {r['bundles']}", f"2D tracks: {r['tracks']}"]

@@ -1,0 +1,91 @@
+"""The export job: a reconstruction as an animated USD mesh and/or OpenEXR displacement maps."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """Options of ``lgi export``: ``usd`` file (.usdc/.usda) and/or ``exr`` directory (one map per frame of
+    ``exr_size`` squared texels), USD time codes per second ``fps``."""
+
+    usd: str | None = None
+    exr: str | None = None
+    exr_size: int = 512
+    fps: float = 30.0
+
+    def __post_init__(self) -> None:
+        if not (self.usd or self.exr):
+            raise InputError("nothing to export: give --usd FILE and/or --exr DIR")
+        if isinstance(self.exr_size, bool) or not isinstance(self.exr_size, int) or not 8 <= self.exr_size <= 16384:
+            raise InputError(f"--exr-size must be a whole number of texels in [8, 16384], not {self.exr_size!r}")
+        if not isinstance(self.fps, (int, float)) or not math.isfinite(self.fps) or self.fps <= 0:
+            raise InputError(f"--fps must be a positive number, not {self.fps!r}")
+        if self.usd and Path(self.usd).suffix.lower() not in (".usd", ".usda", ".usdc"):
+            raise InputError("--usd takes a .usd, .usda or .usdc file name", path=self.usd)
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
+           show_progress: bool = False) -> dict[str, Any]:
+    """``lgi export``: write ``recon_dir/meshes.npz`` as USD and/or EXR maps (each output atomic; the USD is
+    written last, so none appears if the maps fail)."""
+    from ..atomic import atomic_dir
+    from ..export import displacement_map, write_exr, write_usd
+    from ..index import LGIIndex
+    from ..npz import load_npz
+    from ..progress import progress
+
+    o = options
+    for path in (o.usd, o.exr):
+        if path and Path(path).exists() and Path(path).is_dir() != (path == o.exr):
+            raise InputError("an output of the other kind (file or directory) exists there", path=path)
+    src = Path(recon_dir) / "meshes.npz"
+    if not src.is_file():
+        raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)
+    z = load_npz(src, required=("vertices", "frames"))
+    vertices, frames = z["vertices"], z["frames"]
+    index = LGIIndex.load(index_dir)
+    a = index.arrays
+    if vertices.ndim != 3 or vertices.shape[1:] != (index.n_vertices, 3) or len(frames) != len(vertices):
+        raise InputError(f"vertices of shape {vertices.shape} and {len(frames)} frames do not fit the index's "
+                         f"{index.n_vertices} vertices", path=src)
+    if not np.all(np.isfinite(vertices)):
+        f = int(np.flatnonzero(~np.isfinite(vertices).all(axis=(1, 2)))[0])
+        raise InputError("non-finite vertex positions", path=src, frame=int(frames[f]))
+    s: dict[str, Any] = {"frames": len(frames)}
+    if o.exr:
+        if "uvs" not in a:
+            raise InputError("the mesh has no texture coordinates: no displacement maps", path=index_dir)
+        x0 = np.asarray(a["neutral"], np.float64)
+        with atomic_dir(o.exr) as tmp:
+            for f, v in progress(list(zip(frames, vertices, strict=True)), "displacement maps",
+                                 disable=not show_progress):
+                img, _ = displacement_map(v - x0, a["face_vertices"], a["face_offsets"], a["uvs"], a["face_uvs"],
+                                          o.exr_size)
+                write_exr(tmp / f"frame_{int(f):05d}.exr", img)
+        s["exr"] = str(Path(o.exr).resolve())
+    if o.usd:
+        write_usd(o.usd, vertices, a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"),
+                  frames, fps=o.fps)
+        s["usd"] = str(Path(o.usd).resolve())
+    return s
+
+
+def export_report(s: dict[str, Any], options: ExportOptions) -> list[str]:
+    lines = []
+    if "exr" in s:
+        lines.append(f"displacement maps: {s['exr']} ({s['frames']} x {options.exr_size}^2 RGB float32, cm)")
+    if "usd" in s:
+        lines.append(f"USD: {s['usd']} ({s['frames']} time samples at {options.fps:g} fps)")
+    return lines

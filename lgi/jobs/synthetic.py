@@ -1,0 +1,179 @@
+"""The synthetic-actor jobs: ``lgi synth`` (dataset, markers, performance, truth, optional HMC footage) and
+``lgi demo`` (the main job end to end on it)."""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..units import MM_PER_CM
+
+#: What ``lgi synth`` writes into its output directory (an earlier run's ``hmc/`` goes when --hmc is not given).
+SYNTH_OUTPUTS = ("dataset", "markers.csv", "bundles.csv", "jaw_rig.npz", "truth.npz", "hmc")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` (each at least 64) as integers."""
+    m = re.fullmatch(r"(\d+)x(\d+)", str(text).strip())
+    if not m or int(m[1]) < 64 or int(m[2]) < 64:
+        raise InputError(f"--image-size {text!r}: expected WIDTHxHEIGHT, at least 64x64")
+    return int(m[1]), int(m[2])
+
+
+@dataclass(frozen=True)
+class SynthOptions:
+    """Options of ``lgi synth`` (see its ``--help``): mesh size, performance length and seed, and with ``hmc``
+    the head-mounted camera footage's lens, image size, dot noise (px), board views and rig flex (deg)."""
+
+    vertices: int = 20000
+    frames: int = 240
+    seed: int = 0
+    hmc: bool = False
+    lens: str = "fisheye"
+    image_size: str = "1280x1024"
+    dot_noise: float = 0.3
+    board_views: int = 15
+    rig_flex: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, least in (("vertices", 1), ("frames", 1), ("seed", 0), ("board_views", 3)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+                raise InputError(f"--{name.replace('_', '-')} must be a whole number >= {least}, not {v!r}")
+        if self.lens not in ("fisheye", "pinhole"):
+            raise InputError(f"--lens takes fisheye or pinhole, not {self.lens!r}")
+        for name in ("dot_noise", "rig_flex"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or (name == "dot_noise" and v < 0):
+                raise InputError(f"--{name.replace('_', '-')}: {v!r} is not a valid value")
+        parse_size(self.image_size)
+
+    def footage(self) -> dict[str, Any] | None:
+        """Keyword arguments of :func:`lgi.hmc.write_footage`, or None without ``hmc``."""
+        if not self.hmc:
+            return None
+        return {"model": self.lens, "size": parse_size(self.image_size), "dot_noise_px": self.dot_noise,
+                "board_views": self.board_views, "flex_deg": self.rig_flex}
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool = False) -> dict[str, Any]:
+    """``lgi synth``: the synthetic actor's dataset, markers, performance bundles, jaw rig and truth in ``out``
+    (:data:`SYNTH_OUTPUTS`).
+
+    With ``hmc``, also HMC footage in ``out/hmc``; the performance then starts from the neutral face (a 15-frame
+    ramp), as a shot does. Returns the actor, dataset, layout, activations and truth (for the demo and tests)
+    and ``outputs``, the paths written.
+    """
+    from .. import synth
+    from ..atomic import job_outputs
+    from ..bundles import Bundles, write_bundles
+    from ..markers import write_layout
+    from ..npz import save_npz
+
+    o = options
+    hmc = o.footage()
+    actor = synth.make_actor(o.vertices)
+    ds = synth.make_dataset(actor)
+    layout, dist = synth.default_layout(actor)
+    acts = synth.random_performance(o.frames, seed=o.seed)
+    if hmc is not None:
+        acts = acts * np.clip(np.arange(o.frames) / 15.0, 0.0, 1.0)[:, None]
+    truth = actor.evaluate_many(acts)
+    bundles = Bundles(frames=np.arange(o.frames), markers=layout.names,
+                      positions=layout.evaluate(truth.astype(np.float64)))
+    with job_outputs(out, SYNTH_OUTPUTS) as stage:
+        ds.save(stage / "dataset")
+        write_layout(stage / "markers.csv", layout, neutral=actor.neutral)
+        write_bundles(stage / "bundles.csv", bundles)
+        synth.jaw_rig(actor).save(stage / "jaw_rig.npz")
+        save_npz(stage / "truth.npz", vertices=truth, activations=acts.astype(np.float32),
+                 controls=np.asarray(synth.CONTROLS), jaw=actor.jaw_parameters(acts).astype(np.float32),
+                 frames=np.arange(o.frames))
+        if hmc is not None:
+            from ..hmc import write_footage
+
+            write_footage(stage / "hmc", actor, layout, acts, seed=o.seed, show_progress=show_progress, **hmc)
+    names = ["dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz"]
+    if hmc:
+        names += ["hmc/cam0", "hmc/cam1", "hmc/calib", "hmc/cameras_true.json", "hmc/helmet.csv", "hmc/truth.npz"]
+    return {"actor": actor, "dataset": ds, "layout": layout, "activations": acts, "truth": truth,
+            "marker_snap_cm": float(dist.max()), "outputs": [str(Path(out) / n) for n in names]}
+
+
+def synth_report(r: dict[str, Any], options: SynthOptions) -> list[str]:
+    return [f"synthetic actor: {r['actor'].n_vertices} vertices, {r['dataset'].n_shapes} shapes, "
+            f"{len(r['layout'])} markers, {options.frames} frames (seed {options.seed})",
+            *(f"  {p}" for p in r["outputs"])]
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    """Options of ``lgi demo``: the synthetic actor's size, performance length and seed."""
+
+    vertices: int = 20000
+    frames: int = 240
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        SynthOptions(vertices=self.vertices, frames=self.frames, seed=self.seed)
+
+
+def demo(out: str | Path, options: DemoOptions | None = None, show_progress: bool = False,
+         log=print) -> dict[str, Any]:
+    """``lgi demo``: the synthetic actor written, its index built with the jaw rig, its performance reconstructed
+    (the reconstruct job's defaults) and compared with the truth; each step reported through ``log`` as it
+    ends. Returns the figures."""
+    from .. import synth
+    from ..index import build_index
+    from .reconstruct import ReconstructOptions, Shot, write_reconstruction
+
+    o = options or DemoOptions()
+    out = Path(out)
+    t0 = time.perf_counter()
+    r = write_synthetic(out, SynthOptions(vertices=o.vertices, frames=o.frames, seed=o.seed), show_progress)
+    actor = r["actor"]
+    log(f"[1/4] synthetic actor: {actor.n_vertices} vertices, {r['dataset'].n_shapes} dataset shapes, "
+        f"{len(r['layout'])} markers, {o.frames}-frame performance ({time.perf_counter() - t0:.1f} s)")
+    nl = synth.nonlinearity(actor, r["activations"])
+    log("[2/4] how far the truth is from a linear blend of the extreme shapes (mm), over the performance:")
+    log(f"      RMS per frame: median {np.median(nl[:, 0]):.2f}, 95th pct {np.percentile(nl[:, 0], 95):.2f}; "
+        f"max per frame: median {np.median(nl[:, 1]):.2f}, 95th pct {np.percentile(nl[:, 1], 95):.2f}, "
+        f"worst {nl[:, 1].max():.2f}")
+    t = time.perf_counter()
+    index, reports = build_index(r["dataset"], r["layout"], show_progress=show_progress,
+                                 jaw_rig=synth.jaw_rig(actor))
+    index.save(out / "index", reports)
+    log(f"[3/4] LGI index (jaw rig, unskinned shapes): {index.manifest['counts']['simplices']} simplices over "
+        f"{len(r['layout'])} bundles ({time.perf_counter() - t:.1f} s)")
+    opts = ReconstructOptions()
+    shot = Shot(out / "index", out / "bundles.csv", opts)
+    # A few frames first: the compiled kernels are built (first run) or loaded from their cache, so the
+    # timed run below is the steady state.
+    t = time.perf_counter()
+    shot.finish(shot.choose(0, 3), 0, 3)
+    warm = time.perf_counter() - t
+    t = time.perf_counter()
+    res = shot.run(show_progress)
+    dt = time.perf_counter() - t
+    write_reconstruction(out, res, index.arrays, opts)
+    err = np.linalg.norm(res.vertices - r["truth"], axis=2) * MM_PER_CM
+    s = {"frames_per_second": o.frames / dt, "warm_up_s": warm, "rms_mm": float(np.sqrt(np.mean(err**2))),
+         "p95_mm": float(np.percentile(err, 95)), "max_mm": float(err.max()),
+         "max_residual_mm": float(np.nanmax(res.diagnostics.residual_mm))}
+    log(f"[4/4] reconstructed the {o.frames}-frame performance (frames not in the dataset) at "
+        f"{s['frames_per_second']:.0f} frames/s steady state (kernel compilation or cache load and 3 warm-up "
+        f"frames: {warm:.1f} s); error against the truth: RMS {s['rms_mm']:.3f} mm, 95th pct {s['p95_mm']:.3f} mm, "
+        f"max {s['max_mm']:.2f} mm; max bundle residual {s['max_residual_mm']:.1e} mm")
+    log(f"outputs in {out.resolve()}: dataset/, markers.csv, bundles.csv, truth.npz, index/, meshes.npz, "
+        f"diagnostics.csv, per_frame.csv")
+    return s
