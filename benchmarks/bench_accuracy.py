@@ -3,7 +3,7 @@
     python benchmarks/bench_accuracy.py [--sets synthetic,ict_jaw,ict_heldout,ict_combination] [--frames F]
                                         [--out DIR]
 
-Sets (lgi/benchsets.py), each with clean bundles and with tracking noise (0.3 mm per coordinate, 5 % of
+Sets (lgi/evaluation/benchsets.py), each with clean bundles and with tracking noise (0.3 mm per coordinate, 5 % of
 marker-frames missing in runs of 1-6 frames): (a) the synthetic actor's 300-frame held-out performance;
 (b) an ICT actor whose jaw rotates about a fitted hinge (200 frames of 1-4 expressions, linear blends);
 (c) held-out ICT shapes and mixes involving them (66 independent poses, dataset built without them);
@@ -25,8 +25,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # small bounded fits: thread
 
 
 def main() -> int:
-    from lgi import benchsets
-    from lgi.bench import accuracy_benchmark
+    from lgi.evaluation import benchsets
+    from lgi.evaluation.accuracy import accuracy_benchmark
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sets", default="synthetic,ict_jaw,ict_heldout,ict_combination")

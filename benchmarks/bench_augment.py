@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from lgi import synth
-from lgi.augment import Blender, linear_combinations, pick_combinations, simulated_combinations
-from lgi.flesh import FleshModel
-from lgi.index import build_index
+from lgi.augment.combinations import Blender, linear_combinations, pick_combinations, simulated_combinations
+from lgi.augment.flesh import FleshModel
+from lgi.index.build import build_index
 from lgi.paths import shared_data
-from lgi.solver import LGISolver
+from lgi.solve.solver import LGISolver
+from lgi.synthetic import actor as synth
 
 
 def volume_table(actor, ds, rig) -> None:
@@ -106,7 +106,7 @@ def ict_speed(folder: Path) -> None:
     if not (folder / "generic_neutral_mesh.obj").is_file():
         print(f"ICT speed: skipped, ICT FaceKit not found at {folder}")
         return
-    from lgi.importers import import_obj_folder
+    from lgi.dataset.importing import import_obj_folder
 
     ds = import_obj_folder(folder, show_progress=False)
     t = time.perf_counter()

@@ -28,7 +28,7 @@ def main() -> None:
         return
     import cv2
 
-    from lgi.calibration import Board, calibrate_stereo, find_corners, pair_images
+    from lgi.capture.calibration import Board, calibrate_stereo, find_corners, pair_images
 
     board = Board.parse("chessboard:9x6:1")
     t = time.perf_counter()

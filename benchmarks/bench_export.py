@@ -28,13 +28,13 @@ def main() -> None:
         return
     from pxr import Usd, UsdGeom
 
-    from lgi.augment import linear_combinations
-    from lgi.export import displacement_map, write_exr, write_usd
-    from lgi.importers import import_obj_folder
-    from lgi.index import build_index
-    from lgi.markers import read_layout
+    from lgi.augment.combinations import linear_combinations
+    from lgi.dataset.importing import import_obj_folder
+    from lgi.dataset.markers import read_layout
+    from lgi.export.formats import displacement_map, write_exr, write_usd
+    from lgi.index.build import build_index
     from lgi.paths import shipped
-    from lgi.solver import LGISolver
+    from lgi.solve.solver import LGISolver
 
     ds = import_obj_folder(args.ict, rigid_vertices="none", show_progress=False)
     layout = read_layout(shipped("markers_ict.csv"), ds.triangles)

@@ -1,4 +1,5 @@
-"""The reconstruct-shot flow: frames/s with the thread runner and with Dask (1 and 2 workers).
+"""The reconstruct job: frames/s of the plain command and of the reconstruct-shot flow with the thread runner and
+with Dask (1 and 2 workers); all give the same files.
 
     python benchmarks/bench_flows.py [--frames 300] [--chunk 60]
 
@@ -40,12 +41,18 @@ def main() -> None:
             runs.append((f"Dask LocalCluster, {n} worker{'s' if n > 1 else ''}", reconstruct_shot.with_options(
                 task_runner=DaskTaskRunner(cluster_kwargs={"n_workers": n, "threads_per_worker": 1,
                                                            "processes": True}))))
-        print(f"reconstruct-shot, {args.frames} frames of the synthetic actor, chunks of {args.chunk}:")
+        print(f"reconstruct job, {args.frames} frames of the synthetic actor, chunks of {args.chunk}:")
+        from lgi.jobs.reconstruct import reconstruct
+
+        t0 = time.perf_counter()
+        reconstruct(common["index_dir"], common["bundles"], str(t / "plain"))
+        dt = time.perf_counter() - t0
+        print(f"  {'plain (lgi reconstruct, in-process)':<36} {dt:6.1f} s  {args.frames / dt:6.1f} frames/s")
         for label, fl in runs:
             t0 = time.perf_counter()
             fl(out=str(t / label.replace(" ", "_").replace(",", "")), **common)
             dt = time.perf_counter() - t0
-            print(f"  {label:<32} {dt:6.1f} s  {args.frames / dt:6.1f} frames/s")
+            print(f"  {'flow, ' + label:<36} {dt:6.1f} s  {args.frames / dt:6.1f} frames/s")
 
 
 if __name__ == "__main__":

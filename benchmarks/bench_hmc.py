@@ -34,8 +34,8 @@ def lgi(*args: str) -> str:
 
 
 def synthetic_calibration() -> None:
-    from lgi.calibration import Board, calibrate_views
-    from lgi.hmc import board_corner_views, board_poses, hmc_rig
+    from lgi.capture.calibration import Board, calibrate_views
+    from lgi.synthetic.hmc import board_corner_views, board_poses, hmc_rig
 
     print("## Calibration from projected corners, 0.2 px noise, 20 views")
     print("| model | RMS stereo px | RMS cameras px | focal error % (max) | baseline error mm | rotation error deg |")
@@ -83,8 +83,8 @@ def main() -> None:
     import pandas as pd
     from scipy.spatial import cKDTree
 
-    from lgi.bundles import read_bundles
-    from lgi.footage import detect_footage
+    from lgi.capture.bundles import read_bundles
+    from lgi.capture.footage import detect_footage
 
     t2 = np.load(shot / "hmc" / "truth.npz")
     names = list(t2["markers"])
@@ -129,9 +129,9 @@ def main() -> None:
     print("\n## Speed: detection + tracking + triangulation, 100+ dots, two 1280x1024 cameras")
     import cv2
 
-    from lgi.camera import StereoRig
-    from lgi.dots import detect_dots
-    from lgi.tracking import Tracker, thumbnail
+    from lgi.capture.camera import StereoRig
+    from lgi.capture.dots import detect_dots
+    from lgi.capture.tracking import Tracker, thumbnail
 
     frames = sorted((shot / "hmc" / "cam0").iterdir())
     imgs = [(cv2.imread(str(p), 0), cv2.imread(str(shot / "hmc" / "cam1" / p.name), 0)) for p in frames]
@@ -149,7 +149,7 @@ def main() -> None:
         Tracker(rig, layout, mk["name"].tolist()).track([(d[2 * f], d[2 * f + 1]) for f in range(len(imgs))], thumbs)
         runs.append(len(imgs) / (time.perf_counter() - t))
         t = time.perf_counter()
-        from lgi.footage import track_footage
+        from lgi.capture.footage import track_footage
 
         track_footage(shot / "hmc", rig, layout, mk["name"].tolist())
         runs_io.append(len(imgs) / (time.perf_counter() - t))

@@ -21,7 +21,7 @@ from lgi.paths import shared_data
 CHILD = r"""
 import json, resource, sys, time
 t0 = time.perf_counter()
-from lgi.importers import import_obj_folder
+from lgi.dataset.importing import import_obj_folder
 t1 = time.perf_counter()
 ds = import_obj_folder(sys.argv[1], rigid_vertices=sys.argv[3], show_progress=False)
 ds.save(sys.argv[2])

@@ -16,10 +16,10 @@ import time
 
 import numpy as np
 
-from lgi import synth
-from lgi.evaluate import vertex_errors
-from lgi.index import build_index
-from lgi.solver import LGISolver
+from lgi.evaluation.metrics import vertex_errors
+from lgi.index.build import build_index
+from lgi.solve.solver import LGISolver
+from lgi.synthetic import actor as synth
 
 
 def jaw_performance(frames: int, seed: int) -> np.ndarray:

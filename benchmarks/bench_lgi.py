@@ -31,15 +31,15 @@ CHILD = r"""
 import json, resource, sys, time
 import numpy as np
 cfg = json.loads(sys.argv[1])
-from lgi.dataset import ShapeDataset
-from lgi.augment import linear_combinations
-from lgi.index import build_index
-from lgi.markers import read_layout, layout_from_points
-from lgi.solver import LGISolver
+from lgi.dataset.shapes import ShapeDataset
+from lgi.augment.combinations import linear_combinations
+from lgi.index.build import build_index
+from lgi.dataset.markers import read_layout, layout_from_points
+from lgi.solve.solver import LGISolver
 from lgi.paths import shipped
-from lgi import synth
+from lgi.synthetic import actor as synth
 if cfg["kind"] == "ict":
-    from lgi.importers import import_obj_folder
+    from lgi.dataset.importing import import_obj_folder
     base = import_obj_folder(cfg["ict"], rigid_vertices="none", show_progress=False)
     layout = read_layout(shipped("markers_ict.csv"), base.triangles)
 else:
@@ -75,10 +75,10 @@ print(json.dumps({"build_s": build_s, "peak_rss_mib": peak / 1024, "before_build
 def synthetic_heldout(frames: int) -> None:
     from scipy.spatial import Delaunay
 
-    from lgi import synth
-    from lgi.index import build_index
-    from lgi.solver import LGISolver
-    from lgi.verify import verify_index
+    from lgi.evaluation.verify import verify_index
+    from lgi.index.build import build_index
+    from lgi.solve.solver import LGISolver
+    from lgi.synthetic import actor as synth
 
     actor = synth.make_actor()
     ds = synth.make_dataset(actor)
@@ -110,13 +110,13 @@ def synthetic_heldout(frames: int) -> None:
 
 
 def ict_checks(ict: Path) -> None:
-    from lgi.augment import linear_combinations
-    from lgi.importers import import_obj_folder
-    from lgi.index import build_index
-    from lgi.markers import read_layout
+    from lgi.augment.combinations import linear_combinations
+    from lgi.dataset.importing import import_obj_folder
+    from lgi.dataset.markers import read_layout
+    from lgi.evaluation.verify import verify_index
+    from lgi.index.build import build_index
     from lgi.paths import shipped
-    from lgi.solver import LGISolver
-    from lgi.verify import verify_index
+    from lgi.solve.solver import LGISolver
 
     base = import_obj_folder(ict, rigid_vertices="none", show_progress=False)
     layout = read_layout(shipped("markers_ict.csv"), base.triangles)

@@ -1,4 +1,4 @@
-"""LGI against the baselines, same frames, same run: `lgi bench` (see lgi/bench.py for the test sets).
+"""LGI against the baselines, same frames, same run: `lgi bench` (see lgi/evaluation/accuracy.py for the test sets).
 
     python benchmarks/bench_methods.py [--out DIR] [--frames F] [--noise MM] [--no-ict]
 """

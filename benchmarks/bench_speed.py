@@ -84,32 +84,32 @@ KINDS = {
 # In-process stage timers: (depth, label, module, qualified name). Functions that are absent (renamed by
 # later work on the solver) are reported as such; children are timed inside their parents.
 STAGES = [
-    (0, "index load (LGIIndex.load)", "lgi.index", "LGIIndex.load"),
-    (0, "read bundles (read_bundles)", "lgi.bundles", "read_bundles"),
-    (0, "solver set-up (LGISolver.__init__)", "lgi.solver", "LGISolver.__init__"),
-    (0, "prepare_shot (align, noise estimate, gaps)", "lgi.solver", "LGISolver.prepare_shot"),
-    (0, "denoise (trajectory smoothing)", "lgi.solver", "LGISolver.denoise"),
-    (0, "solve (Shot.run -> LGISolver.solve_prepared)", "lgi.solver", "LGISolver.solve_prepared"),
-    (1, "select_sequence (noisy shots: on a second thread)", "lgi.solver", "LGISolver.select_sequence"),
-    (2, "select_frame", "lgi.solver", "LGISolver.select_frame"),
-    (3, "global fit (GlobalFit.solve)", "lgi.globalfit", "GlobalFit.solve"),
-    (3, "select (simplex search)", "lgi.solver", "LGISolver.select"),
+    (0, "index load (LGIIndex.load)", "lgi.index.build", "LGIIndex.load"),
+    (0, "read bundles (read_bundles)", "lgi.capture.bundles", "read_bundles"),
+    (0, "solver set-up (LGISolver.__init__)", "lgi.solve.solver", "LGISolver.__init__"),
+    (0, "prepare_shot (align, noise estimate, gaps)", "lgi.solve.solver", "LGISolver.prepare_shot"),
+    (0, "denoise (trajectory smoothing)", "lgi.solve.solver", "LGISolver.denoise"),
+    (0, "solve (Shot.run -> LGISolver.solve_prepared)", "lgi.solve.solver", "LGISolver.solve_prepared"),
+    (1, "select_sequence (noisy shots: on a second thread)", "lgi.solve.solver", "LGISolver.select_sequence"),
+    (2, "select_frame", "lgi.solve.solver", "LGISolver.select_frame"),
+    (3, "global fit (GlobalFit.solve)", "lgi.solve.globalfit", "GlobalFit.solve"),
+    (3, "select (simplex search)", "lgi.solve.solver", "LGISolver.select"),
     (4, "_kernels.solve_bundles", "lgi._kernels", "solve_bundles"),
     (4, "_kernels.agreement", "lgi._kernels", "agreement"),
-    (3, "_local (local refits)", "lgi.solver", "LGISolver._local"),
+    (3, "_local (local refits)", "lgi.solve.solver", "LGISolver._local"),
     (4, "_kernels.local_fits", "lgi._kernels", "local_fits"),
-    (3, "_global (global weights, noisy bundles)", "lgi.solver", "LGISolver._global"),
-    (1, "finish_sequence (smoothing; exact shots)", "lgi.solver", "LGISolver.finish_sequence"),
-    (1, "blend, skin, correct a frame (_Finisher.frame)", "lgi.solver", "_Finisher.frame"),
-    (2, "surface (blend, skin)", "lgi.solver", "LGISolver.surface"),
+    (3, "_global (global weights, noisy bundles)", "lgi.solve.solver", "LGISolver._global"),
+    (1, "finish_sequence (smoothing; exact shots)", "lgi.solve.solver", "LGISolver.finish_sequence"),
+    (1, "blend, skin, correct a frame (_Finisher.frame)", "lgi.solve.solver", "_Finisher.frame"),
+    (2, "surface (blend, skin)", "lgi.solve.solver", "LGISolver.surface"),
     (3, "_kernels.blend", "lgi._kernels", "blend"),
     (3, "_kernels.blend_uniform", "lgi._kernels", "blend_uniform"),
-    (2, "correct (residual correction)", "lgi.solver", "LGISolver.correct"),
+    (2, "correct (residual correction)", "lgi.solve.solver", "LGISolver.correct"),
     (3, "_kernels.add_correction", "lgi._kernels", "add_correction"),
-    (1, "diagnostics table (_diagnostics)", "lgi.solver", "LGISolver._diagnostics"),
+    (1, "diagnostics table (_diagnostics)", "lgi.solve.solver", "LGISolver._diagnostics"),
     (0, "write outputs (write_reconstruction)", "lgi.jobs.reconstruct", "write_reconstruction"),
-    (1, "meshes.npz (save_npz)", "lgi.npz", "save_npz"),
-    (1, "diagnostics.csv (write_csv)", "lgi.csvio", "write_csv"),
+    (1, "meshes.npz (save_npz)", "lgi.io.npz", "save_npz"),
+    (1, "diagnostics.csv (write_csv)", "lgi.io.csvio", "write_csv"),
     (1, "per_frame.csv (per_frame_table)", "lgi.jobs.reconstruct", "per_frame_table"),
 ]
 
@@ -281,10 +281,10 @@ def first_frames(src: Path, dst: Path, n: int) -> None:
 
 def jaw_frames(mixes: Path, names: list[str], rig_path: Path, markers: Path, out: Path) -> None:
     """Bundles of the named mixes with the jaw rotated by the rig, opening 0-25 deg varying smoothly."""
-    from lgi.bundles import Bundles, write_bundles
-    from lgi.dataset import ShapeDataset
-    from lgi.jaw import JawRig
-    from lgi.markers import read_layout
+    from lgi.capture.bundles import Bundles, write_bundles
+    from lgi.dataset.markers import read_layout
+    from lgi.dataset.shapes import ShapeDataset
+    from lgi.solve.jaw import JawRig
 
     ds = ShapeDataset.load(mixes, mmap=True)
     layout = read_layout(markers, ds.triangles)

@@ -17,11 +17,11 @@ import time
 
 import numpy as np
 
-from lgi import synth
-from lgi.evaluate import jitter, vertex_errors
-from lgi.index import build_index
-from lgi.solver import LGISolver
-from lgi.temporal import bilateral_filter
+from lgi.evaluation.metrics import jitter, vertex_errors
+from lgi.index.build import build_index
+from lgi.solve.solver import LGISolver
+from lgi.solve.temporal import bilateral_filter
+from lgi.synthetic import actor as synth
 
 
 def main() -> None:

@@ -13,7 +13,7 @@ import argparse
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from lgi import synth
+from lgi.synthetic import actor as synth
 
 
 def best_blendshape_fit(actor: synth.SyntheticActor, truth: np.ndarray, basis: np.ndarray) -> np.ndarray:

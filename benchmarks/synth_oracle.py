@@ -2,7 +2,7 @@
 
     python benchmarks/synth_oracle.py [--step 5]
 
-On the accuracy benchmark's synthetic set (:func:`lgi.benchsets.synthetic_set`, every ``--step``-th of its
+On the accuracy benchmark's synthetic set (:func:`lgi.evaluation.benchsets.synthetic_set`, every ``--step``-th of its
 300 frames), with the true jaw, in the skinned space (``x = A_v(theta) (x0 + sum_k w_k d_k) + t_v``), fitted
 to every true vertex rather than to the bundles:
 
@@ -23,10 +23,10 @@ import argparse
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from lgi import benchsets
-from lgi.baselines import RiggedBlendshapeSolver
-from lgi.bench import LGI_DEFAULTS, build_set_index
-from lgi.solver import LGISolver
+from lgi.evaluation import benchsets
+from lgi.evaluation.accuracy import LGI_DEFAULTS, build_set_index
+from lgi.evaluation.baselines import RiggedBlendshapeSolver
+from lgi.solve.solver import LGISolver
 
 
 def _stats(errors: list[np.ndarray]) -> str:

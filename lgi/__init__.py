@@ -4,8 +4,8 @@ The core library works on plain numpy arrays and has no Prefect dependency; see 
 command line and ``docs/`` for the file formats.
 """
 
-from .dataset import ShapeDataset, ShapeMeta
-from .errors import InputError, LgiError
+from lgi.dataset.shapes import ShapeDataset, ShapeMeta
+from lgi.errors import InputError, LgiError
 
 __version__ = "0.1.0"
 

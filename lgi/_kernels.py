@@ -1,6 +1,6 @@
 """Compiled inner loops of the indexing solver (numba).
 
-Arrays are the flattened index (see :mod:`lgi.index`): per-bundle blocks of points, simplices, hull
+Arrays are the flattened index (see :mod:`lgi.index.build`): per-bundle blocks of points, simplices, hull
 facets and grid cells addressed through offset arrays. Local coordinates are padded to 3 components and
 simplices to 4 corners (-1 where unused); a bundle's dimension ``d`` says how many are real.
 """
@@ -919,7 +919,7 @@ def local_fits(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta
 
 
 
-# The global fit's linearisation (lgi.globalfit.GlobalFit). Bundle i = seen_idx[e] is modelled as
+# The global fit's linearisation (lgi.solve.globalfit.GlobalFit). Bundle i = seen_idx[e] is modelled as
 # (1 - b_i) x_i + b_i (R x_i + t), x_i = rest_i + sum_k w_k basis_ki; the derivative in w_k is
 # J_k,e = (1 - b_i) d + b_i R d (d = basis_ki). Loops rather than numpy expressions: those allocate
 # (S, m, 3) temporaries, which cost more than the arithmetic (10 ms per call at 500 shapes here), and the
@@ -1046,7 +1046,7 @@ def sg_runs(x, left, mid, right, out):  # pragma: no cover - compiled
 
 
 # ---------------------------------------------------------------------------------------------------------
-# The global fit (lgi.globalfit.GlobalFit) in one compiled call per frame: Gauss-Newton over the jaw and the
+# The global fit (lgi.solve.globalfit.GlobalFit) in one compiled call per frame: Gauss-Newton over the jaw and the
 # bounded weights, each step a working-set box QP. In Python the bookkeeping around the kernels above (row
 # caches, sets, small arrays) cost 20 ms per frame at 500 shapes, ten times the arithmetic.
 
@@ -1070,7 +1070,7 @@ def _jaw_rotations(params):  # pragma: no cover - compiled
 
 @nb.njit(cache=True)
 def jaw_map(params, pivot, out):  # pragma: no cover - compiled
-    """Top (3, 4) rows of the jaw's rigid motion (:func:`lgi.jaw.jaw_matrix`) into ``out``."""
+    """Top (3, 4) rows of the jaw's rigid motion (:func:`lgi.solve.jaw.jaw_matrix`) into ``out``."""
     rx, ry, rz, _, _, _ = _jaw_rotations(params)
     r = ry @ rz @ rx
     for c in range(3):
@@ -1082,7 +1082,7 @@ def jaw_map(params, pivot, out):  # pragma: no cover - compiled
 
 @nb.njit(cache=True)
 def jaw_map_derivatives(params, pivot, out):  # pragma: no cover - compiled
-    """(4, 3, 4) :func:`lgi.jaw.jaw_matrix_derivatives` into ``out``."""
+    """(4, 3, 4) :func:`lgi.solve.jaw.jaw_matrix_derivatives` into ``out``."""
     rx, ry, rz, drx, dry, drz = _jaw_rotations(params)
     out[:] = 0.0
     for i in range(3):
@@ -1372,7 +1372,7 @@ def global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, h
 @nb.njit(cache=True, nogil=True)
 def global_fit_frame(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_rig, with_jaw, l2, gain,
                      theta_scale, max_iter, grow, w_out, theta_out, r_out):  # pragma: no cover - compiled
-    """One frame's global fit (:class:`lgi.globalfit.GlobalFit`): :func:`global_gauss_newton` over the jaw
+    """One frame's global fit (:class:`lgi.solve.globalfit.GlobalFit`): :func:`global_gauss_newton` over the jaw
     and the weights, then (with ``with_jaw``) the weights again at the final jaw exactly, since the joint
     solve stops at a tolerance. Arguments as for :func:`global_gauss_newton`."""
     steps = global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_rig, with_jaw, l2,

@@ -6,12 +6,12 @@ import argparse
 import logging
 import sys
 
-from . import __version__
-from .errors import InputError, LgiError
+from lgi import __version__
+from lgi.errors import InputError, LgiError
 
 
 def _import_options(args: argparse.Namespace):
-    from .jobs.dataset import ImportOptions
+    from lgi.jobs.dataset import ImportOptions
 
     return ImportOptions(neutral=args.neutral, include=args.include, exclude=args.exclude,
                          rigid_vertices=args.rigid_vertices, units=args.units, deltas=args.deltas,
@@ -19,12 +19,12 @@ def _import_options(args: argparse.Namespace):
 
 
 def cmd_import(args: argparse.Namespace) -> int:
-    from .jobs.dataset import import_dataset, import_report
+    from lgi.jobs.dataset import import_dataset, import_report
 
     opts = _import_options(args)
     if args.flow:
-        from .orchestration.rebuild import rebuild_dataset
-        from .pipeline import rebuild_report
+        from lgi.orchestration.rebuild import rebuild_dataset
+        from lgi.pipeline.stages import rebuild_report
 
         s = rebuild_dataset(args.shapes_dir, args.out, markers=args.markers, **opts.to_json())
         for line in rebuild_report(s):
@@ -38,7 +38,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from .jobs.synthetic import SynthOptions, synth_report, write_synthetic
+    from lgi.jobs.synthetic import SynthOptions, synth_report, write_synthetic
 
     opts = SynthOptions(vertices=args.vertices, frames=args.frames, seed=args.seed, hmc=args.hmc, lens=args.lens,
                         image_size=args.image_size, dot_noise=args.dot_noise, board_views=args.board_views,
@@ -49,7 +49,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    from .jobs.capture import TrackFootageOptions, track, track_report
+    from lgi.jobs.capture import TrackFootageOptions, track, track_report
 
     opts = TrackFootageOptions(tracks=args.tracks, dataset=args.dataset, units=args.units, labels=args.labels,
                                reference_frame=args.reference_frame, helmet=args.helmet, gate=args.gate,
@@ -60,7 +60,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 
 def cmd_bundles(args: argparse.Namespace) -> int:
-    from .jobs.dataset import dataset_bundles
+    from lgi.jobs.dataset import dataset_bundles
 
     r = dataset_bundles(args.dataset_dir, args.markers, args.out, args.shapes)
     print(f"{r['frames']} frames x {r['markers']} markers -> {r['bundles']}\nframe -> shape map -> {r['shapes']}")
@@ -68,8 +68,8 @@ def cmd_bundles(args: argparse.Namespace) -> int:
 
 
 def _index_options(args: argparse.Namespace):
-    from .cloud import CloudOptions
-    from .index import IndexOptions
+    from lgi.index.build import IndexOptions
+    from lgi.index.cloud import CloudOptions
 
     c = CloudOptions(min_motion_rel=args.min_motion_rel, min_motion_abs=args.min_motion_abs, merge_tol=args.merge_tol,
                      n_subsets=args.subsets, subset_fraction=args.subset_fraction, knn=args.knn,
@@ -78,7 +78,7 @@ def _index_options(args: argparse.Namespace):
 
 
 def cmd_build(args: argparse.Namespace) -> int:
-    from .jobs.index import build, build_report
+    from lgi.jobs.index import build, build_report
 
     summary = build(args.dataset_dir, args.markers, args.out, _index_options(args), args.jaw_rig,
                     show_progress=not args.quiet)
@@ -88,7 +88,7 @@ def cmd_build(args: argparse.Namespace) -> int:
 
 
 def _reconstruct_options(args: argparse.Namespace):
-    from .jobs.reconstruct import ReconstructOptions
+    from lgi.jobs.reconstruct import ReconstructOptions
 
     return ReconstructOptions(temporal_weight=args.temporal_weight, spatial_weight=args.spatial_weight,
                               smooth=args.smooth, jaw_smooth=args.jaw_smooth, noise=args.noise, method=args.method,
@@ -97,13 +97,13 @@ def _reconstruct_options(args: argparse.Namespace):
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from .jobs.reconstruct import check_output, preflight, reconstruct, report_lines
+    from lgi.jobs.reconstruct import check_output, preflight, reconstruct, report_lines
 
     opts = _reconstruct_options(args)
     if args.flow:
         check_output(args.out)
         preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
-        from .orchestration.reconstruct import reconstruct_shot
+        from lgi.orchestration.reconstruct import reconstruct_shot
 
         summary = reconstruct_shot(args.index_dir, args.bundles, args.out, **opts.to_json())
     else:
@@ -114,7 +114,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from .jobs.index import VerifyOptions, verify, verify_report
+    from lgi.jobs.index import VerifyOptions, verify, verify_report
 
     table, summary = verify(args.index_dir, VerifyOptions(tolerance=args.tolerance, shapes=args.shapes,
                                                           spatial_weight=args.spatial_weight),
@@ -125,7 +125,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_augment(args: argparse.Namespace) -> int:
-    from .jobs.dataset import AugmentOptions, augment_dataset, augment_report
+    from lgi.jobs.dataset import AugmentOptions, augment_dataset, augment_report
 
     opts = AugmentOptions(linear=args.linear, simulate=args.simulate, budget=args.budget,
                           levels=AugmentOptions.parse_list(args.levels, float, "--levels"),
@@ -139,7 +139,7 @@ def cmd_augment(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from .jobs.capture import CalibrateOptions, calibrate, calibrate_report
+    from lgi.jobs.capture import CalibrateOptions, calibrate, calibrate_report
 
     opts = CalibrateOptions(board=args.board, rational=args.rational, fisheye=args.fisheye, yaml=args.yaml)
     for line in calibrate_report(calibrate(args.images_dir, args.out, opts)):
@@ -148,7 +148,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from .jobs.export import ExportOptions, export, export_report
+    from lgi.jobs.export import ExportOptions, export, export_report
 
     opts = ExportOptions(usd=args.usd, exr=args.exr, exr_size=args.exr_size, fps=args.fps)
     for line in export_report(export(args.recon_dir, args.index, opts, show_progress=not args.quiet), opts):
@@ -157,7 +157,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
-    from .jobs.index import RigOptions, fit_jaw_rig, rig_report
+    from lgi.jobs.index import RigOptions, fit_jaw_rig, rig_report
 
     for line in rig_report(fit_jaw_rig(args.dataset_dir, args.out, RigOptions(args.jaw_vertices, args.shapes))):
         print(line)
@@ -165,14 +165,14 @@ def cmd_rig(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from .jobs.bench import BenchOptions, bench
+    from lgi.jobs.bench import BenchOptions, bench
 
     bench(args.out, BenchOptions(frames=args.frames, noise=args.noise, ict=args.ict, no_ict=args.no_ict))
     return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .jobs.synthetic import DemoOptions, demo
+    from lgi.jobs.synthetic import DemoOptions, demo
 
     demo(args.out, DemoOptions(vertices=args.vertices, frames=args.frames, seed=args.seed),
          show_progress=not args.quiet)

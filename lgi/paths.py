@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .errors import InputError
+from lgi.errors import InputError
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

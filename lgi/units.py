@@ -6,7 +6,7 @@ residuals, noise, tolerances) is in mm, converted here and nowhere else.
 
 from __future__ import annotations
 
-from .errors import InputError
+from lgi.errors import InputError
 
 #: Millimetres per centimetre: multiply a library length (cm) by it to report mm.
 MM_PER_CM = 10.0

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 from matplotlib.path import Path as Polygon2D
 
-from lgi import synth
-from lgi.layout_design import design_layout, region_namer
-from lgi.markers import write_layout
-from lgi.mesh import triangulate, vertex_normals
+from lgi.dataset.markers import write_layout
+from lgi.dataset.mesh import triangulate, vertex_normals
+from lgi.synthetic import actor as synth
+from lgi.synthetic.layout_design import design_layout, region_namer
 
 ROOT = Path(__file__).resolve().parents[1]
 N_MARKERS = 110
@@ -63,7 +63,7 @@ def synthetic_layout() -> None:
 
 
 def ict_layout(folder: Path) -> None:
-    from lgi.obj import read_obj
+    from lgi.io.obj import read_obj
 
     mesh = read_obj(folder / "generic_neutral_mesh.obj")
     v = mesh.vertices

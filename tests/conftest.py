@@ -16,9 +16,9 @@ os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
 
-from lgi import synth  # noqa: E402
-from lgi.obj import write_obj  # noqa: E402
+from lgi.io.obj import write_obj  # noqa: E402
 from lgi.paths import shared_data  # noqa: E402
+from lgi.synthetic import actor as synth  # noqa: E402
 
 ICT = shared_data("ict-facekit")
 
@@ -51,7 +51,7 @@ def obj_folder(tmp_path: Path, small_actor: synth.SyntheticActor) -> Path:
 @pytest.fixture(scope="session")
 def small_index(small_actor):
     """(actor, dataset, layout, index, reports) for the small synthetic actor."""
-    from lgi.index import build_index
+    from lgi.index.build import build_index
 
     ds = synth.make_dataset(small_actor)
     layout, _ = synth.default_layout(small_actor)

@@ -3,9 +3,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgi.baselines import BlendshapeSolver, RBFSolver, SmoothSolver
-from lgi.bench import format_table
-from lgi.render import heatmap_row
+from lgi.evaluation.accuracy import format_table
+from lgi.evaluation.baselines import BlendshapeSolver, RBFSolver, SmoothSolver
+from lgi.evaluation.render import heatmap_row
 
 
 @pytest.fixture(scope="module")
@@ -45,8 +45,8 @@ def test_rbf_passes_through_bundles_and_reproduces_shapes(setup) -> None:
 
 
 def test_benchmark_table_and_heatmap(tmp_path: Path) -> None:
-    from lgi.bench import build_set_index, methods_for, run_set
-    from lgi.benchsets import synthetic_set
+    from lgi.evaluation.accuracy import build_set_index, methods_for, run_set
+    from lgi.evaluation.benchsets import synthetic_set
 
     bs = synthetic_set(frames=8, n_vertices=3000)
     index = build_set_index(bs)

@@ -1,4 +1,4 @@
-"""The accuracy benchmark's test sets (lgi.benchsets): frames off the dataset, noise and gaps as specified,
+"""The accuracy benchmark's test sets (lgi.evaluation.benchsets): frames off the dataset, noise and gaps as specified,
 bundles on the truth, and the ICT actors' jaw and correctives as documented."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgi import benchsets as B
-from lgi.benchsets import BenchSet
+from lgi.evaluation import benchsets as B
+from lgi.evaluation.benchsets import BenchSet
 
 
 def _check_common(s: BenchSet, min_off_dataset: float) -> None:
@@ -130,7 +130,7 @@ def test_ict_jaw_set(ict_jaw: BenchSet) -> None:
 
 
 def test_ict_heldout_set(ict_dir: Path) -> None:
-    from lgi.bench import ICT_HELD_OUT
+    from lgi.evaluation.accuracy import ICT_HELD_OUT
 
     s = B.ict_heldout_set(ict_dir)
     _check_common(s, min_off_dataset=1.0)

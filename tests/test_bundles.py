@@ -3,7 +3,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgi.bundles import Bundles, read_bundles, write_bundles
+from lgi.capture.bundles import Bundles, read_bundles, write_bundles
 from lgi.errors import InputError
 
 HEAD = "frame,marker,x,y,z\n"

@@ -4,7 +4,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgi.calibration import Board, calibrate_stereo, find_corners, pair_images
+from lgi.capture.calibration import Board, calibrate_stereo, find_corners, pair_images
 from lgi.cli import main
 from lgi.errors import InputError
 from lgi.paths import shared_data

@@ -7,10 +7,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lgi.bundles import read_bundles
+from lgi.capture.bundles import read_bundles
 from lgi.cli import main
-from lgi.dataset import ShapeDataset
-from lgi.markers import read_layout
+from lgi.dataset.markers import read_layout
+from lgi.dataset.shapes import ShapeDataset
 
 
 def run(*args: str) -> subprocess.CompletedProcess:
@@ -127,7 +127,7 @@ def test_import_ict_identity_blend(tmp_path: Path, ict_dir: Path) -> None:
 
 @pytest.mark.parametrize("with_faces", [True, False])
 def test_delta_import_matches_full_import(tmp_path: Path, obj_folder: Path, with_faces: bool) -> None:
-    from lgi.obj import read_obj
+    from lgi.io.obj import read_obj
 
     assert main(["import", str(obj_folder), "--out", str(tmp_path / "f"), "--rigid-vertices", "none", "-q"]) == 0
     full = ShapeDataset.load(tmp_path / "f")

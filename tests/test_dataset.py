@@ -3,9 +3,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgi import synth
-from lgi.dataset import ShapeDataset, read_content_hash
+from lgi.dataset.shapes import ShapeDataset, read_content_hash
 from lgi.errors import InputError
+from lgi.synthetic import actor as synth
 
 
 def _ds(actor: synth.SyntheticActor) -> ShapeDataset:

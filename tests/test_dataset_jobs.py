@@ -6,12 +6,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lgi import synth
 from lgi.cli import main
-from lgi.dataset import ShapeDataset
+from lgi.dataset.markers import write_layout
+from lgi.dataset.shapes import ShapeDataset
 from lgi.errors import InputError
-from lgi.markers import write_layout
-from lgi.obj import write_obj
+from lgi.io.obj import write_obj
+from lgi.synthetic import actor as synth
 
 
 @pytest.fixture()
@@ -68,7 +68,7 @@ def test_import_converts_to_cm(tmp_path: Path, obj_folder: Path) -> None:
     """A dataset in mm is stored in cm, so every figure in mm downstream is right."""
     mm = tmp_path / "mm"
     mm.mkdir()
-    from lgi.obj import read_obj
+    from lgi.io.obj import read_obj
 
     for p in obj_folder.glob("*.obj"):
         m = read_obj(p)

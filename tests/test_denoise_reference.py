@@ -5,7 +5,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.signal import savgol_coeffs, savgol_filter
 
-from lgi.temporal import SG_WINDOWS, denoise_trajectories
+from lgi.solve.temporal import SG_WINDOWS, denoise_trajectories
 
 
 def _segments(x: np.ndarray, window: int) -> np.ndarray:

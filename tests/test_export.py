@@ -2,9 +2,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lgi import synth
 from lgi.cli import main
-from lgi.export import displacement_map, read_exr, write_exr, write_usd
+from lgi.export.formats import displacement_map, read_exr, write_exr, write_usd
+from lgi.synthetic import actor as synth
 
 
 def test_usd_roundtrip(tmp_path: Path, small_actor) -> None:
@@ -59,7 +59,7 @@ def test_export_command(tmp_path: Path) -> None:
 def test_usd_200_frames_of_ict(tmp_path: Path, ict_dir: Path) -> None:
     from pxr import Usd, UsdGeom
 
-    from lgi.importers import import_obj_folder
+    from lgi.dataset.importing import import_obj_folder
 
     ds = import_obj_folder(ict_dir, include="jawOpen,mouthSmile_L,browInnerUp_L", rigid_vertices="none",
                            show_progress=False)

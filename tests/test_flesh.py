@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from lgi import synth
-from lgi.augment import Blender, compatible, pick_combinations
-from lgi.flesh import FleshModel, prism_tets
+from lgi.augment.combinations import Blender, compatible, pick_combinations
+from lgi.augment.flesh import FleshModel, prism_tets
+from lgi.synthetic import actor as synth
 
 
 def test_prism_tets_conform_and_fill_the_layer() -> None:

@@ -1,10 +1,10 @@
 import filecmp
 from pathlib import Path
 
-from lgi import synth
-from lgi.dataset import ShapeDataset
-from lgi.importers import import_obj_folder
-from lgi.markers import write_layout
+from lgi.dataset.importing import import_obj_folder
+from lgi.dataset.markers import write_layout
+from lgi.dataset.shapes import ShapeDataset
+from lgi.synthetic import actor as synth
 
 # Files that describe a run (timings, which stages were cached), not the data: they may differ.
 RUN_ONLY = ("build.json", "report.md")

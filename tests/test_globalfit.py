@@ -7,8 +7,8 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from lgi import _kernels as K
-from lgi.globalfit import EXACT_GAIN, THETA_SCALE, GlobalFit
-from lgi.jaw import JawRig, jaw_matrix
+from lgi.solve.globalfit import EXACT_GAIN, THETA_SCALE, GlobalFit
+from lgi.solve.jaw import JawRig, jaw_matrix
 
 
 def _problem(seed: int = 0, n_m: int = 40, n_base: int = 10, n_mix: int = 50):

@@ -7,12 +7,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lgi.calibration import Board, calibrate_stereo, calibrate_views
-from lgi.camera import StereoRig
+from lgi.capture.calibration import Board, calibrate_stereo, calibrate_views
+from lgi.capture.camera import StereoRig
+from lgi.capture.dots import detect_dots
 from lgi.cli import main
-from lgi.dots import detect_dots
 from lgi.errors import InputError
-from lgi.hmc import BoardRenderer, board_corner_views, board_poses, hmc_rig
+from lgi.synthetic.hmc import BoardRenderer, board_corner_views, board_poses, hmc_rig
 
 
 @pytest.mark.parametrize("model", ["pinhole", "fisheye"])
@@ -105,7 +105,7 @@ def hmc_shot(tmp_path_factory) -> Path:
 
 
 def test_footage_to_bundles_chain(hmc_shot: Path, capsys) -> None:
-    from lgi.bundles import read_bundles
+    from lgi.capture.bundles import read_bundles
 
     calib = hmc_shot / "calib.json"
     assert main(["calibrate", str(hmc_shot / "hmc" / "calib"), "--board", "chessboard:9x6:12", "--fisheye",
@@ -141,7 +141,7 @@ def test_footage_to_bundles_chain(hmc_shot: Path, capsys) -> None:
     # Visible dots are detected, and nearly all of them tracked.
     from scipy.spatial import cKDTree
 
-    from lgi.footage import detect_footage
+    from lgi.capture.footage import detect_footage
 
     visible = t2["visible"]
     _, dots, _ = detect_footage(hmc_shot / "hmc")
@@ -181,7 +181,7 @@ def test_track_bad_inputs(hmc_shot: Path, tmp_path: Path) -> None:
             shutil.copy(f, shot / c)
     (shot / "cam1" / "000003.png").write_bytes(b"broken")
     with pytest.raises(InputError) as e:
-        from lgi.footage import detect_footage
+        from lgi.capture.footage import detect_footage
 
         detect_footage(shot)
     assert "000003.png" in str(e.value) and "frame 3" in str(e.value)
@@ -226,7 +226,7 @@ def test_helmet_markers_refine_a_flexed_rig() -> None:
 
 
 def test_track_from_a_label_file(hmc_shot: Path, tmp_path: Path) -> None:
-    from lgi.bundles import read_bundles
+    from lgi.capture.bundles import read_bundles
 
     t2 = np.load(hmc_shot / "hmc" / "truth.npz")
     names = list(t2["markers"])

@@ -4,14 +4,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lgi import synth
 from lgi.cli import main
-from lgi.evaluate import jitter
-from lgi.index import build_index
-from lgi.jaw import JawRig
-from lgi.solver import LGISolver
-from lgi.temporal import bilateral_filter, bridge_gaps, moving_average, window_slots
-from lgi.verify import verify_index
+from lgi.evaluation.metrics import jitter
+from lgi.evaluation.verify import verify_index
+from lgi.index.build import build_index
+from lgi.solve.jaw import JawRig
+from lgi.solve.solver import LGISolver
+from lgi.solve.temporal import bilateral_filter, bridge_gaps, moving_average, window_slots
+from lgi.synthetic import actor as synth
 
 
 @pytest.fixture(scope="module")
@@ -162,7 +162,7 @@ def test_reconstruct_smoothing_jaw_file_and_occlusion(tmp_path: Path) -> None:
 
 
 def test_fit_rig_recovers_the_synthetic_hinge(small_actor) -> None:
-    from lgi.jaw import fit_rig
+    from lgi.solve.jaw import fit_rig
 
     a = small_actor
     ds = synth.make_dataset(a)
@@ -175,7 +175,7 @@ def test_fit_rig_recovers_the_synthetic_hinge(small_actor) -> None:
 
 
 def test_fit_rig_on_ict(tmp_path: Path, ict_dir: Path) -> None:
-    from lgi.dataset import ShapeDataset
+    from lgi.dataset.shapes import ShapeDataset
 
     assert main(["import", str(ict_dir), "--out", str(tmp_path / "ict"), "--include", "jaw*",
                  "--rigid-vertices", "none", "-q"]) == 0

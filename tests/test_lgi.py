@@ -3,10 +3,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgi import synth
-from lgi.index import LGIIndex
-from lgi.solver import LGISolver
-from lgi.verify import verify_index
+from lgi.evaluation.verify import verify_index
+from lgi.index.build import LGIIndex
+from lgi.solve.solver import LGISolver
+from lgi.synthetic import actor as synth
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
 """The default reconstruction: a global fit of the jaw and shape weights, local refits per bundle, the noise
-model; measured against the baselines on frames that are not dataset shapes (lgi.benchsets)."""
+model; measured against the baselines on frames that are not dataset shapes (lgi.evaluation.benchsets)."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ import pytest
 from scipy.optimize import lsq_linear
 
 from lgi import _kernels as K
-from lgi.baselines import RiggedBlendshapeSolver
-from lgi.bench import build_set_index
-from lgi.benchsets import ict_jaw_set, synthetic_set
 from lgi.errors import InputError
-from lgi.solver import LGISolver
-from lgi.temporal import denoise_trajectories, estimate_noise
+from lgi.evaluation.accuracy import build_set_index
+from lgi.evaluation.baselines import RiggedBlendshapeSolver
+from lgi.evaluation.benchsets import ict_jaw_set, synthetic_set
+from lgi.solve.solver import LGISolver
+from lgi.solve.temporal import denoise_trajectories, estimate_noise
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +144,7 @@ def test_denoising_chooses_wider_windows_for_slower_markers() -> None:
 
 
 def test_unobservable_jaw_is_said(synth_set, caplog) -> None:
-    from lgi.index import build_index
+    from lgi.index.build import build_index
 
     bs, _ = synth_set
     rig = bs.rig
@@ -189,7 +189,7 @@ def test_noisy_sequence_on_two_threads_equals_the_two_passes(synth_set) -> None:
 def test_a_failing_blend_stops_the_choosing_thread(synth_set, monkeypatch) -> None:
     import threading
 
-    import lgi.solver as solver_mod
+    import lgi.solve.solver as solver_mod
 
     bs, index = synth_set
 

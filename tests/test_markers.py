@@ -4,12 +4,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lgi import synth
+from lgi.dataset.markers import layout_from_points, read_layout, write_layout
+from lgi.dataset.mesh import triangulate
 from lgi.errors import InputError
-from lgi.markers import layout_from_points, read_layout, write_layout
-from lgi.mesh import triangulate
-from lgi.obj import read_obj
+from lgi.io.obj import read_obj
 from lgi.paths import shipped
+from lgi.synthetic import actor as synth
 
 
 def test_points_snap_to_surface_and_roundtrip(tmp_path: Path, small_actor: synth.SyntheticActor) -> None:

@@ -3,12 +3,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgi import synth
-from lgi.markers import read_layout
-from lgi.mesh import triangulate
-from lgi.natural import natural_neighbour_weights, uv_metric_graph
-from lgi.obj import read_obj
+from lgi.dataset.markers import read_layout
+from lgi.dataset.mesh import triangulate
+from lgi.index.natural import natural_neighbour_weights, uv_metric_graph
+from lgi.io.obj import read_obj
 from lgi.paths import shipped
+from lgi.synthetic import actor as synth
 
 
 def _layout(actor: synth.SyntheticActor, n: int = 30, seed: int = 0):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lgi.errors import InputError
-from lgi.obj import read_obj, read_obj_positions, write_obj
+from lgi.io.obj import read_obj, read_obj_positions, write_obj
 
 
 def test_roundtrip_keeps_quads_triangles_and_uv_seams(tmp_path: Path) -> None:

@@ -8,8 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from lgi import synth
-from lgi.markers import write_layout
+from lgi.dataset.markers import write_layout
+from lgi.synthetic import actor as synth
 
 # Files that describe a run (timings, which stages were cached), not the data: they may differ.
 RUN_ONLY = ("build.json", "report.md")

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lgi import synth
 from lgi.cli import main
-from lgi.dataset import ShapeDataset
+from lgi.dataset.shapes import ShapeDataset
 from lgi.errors import InputError
-from lgi.jaw import fit_rig, jaw_matrix
+from lgi.solve.jaw import fit_rig, jaw_matrix
+from lgi.synthetic import actor as synth
 
 OPEN_DEG, HALF_DEG = 25.0, 12.0
 SLIDE_CM = 0.3  # at OPEN_DEG; grows with the square of the opening
@@ -85,7 +85,7 @@ def test_hinge_from_openings_only_synthetic(actor) -> None:
 
 
 def test_ict_hinge_with_two_openings(ict_dir: Path) -> None:
-    from lgi.importers import import_obj_folder
+    from lgi.dataset.importing import import_obj_folder
 
     ds = import_obj_folder(ict_dir, include="jaw*", rigid_vertices="none", show_progress=False)
     x0, tri = ds.neutral, ds.triangles
@@ -146,7 +146,7 @@ def test_far_off_fits_warn(actor, caplog, case: str, expect: str) -> None:
     else:
         d = _moved(x0, w, jaw_matrix([OPEN_DEG, 0, 0, 0], pivot))[None]
         d[0, jv] += np.random.default_rng(0).normal(scale=0.1, size=(len(jv), 3))  # ~1.7 mm of non-rigid motion
-    with caplog.at_level(logging.WARNING, logger="lgi.jaw"):
+    with caplog.at_level(logging.WARNING, logger="lgi.solve.jaw"):
         rig, _ = fit_rig(x0, d, jv, actor.triangles, names=["jawOpen", "jawOpen_50"][: len(d)])
     assert any(expect in m for m in rig.fit_report.warnings)
     assert any(expect in r.getMessage() for r in caplog.records)
@@ -186,7 +186,7 @@ def test_cli_prints_the_hinge_report(actor, tmp_path: Path, capsys) -> None:
 
 
 def test_jaw_matrix_derivatives_match_central_differences() -> None:
-    from lgi.jaw import jaw_matrix, jaw_matrix_derivatives
+    from lgi.solve.jaw import jaw_matrix, jaw_matrix_derivatives
 
     rng = np.random.default_rng(0)
     for _ in range(5):

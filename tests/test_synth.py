@@ -1,7 +1,7 @@
 import numpy as np
 
-from lgi import synth
-from lgi.mesh import triangle_areas
+from lgi.dataset.mesh import triangle_areas
+from lgi.synthetic import actor as synth
 
 
 def test_default_actor_size_uvs_and_determinism() -> None:

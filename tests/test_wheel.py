@@ -1,6 +1,7 @@
 """A built wheel works on its own: installed into a fresh virtual environment, run from another directory."""
 
 import os
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -19,9 +20,15 @@ ROOT = Path(__file__).resolve().parents[1]
     pytest.param(True, marks=pytest.mark.slow),
 ])
 def test_wheel_installs_and_runs_elsewhere(tmp_path: Path, compiled: bool) -> None:
+    # Built from a copy: setuptools leaves build/ and *.egg-info beside the sources it builds.
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, src / name)
+    shutil.copytree(ROOT / "lgi", src / "lgi", ignore=shutil.ignore_patterns("__pycache__"))
     dist = tmp_path / "dist"
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(dist),
-                    str(ROOT)], check=True, cwd=tmp_path)
+                    str(src)], check=True, cwd=tmp_path)
     wheel = next(dist.glob("lgi-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
     assert "lgi/data/markers_synth.csv" in names and "lgi/data/markers_ict.csv" in names

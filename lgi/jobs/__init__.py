@@ -16,7 +16,7 @@ T = TypeVar("T")
 def options_from_dict(cls: type[T], d: dict[str, Any] | None, what: str) -> T:
     """An options dataclass from a dict (a flow's parameters, a JSON file); unknown keys are refused by name, so
     a typo is an error, not an option silently left at its default."""
-    from ..errors import InputError
+    from lgi.errors import InputError
 
     d = dict(d or {})
     known = {f.name for f in fields(cls)}  # type: ignore[arg-type]

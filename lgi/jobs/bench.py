@@ -9,8 +9,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputError
-from ..units import MM_PER_CM
+from lgi.errors import InputError
+from lgi.units import MM_PER_CM
 
 
 @dataclass(frozen=True)
@@ -36,11 +36,11 @@ class BenchOptions:
 def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> dict[str, Any]:
     """``lgi bench``: the accuracy tables (``accuracy.csv``) and heat maps in ``out``; progress and tables
     through ``log``."""
-    from .. import benchsets
-    from ..atomic import atomic_file
-    from ..bench import accuracy_benchmark
-    from ..paths import shared_data
-    from ..render import heatmap_row
+    from lgi.evaluation import benchsets
+    from lgi.evaluation.accuracy import accuracy_benchmark
+    from lgi.evaluation.render import heatmap_row
+    from lgi.io.atomic import atomic_file
+    from lgi.paths import shared_data
 
     o = options or BenchOptions()
     out = Path(out)

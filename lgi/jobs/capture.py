@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from ..errors import InputError
+from lgi.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -19,7 +19,7 @@ MOVED_RIG_PX = 0.5
 
 @dataclass(frozen=True)
 class CalibrateOptions:
-    """Options of ``lgi calibrate``: the ``board`` spec (:meth:`lgi.calibration.Board.parse`), OpenCV's
+    """Options of ``lgi calibrate``: the ``board`` spec (:meth:`lgi.capture.calibration.Board.parse`), OpenCV's
     ``rational`` or the ``fisheye`` lens model, and an OpenCV ``yaml`` file to write beside the JSON."""
 
     board: str
@@ -28,7 +28,7 @@ class CalibrateOptions:
     yaml: str | None = None
 
     def __post_init__(self) -> None:
-        from ..calibration import Board
+        from lgi.capture.calibration import Board
 
         Board.parse(self.board)
         if self.rational and self.fisheye:
@@ -40,7 +40,7 @@ class CalibrateOptions:
 
 def calibrate(images_dir: str | Path, out: str | Path, options: CalibrateOptions) -> dict[str, Any]:
     """``lgi calibrate``: detect the board, calibrate both cameras and the pair; write the JSON (and YAML)."""
-    from ..calibration import Board, calibrate_stereo
+    from lgi.capture.calibration import Board, calibrate_stereo
 
     o = options
     for path in (out, o.yaml):
@@ -80,7 +80,7 @@ class TrackFootageOptions:
     dot_size: float = 9.0
 
     def __post_init__(self) -> None:
-        from ..units import check_units
+        from lgi.units import check_units
 
         check_units(self.units, "--units")
         for name in ("gate", "dot_size"):
@@ -98,9 +98,9 @@ class TrackFootageOptions:
 def track(footage_dir: str | Path, calib: str | Path, markers: str | Path, out: str | Path,
           options: TrackFootageOptions | None = None) -> dict[str, Any]:
     """``lgi track``: footage to the bundles file (cm) and the 2D tracks table; returns the summary of
-    :func:`lgi.footage.track_to_files`. A median reprojection error above :data:`MOVED_RIG_PX` is logged as a
+    :func:`lgi.capture.footage.track_to_files`. A median reprojection error above :data:`MOVED_RIG_PX` is logged as a
     warning (the rig may have moved since its calibration) and flagged in the summary."""
-    from ..footage import track_to_files
+    from lgi.capture.footage import track_to_files
 
     o = options or TrackFootageOptions()
     _, r = track_to_files(footage_dir, calib, markers, out, o.tracks, o.dataset, o.units, o.labels,

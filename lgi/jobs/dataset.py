@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from . import options_from_dict
+from lgi.errors import InputError
+from lgi.jobs import options_from_dict
 
 
 # --------------------------------------------------------------------------------------------- import
@@ -48,7 +48,7 @@ class ImportOptions:
     identity: str | None = None
 
     def __post_init__(self) -> None:
-        from ..units import check_units
+        from lgi.units import check_units
 
         check_units(self.units, "--units")
         self.identity_weights()
@@ -77,8 +77,9 @@ class ImportOptions:
 
 
 def read_shapes(shapes_dir: str | Path, options: ImportOptions, show_progress: bool = False):
-    """The import's first stage: the OBJ files read and converted to cm (a :class:`~lgi.importers.RawShapes`)."""
-    from ..importers import read_shape_folder
+    """The import's first stage: the OBJ files read and converted to cm
+    (a :class:`~lgi.dataset.importing.RawShapes`)."""
+    from lgi.dataset.importing import read_shape_folder
 
     o = options
     return read_shape_folder(shapes_dir, neutral=o.neutral, include=o.include, exclude=o.exclude, units=o.units,
@@ -87,7 +88,7 @@ def read_shapes(shapes_dir: str | Path, options: ImportOptions, show_progress: b
 
 def stabilise_shapes(raw, options: ImportOptions):
     """The import's second stage: head motion removed; the dataset."""
-    from ..importers import assemble_dataset, stabilise_raw
+    from lgi.dataset.importing import assemble_dataset, stabilise_raw
 
     rigid = None if options.rigid_vertices in (None, "none") else options.rigid_vertices
     return assemble_dataset(raw, *stabilise_raw(raw, rigid))
@@ -217,8 +218,8 @@ class AugmentOptions:
 
 def augment(ds, options: AugmentOptions, rig=None, show_progress: bool = False):
     """``ds`` plus the in-betweens ``options`` ask for (the captured shapes first, then linear, then simulated
-    ones); ``rig`` (:class:`~lgi.jaw.JawRig`) carries the flesh's jaw side in the simulation."""
-    from ..augment import linear_combinations, pick_combinations, simulated_combinations
+    ones); ``rig`` (:class:`~lgi.solve.jaw.JawRig`) carries the flesh's jaw side in the simulation."""
+    from lgi.augment.combinations import linear_combinations, pick_combinations, simulated_combinations
 
     o = options
     src = ds.select(include=o.include) if o.include else ds
@@ -229,7 +230,7 @@ def augment(ds, options: AugmentOptions, rig=None, show_progress: bool = False):
     if o.linear:
         aug = linear_combinations(aug, 0, o.levels, o.orders, o.seed, picks=picks)
     if o.simulate:
-        from ..flesh import FleshOptions
+        from lgi.augment.flesh import FleshOptions
 
         try:
             aug = simulated_combinations(aug, 0, o.levels, o.orders, o.seed, rig=rig, picks=picks,
@@ -248,12 +249,12 @@ def augment_dataset(dataset_dir: str | Path, out: str | Path, options: AugmentOp
                     show_progress: bool = False) -> dict[str, Any]:
     """``lgi augment``: the augmented dataset saved to ``out`` (with ``markers``, also the per-bundle
     report ``augmentation.csv`` in it); returns a summary (:func:`augment_report`)."""
-    from ..dataset import ShapeDataset
+    from lgi.dataset.shapes import ShapeDataset
 
     ds = ShapeDataset.load(dataset_dir)
     rig = None
     if jaw_rig:
-        from ..jaw import JawRig
+        from lgi.solve.jaw import JawRig
 
         rig = JawRig.load(jaw_rig, ds.n_vertices)
     t0 = time.perf_counter()
@@ -261,13 +262,13 @@ def augment_dataset(dataset_dir: str | Path, out: str | Path, options: AugmentOp
     seconds = time.perf_counter() - t0
     rep = None
     if markers:
-        from ..augment import augmentation_report
-        from ..markers import read_layout
+        from lgi.augment.combinations import augmentation_report
+        from lgi.dataset.markers import read_layout
 
         rep = augmentation_report(ds, aug, read_layout(markers, ds.triangles))
     aug.save(out)
     if rep is not None:
-        from ..atomic import atomic_file
+        from lgi.io.atomic import atomic_file
 
         with atomic_file(Path(out) / AUGMENT_REPORT) as tmp:
             rep.to_csv(tmp, index=False)
@@ -312,10 +313,10 @@ def dataset_bundles(dataset_dir: str | Path, markers: str | Path, out: str | Pat
     ``OUT.shapes.csv`` mapping frames to shape names."""
     import pandas as pd
 
-    from ..atomic import atomic_file
-    from ..bundles import Bundles, write_bundles
-    from ..dataset import ShapeDataset
-    from ..markers import read_layout
+    from lgi.capture.bundles import Bundles, write_bundles
+    from lgi.dataset.markers import read_layout
+    from lgi.dataset.shapes import ShapeDataset
+    from lgi.io.atomic import atomic_file
 
     ds = ShapeDataset.load(dataset_dir)
     if shapes:

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from lgi.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -40,11 +40,11 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
            show_progress: bool = False) -> dict[str, Any]:
     """``lgi export``: write ``recon_dir/meshes.npz`` as USD and/or EXR maps (each output atomic; the USD is
     written last, so none appears if the maps fail)."""
-    from ..atomic import atomic_dir
-    from ..export import displacement_map, write_exr, write_usd
-    from ..index import LGIIndex
-    from ..npz import load_npz
-    from ..progress import progress
+    from lgi.export.formats import displacement_map, write_exr, write_usd
+    from lgi.index.build import LGIIndex
+    from lgi.io.atomic import atomic_dir
+    from lgi.io.npz import load_npz
+    from lgi.progress import progress
 
     o = options
     for path in (o.usd, o.exr):

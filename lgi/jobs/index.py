@@ -1,7 +1,7 @@
 """The index jobs: fit a jaw rig, build an index, verify it (paper 7.1).
 
 ``lgi rig`` / ``lgi build`` / ``lgi verify`` and the rebuild-dataset flow's stages call these functions with
-the same options objects (:class:`~lgi.index.IndexOptions` for the build).
+the same options objects (:class:`~lgi.index.build.IndexOptions` for the build).
 """
 
 from __future__ import annotations
@@ -15,25 +15,25 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ..errors import InputError
-from ..units import MM_PER_CM
+from lgi.errors import InputError
+from lgi.units import MM_PER_CM
 
 
 # ---------------------------------------------------------------------------------------------- build
 def build(dataset_dir: str | Path, markers: str | Path, out: str | Path, options=None,
           jaw_rig: str | Path | None = None, show_progress: bool = False) -> dict[str, Any]:
-    """``lgi build``: the index of a dataset for a marker layout (options: :class:`~lgi.index.IndexOptions`)
+    """``lgi build``: the index of a dataset for a marker layout (options: :class:`~lgi.index.build.IndexOptions`)
     saved to ``out``; returns a summary (:func:`build_report`)."""
-    from ..dataset import ShapeDataset
-    from ..index import build_index
-    from ..markers import read_layout
+    from lgi.dataset.markers import read_layout
+    from lgi.dataset.shapes import ShapeDataset
+    from lgi.index.build import build_index
 
     t0 = time.perf_counter()
     ds = ShapeDataset.load(dataset_dir)
     layout = read_layout(markers, ds.triangles)
     rig = None
     if jaw_rig:
-        from ..jaw import JawRig
+        from lgi.solve.jaw import JawRig
 
         rig = JawRig.load(jaw_rig, ds.n_vertices)
     index, reports = build_index(ds, layout, options, show_progress=show_progress, jaw_rig=rig)
@@ -78,10 +78,10 @@ class VerifyOptions:
 def verify(index_dir: str | Path, options: VerifyOptions | None = None,
            show_progress: bool = False) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Every selected dataset shape reconstructed from its own bundles: the per-shape table
-    (:func:`lgi.verify.verify_index`) and a summary whose ``passed`` is the verdict."""
-    from ..index import LGIIndex
-    from ..solver import LGISolver
-    from ..verify import verify_index
+    (:func:`lgi.evaluation.verify.verify_index`) and a summary whose ``passed`` is the verdict."""
+    from lgi.evaluation.verify import verify_index
+    from lgi.index.build import LGIIndex
+    from lgi.solve.solver import LGISolver
 
     o = options or VerifyOptions()
     index = LGIIndex.load(index_dir)
@@ -140,7 +140,7 @@ class RigOptions:
                 raise InputError(f"--jaw-vertices {spec}: out of range for {n_vertices} vertices")
             jv = np.arange(lo, hi + 1)
         else:
-            from ..importers import load_vertex_indices
+            from lgi.dataset.importing import load_vertex_indices
 
             jv = load_vertex_indices(spec, n_vertices)
         if len(np.unique(jv)) < 3:
@@ -154,8 +154,8 @@ def fit_jaw_rig(dataset_dir: str | Path, out: str | Path, options: RigOptions) -
     (:func:`rig_report`)."""
     import logging
 
-    from ..dataset import ShapeDataset
-    from ..jaw import PARAM_NAMES, fit_rig
+    from lgi.dataset.shapes import ShapeDataset
+    from lgi.solve.jaw import PARAM_NAMES, fit_rig
 
     ds = ShapeDataset.load(dataset_dir)
     jv = options.vertex_indices(ds.n_vertices)
@@ -164,7 +164,7 @@ def fit_jaw_rig(dataset_dir: str | Path, out: str | Path, options: RigOptions) -
         raise InputError(f"no shape matches {options.shapes!r}", path=dataset_dir)
     # fit_rig logs its warnings; they are in the report, so keep Python's last-resort handler from printing them
     # a second time (handlers an application set up still get them).
-    jaw_log = logging.getLogger("lgi.jaw")
+    jaw_log = logging.getLogger("lgi.solve.jaw")
     quiet = logging.NullHandler()
     jaw_log.addHandler(quiet)
     jaw_log.propagate = False
@@ -194,7 +194,7 @@ def fit_jaw_rig(dataset_dir: str | Path, out: str | Path, options: RigOptions) -
 
 
 def rig_report(s: dict[str, Any]) -> list[str]:
-    from ..jaw import PARAM_NAMES
+    from lgi.solve.jaw import PARAM_NAMES
 
     used = s["used"]
     plural = "s" if len(used) > 1 else ""

@@ -26,13 +26,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ..errors import InputError
-from ..units import MM_PER_CM
-from . import options_from_dict
+from lgi.errors import InputError
+from lgi.jobs import options_from_dict
+from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
 
-#: Every entry a reconstruction writes into its output directory (see :func:`lgi.atomic.job_outputs`).
+#: Every entry a reconstruction writes into its output directory (see :func:`lgi.io.atomic.job_outputs`).
 OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "per_frame.png", "shot.usdc", "obj")
 
 
@@ -135,7 +135,7 @@ class ReconstructOptions:
 def read_jaw_file(path: str | Path, frames: np.ndarray) -> np.ndarray:
     """(F, 4) jaw parameters for ``frames`` from a CSV with columns frame, open_deg, yaw_deg, roll_deg,
     forward_cm."""
-    from ..jaw import PARAM_NAMES
+    from lgi.solve.jaw import PARAM_NAMES
 
     p = Path(path)
     if not p.is_file():
@@ -164,8 +164,8 @@ def read_jaw_file(path: str | Path, frames: np.ndarray) -> np.ndarray:
 def preflight(index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> int:
     """Check the inputs of a reconstruction before any work is scheduled (the index loads, the bundles name its
     markers, the jaw option suits the index, a jaw file covers every frame); returns the number of frames."""
-    from ..bundles import read_bundles
-    from ..index import LGIIndex
+    from lgi.capture.bundles import read_bundles
+    from lgi.index.build import LGIIndex
 
     index = LGIIndex.load(index_dir)
     b = read_bundles(bundles, index.marker_names)
@@ -195,9 +195,9 @@ class Shot:
     """
 
     def __init__(self, index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> None:
-        from ..bundles import read_bundles
-        from ..index import LGIIndex
-        from ..solver import LGISolver
+        from lgi.capture.bundles import read_bundles
+        from lgi.index.build import LGIIndex
+        from lgi.solve.solver import LGISolver
 
         self.options = o = options
         self.index = index = LGIIndex.load(index_dir)
@@ -207,7 +207,7 @@ class Shot:
         self.given_jaw = None if o.jaw in ("auto", "none") else read_jaw_file(o.jaw, b.frames)
         sig = o.bilateral_sigmas()
         if sig is not None:
-            from ..temporal import bilateral_filter
+            from lgi.solve.temporal import bilateral_filter
 
             rest = index.layout().evaluate(index.arrays["neutral"])
             b.positions = bilateral_filter(b.positions, sig[0], sig[1], rest, sig[2])
@@ -226,14 +226,14 @@ class Shot:
         return [(lo, min(lo + c, n)) for lo in range(0, n, c)]
 
     def choose(self, lo: int, hi: int, previous=None) -> list:
-        """The choices (:class:`~lgi.solver.FrameResult`, no vertices) of frames lo:hi, continuing from
+        """The choices (:class:`~lgi.solve.solver.FrameResult`, no vertices) of frames lo:hi, continuing from
         ``previous``, the choice of frame lo - 1."""
         jaw = None if self.given_jaw is None else self.given_jaw[lo:hi]
         return self.solver.select_sequence(self.fit_pos[lo:hi], self.frames[lo:hi], jaw, previous=previous)
 
     def finish(self, sels: list, lo: int, hi: int, show_progress: bool = False):
         """Frames lo:hi blended, skinned and corrected from the whole shot's choices ``sels``
-        (a :class:`~lgi.solver.SequenceResult` of those frames)."""
+        (a :class:`~lgi.solve.solver.SequenceResult` of those frames)."""
         o = self.options
         return self.solver.finish_sequence(sels, self.pos, self.frames, self.bridged, o.smooth, o.jaw_smooth,
                                            show_progress, self.fit_pos, lo, hi)
@@ -248,9 +248,9 @@ class Shot:
 # ------------------------------------------------------------------------------------------------ choices
 def save_choices(path: str | Path, sels: list) -> None:
     """Write frames' choices to an npz, exactly (every field a later frame or the finish reads)."""
-    from ..atomic import atomic_file
-    from ..npz import save_npz
-    from ..solver import _stack_slots
+    from lgi.io.atomic import atomic_file
+    from lgi.io.npz import save_npz
+    from lgi.solve.solver import _stack_slots
 
     a: dict[str, np.ndarray] = {}
     a["width"] = np.array([r.shapes.shape[1] for r in sels], np.int64)
@@ -275,9 +275,9 @@ def save_choices(path: str | Path, sels: list) -> None:
 
 def load_choices(path: str | Path) -> list:
     """The choices :func:`save_choices` wrote."""
-    from ..globalfit import GlobalFitResult
-    from ..npz import load_npz
-    from ..solver import FrameResult
+    from lgi.io.npz import load_npz
+    from lgi.solve.globalfit import GlobalFitResult
+    from lgi.solve.solver import FrameResult
 
     a = load_npz(path)
     notes = json.loads(str(a["fallback"]))
@@ -308,8 +308,8 @@ def finish_chunk(index_dir: str, bundles: str, options: ReconstructOptions, choi
                  out: str) -> str:
     """Blend, skin and correct frames lo:hi from the whole shot's choice files; write the vertices (float32,
     cm), the bundles' distances before and after the correction (cm) and the jaw used to ``out`` (npz)."""
-    from ..atomic import atomic_file
-    from ..npz import save_npz
+    from lgi.io.atomic import atomic_file
+    from lgi.io.npz import save_npz
 
     shot = Shot(index_dir, bundles, options)
     sels = [s for path in choices for s in load_choices(path)]
@@ -324,8 +324,8 @@ def assemble(index_dir: str, bundles: str, options: ReconstructOptions, choices:
              out: str) -> dict[str, Any]:
     """Join the finished chunks into the shot's result and write it (:func:`write_reconstruction`); returns
     the summary."""
-    from ..npz import load_npz
-    from ..solver import SequenceResult
+    from lgi.io.npz import load_npz
+    from lgi.solve.solver import SequenceResult
 
     t0 = time.perf_counter()
     shot = Shot(index_dir, bundles, options)
@@ -389,11 +389,11 @@ def plot_per_frame(per_frame: pd.DataFrame, path: Path) -> None:
 def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], options: ReconstructOptions) -> None:
     """The one writer of a reconstruction: ``meshes.npz`` (vertices (F, V, 3) float32 cm, frames, jaw (F, 4)
     with a rig), ``diagnostics.csv``, ``per_frame.csv`` and, as asked, ``obj/``, ``shot.usdc`` and
-    ``per_frame.png``; through :func:`lgi.atomic.job_outputs` (an earlier run's outputs not written now are
+    ``per_frame.png``; through :func:`lgi.io.atomic.job_outputs` (an earlier run's outputs not written now are
     removed)."""
-    from ..atomic import job_outputs
-    from ..csvio import write_csv
-    from ..npz import save_npz
+    from lgi.io.atomic import job_outputs
+    from lgi.io.csvio import write_csv
+    from lgi.io.npz import save_npz
 
     with job_outputs(out, OUTPUTS) as stage:
         extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
@@ -404,14 +404,14 @@ def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], op
         if options.plot:
             plot_per_frame(per_frame, stage / "per_frame.png")
         if options.obj:
-            from ..obj import write_obj
+            from lgi.io.obj import write_obj
 
             (stage / "obj").mkdir()
             for f, frame in enumerate(res.frames):
                 write_obj(stage / "obj" / f"frame_{int(frame):05d}.obj", res.vertices[f], arrays["face_vertices"],
                           arrays["face_offsets"], arrays.get("uvs"), arrays.get("face_uvs"))
         if options.usd:
-            from ..export import write_usd
+            from lgi.export.formats import write_usd
 
             write_usd(stage / "shot.usdc", res.vertices, arrays["face_vertices"], arrays["face_offsets"],
                       arrays.get("uvs"), arrays.get("face_uvs"), res.frames, fps=options.fps)

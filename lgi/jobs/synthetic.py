@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..units import MM_PER_CM
+from lgi.errors import InputError
+from lgi.units import MM_PER_CM
 
 #: What ``lgi synth`` writes into its output directory (an earlier run's ``hmc/`` goes when --hmc is not given).
 SYNTH_OUTPUTS = ("dataset", "markers.csv", "bundles.csv", "jaw_rig.npz", "truth.npz", "hmc")
@@ -56,7 +56,7 @@ class SynthOptions:
         parse_size(self.image_size)
 
     def footage(self) -> dict[str, Any] | None:
-        """Keyword arguments of :func:`lgi.hmc.write_footage`, or None without ``hmc``."""
+        """Keyword arguments of :func:`lgi.synthetic.hmc.write_footage`, or None without ``hmc``."""
         if not self.hmc:
             return None
         return {"model": self.lens, "size": parse_size(self.image_size), "dot_noise_px": self.dot_noise,
@@ -74,11 +74,11 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
     ramp), as a shot does. Returns the actor, dataset, layout, activations and truth (for the demo and tests)
     and ``outputs``, the paths written.
     """
-    from .. import synth
-    from ..atomic import job_outputs
-    from ..bundles import Bundles, write_bundles
-    from ..markers import write_layout
-    from ..npz import save_npz
+    from lgi.capture.bundles import Bundles, write_bundles
+    from lgi.dataset.markers import write_layout
+    from lgi.io.atomic import job_outputs
+    from lgi.io.npz import save_npz
+    from lgi.synthetic import actor as synth
 
     o = options
     hmc = o.footage()
@@ -100,7 +100,7 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
                  controls=np.asarray(synth.CONTROLS), jaw=actor.jaw_parameters(acts).astype(np.float32),
                  frames=np.arange(o.frames))
         if hmc is not None:
-            from ..hmc import write_footage
+            from lgi.synthetic.hmc import write_footage
 
             write_footage(stage / "hmc", actor, layout, acts, seed=o.seed, show_progress=show_progress, **hmc)
     names = ["dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz"]
@@ -133,9 +133,9 @@ def demo(out: str | Path, options: DemoOptions | None = None, show_progress: boo
     """``lgi demo``: the synthetic actor written, its index built with the jaw rig, its performance reconstructed
     (the reconstruct job's defaults) and compared with the truth; each step reported through ``log`` as it
     ends. Returns the figures."""
-    from .. import synth
-    from ..index import build_index
-    from .reconstruct import ReconstructOptions, Shot, write_reconstruction
+    from lgi.index.build import build_index
+    from lgi.jobs.reconstruct import ReconstructOptions, Shot, write_reconstruction
+    from lgi.synthetic import actor as synth
 
     o = options or DemoOptions()
     out = Path(out)

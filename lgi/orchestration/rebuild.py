@@ -1,5 +1,5 @@
 """The dataset rebuild as Prefect tasks and a flow: read, stabilise, (augment,) and with markers the index
-stages and the verification; one task per stage of :mod:`lgi.pipeline`, each cached by content.
+stages and the verification; one task per stage of :mod:`lgi.pipeline.stages`, each cached by content.
 
 A re-run with nothing changed computes nothing; changing one option recomputes only the stages that depend
 on it. The stages run the job layer's functions (:mod:`lgi.jobs.dataset`, :mod:`lgi.jobs.index`) with the
@@ -17,32 +17,32 @@ from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 
-from .. import pipeline
-from ..cache import StageCache
-from ..index import IndexOptions
-from ..jobs.dataset import AugmentOptions, ImportOptions
-from ..jobs.index import VerifyOptions
+from lgi.index.build import IndexOptions
+from lgi.jobs.dataset import AugmentOptions, ImportOptions
+from lgi.jobs.index import VerifyOptions
+from lgi.pipeline import stages as pipeline
+from lgi.pipeline.cache import StageCache
 
 _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
 
 @task(name="read-shapes", **_T)
 def read_shapes(cache_dir: str, shapes_dir: str, options: dict) -> tuple[str, bool]:
-    """Read a folder of OBJ shapes (see :func:`lgi.pipeline.read_stage`)."""
+    """Read a folder of OBJ shapes (see :func:`lgi.pipeline.stages.read_stage`)."""
     path, hit = pipeline.read_stage(StageCache(cache_dir), shapes_dir, ImportOptions.from_json(options))
     return str(path), hit
 
 
 @task(name="stabilise", **_T)
 def stabilise(cache_dir: str, raw_dir: str, options: dict) -> tuple[str, bool]:
-    """Remove head motion and save the dataset (see :func:`lgi.pipeline.stabilise_stage`)."""
+    """Remove head motion and save the dataset (see :func:`lgi.pipeline.stages.stabilise_stage`)."""
     path, hit = pipeline.stabilise_stage(StageCache(cache_dir), Path(raw_dir), ImportOptions.from_json(options))
     return str(path), hit
 
 
 @task(name="augment", **_T)
 def augment(cache_dir: str, dataset_dir: str, options: dict, jaw_rig: str | None = None) -> tuple[str, bool]:
-    """Linear and/or simulated in-betweens (see :func:`lgi.pipeline.augment_stage`)."""
+    """Linear and/or simulated in-betweens (see :func:`lgi.pipeline.stages.augment_stage`)."""
     path, hit = pipeline.augment_stage(StageCache(cache_dir), Path(dataset_dir), AugmentOptions.from_json(options),
                                        jaw_rig)
     return str(path), hit
@@ -111,7 +111,7 @@ def rebuild_dataset(
     The import options are those of ``lgi import`` (:class:`~lgi.jobs.dataset.ImportOptions`);
     ``augmentation`` those of ``lgi augment`` (:class:`~lgi.jobs.dataset.AugmentOptions`, e.g. ``{"simulate":
     true, "budget": 100}``; unknown keys are refused), which adds ``OUT/dataset_augmented`` and builds the index
-    from it; ``index_options`` those of ``lgi build`` (:class:`~lgi.index.IndexOptions`, cloud options
+    from it; ``index_options`` those of ``lgi build`` (:class:`~lgi.index.build.IndexOptions`, cloud options
     flat); ``tolerance`` and ``verify_shapes`` those of ``lgi verify``.
 
     Returns a summary: paths, the dataset's content hash, counts, verification figures, and which stages
@@ -157,7 +157,7 @@ def rebuild_dataset(
 
 
 def _artifacts(summary: dict, out_dir: Path) -> None:
-    """Table artifacts (shapes, bundles, verification) and the markdown report (:func:`lgi.pipeline.
+    """Table artifacts (shapes, bundles, verification) and the markdown report (:func:`lgi.pipeline.stages.
     rebuild_markdown`) with absolute links."""
     manifest = json.loads((out_dir / "dataset" / "manifest.json").read_text())
     shapes = [{"shape": s["name"], "source": s["source"], "tags": ",".join(s["tags"]),

@@ -23,7 +23,7 @@ from prefect.artifacts import (
 )
 from prefect.cache_policies import NO_CACHE
 
-from ..jobs import reconstruct as job
+from lgi.jobs import reconstruct as job
 
 _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
@@ -31,8 +31,8 @@ _T = {"cache_policy": NO_CACHE, "persist_result": False}
 @task(name="track-footage", **_T)
 def track_footage(footage: str, calib: str, markers: str, bundles: str, dataset: str | None = None,
                   units: str = "cm", helmet: str | None = None, labels: str | None = None, reference: int = 0) -> dict:
-    """Stereo footage to the bundles file and the 2D tracks table (see :func:`lgi.footage.track_to_files`)."""
-    from ..footage import track_to_files
+    """Stereo footage to the bundles file and the 2D tracks table (see :func:`lgi.capture.footage.track_to_files`)."""
+    from lgi.capture.footage import track_to_files
 
     _, summary = track_to_files(footage, calib, markers, bundles, dataset=dataset, units=units, labels=labels,
                                 reference=reference, helmet=helmet)

@@ -1,0 +1,1 @@
+"""Dataset augmentation: in-between shapes, linear and simulated with a flesh model."""

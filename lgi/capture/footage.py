@@ -1,0 +1,267 @@
+"""HMC footage to bundles: read the frames, detect dots, label and track, triangulate, stabilise.
+
+Footage is a folder of frame pairs: ``cam0/`` and ``cam1/`` with the same file names, or
+``left*``/``right*`` files; frames are taken in name order and numbered from 0. A frame missing from one
+camera is an error (it would shift every later frame's number).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from lgi.capture.camera import StereoRig
+from lgi.capture.dots import DotOptions, Dots, detect_dots
+from lgi.capture.tracking import Tracker, TrackOptions, Tracks, thumbnail
+from lgi.errors import InputError
+
+
+@dataclass
+class ShotTracks:
+    """Result of :func:`track_footage`: tracks in the world frame, bundles in the head frame (mm)."""
+
+    names: list[str]
+    frames: list[str]
+    tracks: Tracks
+    head: np.ndarray  # (F, M, 3) mm, head frame
+    head_R: np.ndarray
+    head_t: np.ndarray
+    stable_weights: np.ndarray
+    n_detections: np.ndarray  # (F, 2)
+    seconds: dict[str, float]
+
+
+def _detect(path: Path, frame: int, size: tuple[int, int] | None, options: DotOptions) -> tuple[Dots, np.ndarray]:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise InputError("unreadable image", path=path, frame=frame)
+    if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
+        raise InputError(f"image is {img.shape[1]}x{img.shape[0]}, the calibration is {size[0]}x{size[1]}",
+                         path=path, frame=frame)
+    return detect_dots(img, options), thumbnail(img)
+
+
+def detect_footage(folder: str | os.PathLike[str], size: tuple[int, int] | None = None,
+                   options: DotOptions | None = None, workers: int = 2
+                   ) -> tuple[list[str], list[tuple[Dots, Dots]], np.ndarray]:
+    """Detect the dots of every frame (images decoded and searched on ``workers`` threads).
+
+    Returns the frame names, the detections of cameras 0 and 1 per frame, and the camera-0 thumbnails
+    (F, P) float32.
+    """
+    from lgi.capture.calibration import pair_images
+
+    pairs = pair_images(folder, strict=True)
+    o = options or DotOptions()
+    jobs = [(p, f, size, o) for f, (_, p0, p1) in enumerate(pairs) for p in (p0, p1)]
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        res = list(pool.map(lambda a: _detect(*a), jobs))
+    dots = [(res[2 * f][0], res[2 * f + 1][0]) for f in range(len(pairs))]
+    thumbs = np.stack([res[2 * f][1] for f in range(len(pairs))])
+    return [n for n, _, _ in pairs], dots, thumbs
+
+
+def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots, Dots],
+                max_px: float = 3.0) -> np.ndarray:
+    """Reference-frame labels from a CSV ``camera,x,y,marker`` (camera 0 or 1, pixels).
+
+    Each labelled point takes the nearest detection within ``max_px``; a label with none is left out with a
+    warning, unless most are (then the file is refused). Returns (M, 2, 2), NaN where unlabelled.
+    """
+    try:
+        df = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read the label file: {e}", path=path) from e
+    missing = {"camera", "x", "y", "marker"} - set(df.columns)
+    if missing:
+        raise InputError(f"label file needs columns camera,x,y,marker; missing {sorted(missing)}", path=path)
+    import sys
+
+    index = {n: i for i, n in enumerate(names)}
+    uv = np.full((len(names), 2, 2), np.nan)
+    misses = []
+    for r, row in enumerate(df.itertuples(index=False), start=2):
+        if row.marker not in index:
+            raise InputError("unknown marker", path=path, line=r, marker=str(row.marker))
+        if row.camera not in (0, 1):
+            raise InputError(f"camera must be 0 or 1, not {row.camera!r}", path=path, line=r, marker=str(row.marker))
+        xy = dots[int(row.camera)].xy
+        d = np.linalg.norm(xy - [row.x, row.y], axis=1) if len(xy) else np.array([np.inf])
+        if d.min() > max_px:
+            misses.append(InputError(f"no dot detected within {max_px} px of ({row.x}, {row.y}) in camera "
+                                     f"{row.camera}", path=path, line=r, marker=str(row.marker)))
+            continue
+        uv[index[row.marker], int(row.camera)] = xy[int(np.argmin(d))]
+    # A few labels on dots the detector missed are left to the tracker; most of them missing means the
+    # labels are for another frame or another shot.
+    if misses and len(misses) > 0.5 * len(df):
+        raise InputError(f"{len(misses)} of {len(df)} labels have no detected dot near them (wrong reference frame "
+                         f"or shot?); first: {misses[0]}", path=path)
+    for m in misses:
+        print(f"warning: {m} (left unlabelled)", file=sys.stderr)
+    return uv
+
+
+def read_helmet(path: str | os.PathLike[str]) -> np.ndarray:
+    """Helmet marker positions (H, 3), mm in the calibration's frame, from a CSV ``name,x,y,z``."""
+    try:
+        df = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read the helmet marker file: {e}", path=path) from e
+    if not {"x", "y", "z"} <= set(df.columns):
+        raise InputError("helmet marker file needs columns name,x,y,z (mm)", path=path)
+    pts = df[["x", "y", "z"]].to_numpy(np.float64)
+    bad = np.flatnonzero(~np.all(np.isfinite(pts), axis=1))
+    if len(bad):
+        raise InputError("non-numeric position", path=path, line=int(bad[0]) + 2)
+    if len(pts) < 4:
+        raise InputError(f"{len(pts)} helmet markers, at least 4 are needed", path=path)
+    return pts
+
+
+def refine_rig(rig: StereoRig, helmet: np.ndarray, dots: list[tuple[Dots, Dots]], gate_px: float = 15.0
+               ) -> tuple[StereoRig, np.ndarray]:
+    """Refine the rig's extrinsics from helmet markers seen in the shot.
+
+    Each helmet marker takes, per frame and camera, the nearest detection to its projection through the
+    calibrated rig (within ``gate_px``); the median over the frames is its observation.
+    """
+    obs = []
+    for c, cam in enumerate(rig.cameras):
+        pred = cam.project(helmet)
+        per = np.full((len(dots), len(helmet), 2), np.nan)
+        for f, pair in enumerate(dots):
+            xy = pair[c].xy
+            if len(xy) == 0:
+                continue
+            d = np.linalg.norm(pred[:, None] - xy[None], axis=2)
+            j = np.argmin(d, axis=1)
+            hit = d[np.arange(len(helmet)), j] <= gate_px
+            per[f, hit] = xy[j[hit]]
+        with np.errstate(all="ignore"):
+            obs.append(np.nanmedian(per, axis=0) if np.isfinite(per).any() else per[0])
+    return rig.refine_with_points(helmet, obs[0], obs[1])
+
+
+def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.ndarray, names: list[str],
+                  labels: str | os.PathLike[str] | None = None, reference: int = 0,
+                  options: TrackOptions | None = None, dot_options: DotOptions | None = None,
+                  workers: int = 2, helmet: np.ndarray | None = None) -> ShotTracks:
+    """Footage -> labelled tracks -> triangulated, head-stabilised bundles (mm). See :mod:`lgi.capture.tracking`.
+
+    With ``helmet`` (H, 3) marker positions (mm, calibration frame), the rig's extrinsics are first
+    refined from those markers as seen in this shot (:func:`refine_rig`).
+    """
+    from lgi.capture.headstab import stabilise_bundles
+
+    t0 = time.perf_counter()
+    frames, dots, thumbs = detect_footage(folder, rig.cameras[0].size, dot_options, workers)
+    if helmet is not None:
+        try:
+            rig, _ = refine_rig(rig, helmet, dots)
+        except ValueError as e:
+            raise InputError(f"helmet markers: {e}", path=folder) from e
+    t1 = time.perf_counter()
+    if not 0 <= reference < len(frames):
+        raise InputError(f"reference frame {reference} is outside the shot (0-{len(frames) - 1})", path=folder)
+    tracker = Tracker(rig, layout_mm, names, options)
+    ref_uv = read_labels(labels, names, dots[reference]) if labels else None
+    try:
+        tracks = tracker.track(dots, thumbs, reference, ref_uv)
+    except ValueError as e:
+        raise InputError(str(e), path=folder, frame=reference) from e
+    t2 = time.perf_counter()
+    head, R, t, w = stabilise_bundles(tracks.X, layout_mm)
+    t3 = time.perf_counter()
+    n_det = np.array([[len(d0), len(d1)] for d0, d1 in dots])
+    return ShotTracks(names, frames, tracks, head, R, t, w, n_det,
+                      {"detect": t1 - t0, "track": t2 - t1, "stabilise": t3 - t2})
+
+
+def tracks_table(shot: ShotTracks) -> pd.DataFrame:
+    """Long table of every 2D observation: frame, marker, camera, x, y, reprojection error (px),
+    source (forward/backward/anchor), triangulated (False: seen by this camera only, kept for later use)."""
+    tr = shot.tracks
+    F, M = tr.uv.shape[:2]
+    f, m, c = np.nonzero(np.isfinite(tr.uv[..., 0]))
+    src = np.array(["none", "forward", "backward", "anchor"])
+    return pd.DataFrame({
+        "frame": f.astype(np.int64), "marker": np.asarray(shot.names)[m], "camera": c.astype(np.int8),
+        "x": tr.uv[f, m, c, 0], "y": tr.uv[f, m, c, 1], "reprojection_px": tr.error[f, m, c],
+        "source": src[tr.source[f, m, c]], "triangulated": np.isfinite(tr.X[f, m, 0]),
+    })
+
+
+def neutral_layout(markers: str | os.PathLike[str], dataset: str | os.PathLike[str] | None = None,
+                   units: str = "cm") -> tuple[list[str], np.ndarray, str]:
+    """Marker names, neutral positions (M, 3) and their units: from ``dataset``'s neutral if given, else the
+    marker file's ``x, y, z`` columns (in ``units``)."""
+    from lgi.dataset.markers import read_layout
+
+    if dataset:
+        from lgi.dataset.shapes import ShapeDataset
+
+        ds = ShapeDataset.load(dataset)
+        layout = read_layout(markers, ds.triangles)
+        return layout.names, layout.evaluate(ds.neutral[None].astype(np.float64))[0], ds.units
+    layout = read_layout(markers)
+    df = pd.read_csv(markers)
+    if not {"x", "y", "z"} <= set(df.columns) or df[["x", "y", "z"]].isna().any().any():
+        raise InputError("the marker file has no neutral positions (x, y, z): pass a dataset", path=markers)
+    return layout.names, df[["x", "y", "z"]].to_numpy(np.float64), units
+
+
+def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str], markers: str | os.PathLike[str],
+                   out: str | os.PathLike[str], tracks: str | os.PathLike[str] | None = None,
+                   dataset: str | os.PathLike[str] | None = None, units: str = "cm",
+                   labels: str | os.PathLike[str] | None = None, reference: int = 0,
+                   helmet: str | os.PathLike[str] | None = None, gate_px: float = 12.0, dot_size: float = 9.0
+                   ) -> tuple[ShotTracks, dict]:
+    """``lgi track``: footage to the bundles file (cm, the library's unit, whatever ``units`` the marker file's
+    positions are in) and the 2D tracks table (Parquet).
+
+    Returns the tracks and a summary (counts, reprojection error, anchors, rejections, speed, paths).
+    """
+    from lgi.capture.bundles import Bundles, write_bundles
+    from lgi.io.atomic import atomic_file
+    from lgi.units import MM_PER_CM, check_units
+
+    rig = StereoRig.load(calib)
+    names, neutral, units = neutral_layout(markers, dataset, units)
+    neutral_mm = neutral * check_units(units, "--units") * MM_PER_CM  # the cameras are calibrated in mm
+    t0 = time.perf_counter()
+    shot = track_footage(footage, rig, neutral_mm, names, labels=labels, reference=reference,
+                         options=TrackOptions(gate_px=gate_px), helmet=read_helmet(helmet) if helmet else None,
+                         dot_options=DotOptions.for_size(dot_size))
+    dt = time.perf_counter() - t0
+    out = Path(out)
+    tracks_out = Path(tracks) if tracks else out.with_name(out.stem + ".tracks.parquet")
+    F, M = shot.head.shape[:2]
+    with atomic_file(tracks_out) as tmp:
+        tracks_table(shot).to_parquet(tmp, index=False)
+    try:
+        write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / MM_PER_CM))
+    except BaseException:
+        tracks_out.unlink(missing_ok=True)  # the two files go together, or neither is left
+        raise
+    tr = shot.tracks
+    err = tr.error[np.isfinite(tr.error)]
+    summary = {
+        "frames": F, "markers": M, "triangulated_share": float(np.isfinite(shot.head[..., 0]).mean()),
+        "one_camera_observations": int((np.isfinite(tr.uv[..., 0]).sum(axis=2) == 1).sum()),
+        "anchors": len(tr.anchors), "reprojection_median_px": float(np.median(err)) if len(err) else float("nan"),
+        "reprojection_p95_px": float(np.percentile(err, 95)) if len(err) else float("nan"),
+        "rejected_epipolar": int((tr.rejected == 1).sum()), "rejected_neighbour": int((tr.rejected == 2).sum()),
+        "stable_markers": [n for n, w in zip(names, shot.stable_weights, strict=True) if w > 0.5],
+        "frames_per_second": F / dt, "seconds": shot.seconds, "units": "cm",
+        "bundles": str(out.resolve()), "tracks": str(tracks_out.resolve()),
+    }
+    return shot, summary

@@ -1,0 +1,1 @@
+"""The shape dataset: storage, OBJ import, head stabilisation, marker layouts, mesh geometry."""

@@ -1,0 +1,302 @@
+"""The shape dataset: a neutral mesh plus named facial shapes stored as displacements.
+
+On disk a dataset is a directory (format described in ``docs/dataset-format.md``)::
+
+    manifest.json   format version, units, shape names and per-shape metadata, content hash
+    mesh.npz        neutral positions and topology (polygons as given, UVs with their seams)
+    deltas.npy      (S, V, 3) float32 displacements from the neutral, memory-mappable
+
+The content hash covers everything that defines the data (arrays, names, units, metadata) and
+nothing incidental (creation time, the path), so it serves as a cache key.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lgi.dataset.mesh import triangulate
+from lgi.errors import InputError
+from lgi.io.atomic import atomic_dir
+from lgi.io.npz import save_npz
+
+FORMAT = "lgi-shape-dataset"
+FORMAT_VERSION = 1
+
+
+@dataclass
+class ShapeMeta:
+    """Metadata of one shape.
+
+    Attributes
+    ----------
+    source
+        Where it came from (a file name, or a description such as ``synthetic:jaw_open=1``).
+    rigid_transform : (4, 4) float64
+        The rigid head motion removed by stabilisation, mapping the stabilised shape onto the source
+        (identity when nothing was removed).
+    tags
+        Free-form labels, for example ``extreme``, ``inbetween``, ``left``.
+    extra
+        Anything else worth keeping (activations of a synthetic shape, jaw parameters, ...); must be
+        JSON-serialisable.
+    """
+
+    source: str = ""
+    rigid_transform: np.ndarray = field(default_factory=lambda: np.eye(4))
+    tags: list[str] = field(default_factory=list)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "source": self.source,
+            "rigid_transform": np.asarray(self.rigid_transform, np.float64).round(12).tolist(),
+            "tags": list(self.tags),
+            "extra": self.extra,
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> ShapeMeta:
+        return cls(
+            source=d.get("source", ""),
+            rigid_transform=np.asarray(d.get("rigid_transform", np.eye(4)), np.float64),
+            tags=list(d.get("tags", [])),
+            extra=dict(d.get("extra", {})),
+        )
+
+
+@dataclass
+class ShapeDataset:
+    """A neutral mesh and named facial shapes.
+
+    Attributes
+    ----------
+    neutral : (V, 3) float64
+        Neutral positions, in ``units``.
+    deltas : (S, V, 3) float32
+        Displacement of every shape from the neutral, in ``units``.
+    names : list of str
+        Shape names, unique, in the order of ``deltas``.
+    face_vertices, face_offsets
+        Polygons as given (see :class:`lgi.io.obj.PolyMesh`).
+    uvs : (T, 2) float32 or None
+    face_uvs : (N,) int32 or None
+        Texture coordinates per polygon corner; a UV seam is where one vertex has several.
+    units
+        Length unit of positions and deltas (``"cm"`` unless told otherwise).
+    shape_meta : list of ShapeMeta
+        One per shape.
+    face_material : (F,) int16, optional; materials : list of str
+        Material groups of the source mesh (kept for export and region selection).
+    info
+        Dataset-level metadata (name, where it was imported from, the rigid vertices used).
+    """
+
+    neutral: np.ndarray
+    deltas: np.ndarray
+    names: list[str]
+    face_vertices: np.ndarray
+    face_offsets: np.ndarray
+    uvs: np.ndarray | None = None
+    face_uvs: np.ndarray | None = None
+    units: str = "cm"
+    shape_meta: list[ShapeMeta] = field(default_factory=list)
+    face_material: np.ndarray | None = None
+    materials: list[str] = field(default_factory=list)
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.neutral = np.asarray(self.neutral, np.float64)
+        if self.deltas.dtype != np.float32:
+            self.deltas = np.asarray(self.deltas, np.float32)
+        if self.deltas.ndim != 3 or self.deltas.shape[1:] != self.neutral.shape:
+            raise ValueError(f"deltas shape {self.deltas.shape} does not match neutral {self.neutral.shape}")
+        if len(self.names) != self.deltas.shape[0]:
+            raise ValueError(f"{len(self.names)} names for {self.deltas.shape[0]} shapes")
+        if len(set(self.names)) != len(self.names):
+            dup = sorted({n for n in self.names if self.names.count(n) > 1})
+            raise ValueError(f"duplicate shape names: {dup}")
+        if not self.shape_meta:
+            self.shape_meta = [ShapeMeta() for _ in self.names]
+        if len(self.shape_meta) != len(self.names):
+            raise ValueError("one ShapeMeta per shape is needed")
+
+    # ------------------------------------------------------------------ access
+    @property
+    def n_shapes(self) -> int:
+        return len(self.names)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.neutral.shape[0])
+
+    @cached_property
+    def triangles(self) -> np.ndarray:
+        """(T, 3) int32: the canonical fan triangulation (see :func:`lgi.dataset.mesh.triangulate`)."""
+        return triangulate(self.face_vertices, self.face_offsets)[0]
+
+    def index(self, name: str) -> int:
+        """Position of shape ``name``; raises ``KeyError`` naming the known shapes if absent."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"no shape {name!r} in dataset (has {len(self.names)}: {self.names[:8]}...)") from None
+
+    def shape(self, which: int | str) -> np.ndarray:
+        """(V, 3) float64 positions of one shape (neutral plus its displacement)."""
+        i = self.index(which) if isinstance(which, str) else which
+        return self.neutral + self.deltas[i]
+
+    def select(self, include: str | None = None, exclude: str | None = None) -> ShapeDataset:
+        """A dataset with the shapes whose names match ``include`` and not ``exclude``.
+
+        Patterns are shell-style (``mouth*``); several may be given separated by commas.
+        """
+        keep = [i for i, n in enumerate(self.names) if _match(n, include, True) and not _match(n, exclude, False)]
+        return self.take(keep)
+
+    def take(self, indices: list[int] | np.ndarray) -> ShapeDataset:
+        """A dataset with the shapes at ``indices``, in that order."""
+        idx = [int(i) for i in indices]
+        return ShapeDataset(
+            neutral=self.neutral, deltas=np.asarray(self.deltas[idx]), names=[self.names[i] for i in idx],
+            face_vertices=self.face_vertices, face_offsets=self.face_offsets, uvs=self.uvs,
+            face_uvs=self.face_uvs, units=self.units, shape_meta=[self.shape_meta[i] for i in idx],
+            face_material=self.face_material, materials=list(self.materials), info=dict(self.info),
+        )
+
+    # ------------------------------------------------------------------ hashing
+    def content_hash(self) -> str:
+        """SHA-256 (hex) of everything that defines the dataset; stable across save and load."""
+        h = hashlib.sha256()
+        h.update(f"{FORMAT}/{FORMAT_VERSION}".encode())
+        for arr in (self.neutral, self.face_vertices, self.face_offsets, self.uvs, self.face_uvs):
+            _hash_array(h, arr)
+        _hash_array(h, np.asarray(self.deltas))
+        h.update(json.dumps(self._identity_json(), sort_keys=True).encode())
+        return h.hexdigest()
+
+    def _identity_json(self) -> dict[str, Any]:
+        return {
+            "units": self.units,
+            "names": self.names,
+            "shape_meta": [m.to_json() for m in self.shape_meta],
+        }
+
+    # ------------------------------------------------------------------ disk
+    def save(self, directory: str | os.PathLike[str]) -> Path:
+        """Write the dataset directory atomically (an existing one is replaced whole).
+
+        Returns
+        -------
+        Path
+            ``directory``.
+        """
+        directory = Path(directory)
+        digest = self.content_hash()
+        with atomic_dir(directory) as tmp:
+            arrays = {
+                "neutral": self.neutral,
+                "face_vertices": np.asarray(self.face_vertices, np.int32),
+                "face_offsets": np.asarray(self.face_offsets, np.int64),
+            }
+            if self.uvs is not None:
+                arrays["uvs"] = np.asarray(self.uvs, np.float32)
+                arrays["face_uvs"] = np.asarray(self.face_uvs, np.int32)
+            if self.face_material is not None:
+                arrays["face_material"] = np.asarray(self.face_material, np.int16)
+            save_npz(tmp / "mesh.npz", **arrays)
+            np.save(tmp / "deltas.npy", np.ascontiguousarray(self.deltas, np.float32))
+            manifest = {
+                "format": FORMAT,
+                "format_version": FORMAT_VERSION,
+                "content_hash": digest,
+                "n_vertices": self.n_vertices,
+                "n_faces": int(len(self.face_offsets) - 1),
+                "n_shapes": self.n_shapes,
+                "units": self.units,
+                "materials": self.materials,
+                "info": self.info,
+                "shapes": [{"name": n, **m.to_json()} for n, m in zip(self.names, self.shape_meta, strict=True)],
+            }
+            (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1))
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike[str], mmap: bool = False, verify: bool = False) -> ShapeDataset:
+        """Read a dataset directory.
+
+        Parameters
+        ----------
+        directory
+            Written by :meth:`save`.
+        mmap
+            Memory-map the displacements instead of reading them (large datasets).
+        verify
+            Recompute the content hash and fail if it differs from the manifest's.
+        """
+        directory = Path(directory)
+        mpath = directory / "manifest.json"
+        if not mpath.is_file():
+            raise InputError("not a shape dataset (no manifest.json)", path=directory)
+        try:
+            manifest = json.loads(mpath.read_text())
+        except json.JSONDecodeError as exc:
+            raise InputError(f"manifest is not valid JSON: {exc.msg}", path=mpath, line=exc.lineno) from None
+        if manifest.get("format") != FORMAT:
+            raise InputError(f"manifest format is {manifest.get('format')!r}, expected {FORMAT!r}", path=mpath)
+        if manifest.get("format_version", 0) > FORMAT_VERSION:
+            raise InputError(f"dataset format version {manifest['format_version']} is newer than this lgi "
+                             f"reads ({FORMAT_VERSION})", path=mpath)
+        if manifest.get("units", "cm") != "cm":
+            raise InputError(f"dataset in {manifest['units']!r}: datasets are stored in cm (lgi import converts); "
+                             f"re-import it with lgi import --units {manifest['units']}", path=mpath)
+        with np.load(directory / "mesh.npz") as z:
+            arrays = {k: z[k] for k in z.files}
+        deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None)
+        shapes = manifest["shapes"]
+        if deltas.shape != (len(shapes), manifest["n_vertices"], 3):
+            raise InputError(f"deltas.npy has shape {deltas.shape}, manifest says "
+                             f"({len(shapes)}, {manifest['n_vertices']}, 3)", path=directory / "deltas.npy")
+        ds = cls(
+            neutral=arrays["neutral"], deltas=deltas, names=[s["name"] for s in shapes],
+            face_vertices=arrays["face_vertices"], face_offsets=arrays["face_offsets"],
+            uvs=arrays.get("uvs"), face_uvs=arrays.get("face_uvs"), units=manifest.get("units", "cm"),
+            shape_meta=[ShapeMeta.from_json(s) for s in shapes], face_material=arrays.get("face_material"),
+            materials=list(manifest.get("materials", [])), info=dict(manifest.get("info", {})),
+        )
+        if verify and ds.content_hash() != manifest.get("content_hash"):
+            raise InputError("content hash does not match the manifest (files changed or corrupt)", path=directory)
+        return ds
+
+
+def read_content_hash(directory: str | os.PathLike[str]) -> str:
+    """The content hash recorded in a dataset directory's manifest, without loading the arrays."""
+    path = Path(directory) / "manifest.json"
+    try:
+        return json.loads(path.read_text())["content_hash"]
+    except (OSError, KeyError, json.JSONDecodeError) as exc:
+        raise InputError(f"cannot read the dataset's content hash: {exc}", path=path) from None
+
+
+def _hash_array(h: Any, arr: np.ndarray | None) -> None:
+    if arr is None:
+        h.update(b"none")
+        return
+    a = np.ascontiguousarray(arr)
+    h.update(f"{a.dtype.str}{a.shape}".encode())
+    h.update(memoryview(a).cast("B"))
+
+
+def _match(name: str, patterns: str | None, default: bool) -> bool:
+    if not patterns:
+        return default
+    return any(fnmatch.fnmatchcase(name, p.strip()) for p in patterns.split(",") if p.strip())

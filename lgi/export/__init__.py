@@ -1,0 +1,1 @@
+"""Exports of reconstructions: USD, OpenEXR displacement maps."""

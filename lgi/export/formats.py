@@ -1,0 +1,162 @@
+"""Exports of reconstructed performances: USD (animated mesh), OpenEXR displacement maps, OBJ sequences.
+
+Every writer works on plain arrays and writes atomically (a temporary name, then a rename).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numba as nb
+import numpy as np
+
+from lgi.dataset.mesh import triangulate
+from lgi.io.atomic import atomic_file
+
+
+def write_usd(
+    path: str | os.PathLike[str],
+    vertices: np.ndarray,
+    face_vertices: np.ndarray,
+    face_offsets: np.ndarray,
+    uvs: np.ndarray | None = None,
+    face_uvs: np.ndarray | None = None,
+    frames: np.ndarray | None = None,
+    fps: float = 30.0,
+    units_per_meter: float = 100.0,
+    prim: str = "/Face/mesh",
+) -> Path:
+    """Write an animated mesh as USD (binary ``.usdc``, or text ``.usda``, by extension).
+
+    Parameters
+    ----------
+    vertices : (F, V, 3) float, dataset units (cm by default)
+        One time sample per frame.
+    face_vertices, face_offsets
+        Polygons as given (quads stay quads).
+    uvs : (T, 2), face_uvs : (N,), optional
+        Written as the face-varying primvar ``st`` (seams kept).
+    frames : (F,) int, optional
+        Time codes (default 0..F-1).
+    fps : float
+        Time codes per second.
+    units_per_meter : float
+        100 for centimetres (``metersPerUnit`` 0.01).
+    """
+    from pxr import Sdf, Usd, UsdGeom, Vt
+
+    vertices = np.asarray(vertices, np.float32)
+    frames = np.arange(len(vertices)) if frames is None else np.asarray(frames)
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0 / units_per_meter)
+    stage.SetStartTimeCode(float(frames[0]))
+    stage.SetEndTimeCode(float(frames[-1]))
+    stage.SetTimeCodesPerSecond(float(fps))
+    stage.SetFramesPerSecond(float(fps))
+    root = prim.rsplit("/", 1)[0] or "/"
+    if root != "/":
+        stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, root).GetPrim())
+    mesh = UsdGeom.Mesh.Define(stage, prim)
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.diff(np.asarray(face_offsets)).astype(np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(face_vertices, np.int32)))
+    if uvs is not None and face_uvs is not None:
+        st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                     UsdGeom.Tokens.faceVarying)
+        st.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uvs, np.float32)))
+        st.SetIndices(Vt.IntArray.FromNumpy(np.asarray(face_uvs, np.int32)))
+    points = mesh.CreatePointsAttr()
+    extent = mesh.CreateExtentAttr()
+    for f, v in zip(frames, vertices, strict=True):
+        points.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(v)), Usd.TimeCode(float(f)))
+        extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([v.min(0), v.max(0)])), Usd.TimeCode(float(f)))
+    path = Path(path)
+    with atomic_file(path, suffix=path.suffix or ".usdc") as tmp:
+        stage.GetRootLayer().Export(str(tmp))
+    return path
+
+
+@nb.njit(cache=True)
+def _rasterize(uv_tri, values_tri, size):  # pragma: no cover - compiled
+    """Barycentric rasterisation of per-corner values over UV triangles into a (size, size, 3) image
+    (image row 0 at v = 1); returns the image and a coverage mask."""
+    img = np.zeros((size, size, 3), np.float32)
+    mask = np.zeros((size, size), np.bool_)
+    for t in range(uv_tri.shape[0]):
+        ax, ay = uv_tri[t, 0, 0] * size, (1 - uv_tri[t, 0, 1]) * size
+        bx, by = uv_tri[t, 1, 0] * size, (1 - uv_tri[t, 1, 1]) * size
+        cx, cy = uv_tri[t, 2, 0] * size, (1 - uv_tri[t, 2, 1]) * size
+        den = (by - cy) * (ax - cx) + (cx - bx) * (ay - cy)
+        if abs(den) < 1e-12:
+            continue
+        x0 = max(0, int(np.floor(min(ax, bx, cx))))
+        x1 = min(size - 1, int(np.ceil(max(ax, bx, cx))))
+        y0 = max(0, int(np.floor(min(ay, by, cy))))
+        y1 = min(size - 1, int(np.ceil(max(ay, by, cy))))
+        for py in range(y0, y1 + 1):
+            for px in range(x0, x1 + 1):
+                x = px + 0.5
+                y = py + 0.5
+                l0 = ((by - cy) * (x - cx) + (cx - bx) * (y - cy)) / den
+                l1 = ((cy - ay) * (x - cx) + (ax - cx) * (y - cy)) / den
+                l2 = 1 - l0 - l1
+                if l0 < -1e-6 or l1 < -1e-6 or l2 < -1e-6:
+                    continue
+                for k in range(3):
+                    img[py, px, k] = l0 * values_tri[t, 0, k] + l1 * values_tri[t, 1, k] + l2 * values_tri[t, 2, k]
+                mask[py, px] = True
+    return img, mask
+
+
+def displacement_map(
+    displacement: np.ndarray, face_vertices: np.ndarray, face_offsets: np.ndarray, uvs: np.ndarray,
+    face_uvs: np.ndarray, size: int = 512, tile: tuple[int, int] = (0, 0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex displacements painted in UV space.
+
+    Parameters
+    ----------
+    displacement : (V, 3) float, cm
+        E.g. reconstructed minus neutral positions.
+    uvs, face_uvs
+        The mesh's texture coordinates (seams kept: each side of a seam paints its own chart).
+    size : int
+        Image width and height in pixels.
+    tile : (u, v) int
+        The UDIM-style tile to paint (UVs in [u, u+1) x [v, v+1)).
+
+    Returns
+    -------
+    image : (size, size, 3) float32 (RGB = x, y, z displacement, cm)
+    mask : (size, size) bool, pixels covered by the mesh
+    """
+    tri_v, _ = triangulate(face_vertices, face_offsets)
+    tri_uv, _ = triangulate(face_uvs, face_offsets)
+    uv = np.asarray(uvs, np.float64)[tri_uv] - np.asarray(tile, np.float64)
+    keep = np.all((uv >= -1e-6) & (uv <= 1 + 1e-6), axis=(1, 2))
+    vals = np.asarray(displacement, np.float64)[tri_v][keep]
+    return _rasterize(uv[keep], vals, int(size))
+
+
+def write_exr(path: str | os.PathLike[str], image: np.ndarray) -> Path:
+    """Write an (H, W, 3) float32 image as an OpenEXR RGB file (ZIP compression), atomically."""
+    import OpenEXR
+
+    path = Path(path)
+    pixels = np.ascontiguousarray(np.asarray(image, np.float32))  # strided views are written wrongly
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_file(path, suffix=".exr") as tmp:
+        OpenEXR.File(header, {"RGB": pixels}).write(str(tmp))
+    return path
+
+
+def read_exr(path: str | os.PathLike[str]) -> np.ndarray:
+    """(H, W, 3) float32 RGB pixels of an OpenEXR file."""
+    import OpenEXR
+
+    ch = OpenEXR.File(str(path)).channels()
+    if "RGB" in ch:
+        return np.asarray(ch["RGB"].pixels)
+    return np.stack([np.asarray(ch[c].pixels) for c in "RGB"], axis=-1)

@@ -1,0 +1,1 @@
+"""File formats and safe writing: atomic outputs, CSV, deterministic npz, OBJ."""

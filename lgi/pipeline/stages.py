@@ -1,0 +1,256 @@
+"""The dataset rebuild as cached stages (plain functions; the Prefect tasks in ``tasks/`` wrap them).
+
+Each stage is keyed by what it depends on and nothing else (see :mod:`lgi.pipeline.cache`):
+
+============  ===========================================================================
+read          the OBJ files' bytes; neutral, include/exclude patterns, units, delta mode
+stabilise     read's result; the rigid-vertex file's bytes (or ``auto``/``none``)
+natural       the dataset's mesh (neutral, topology, UVs); the marker file; region, stiffness
+clouds        the dataset's content hash; the marker file; natural's result; pruning/simplex
+              options; the jaw rig's bytes
+index         natural's and clouds' results; the dataset
+verify        the index; the tolerance
+============  ===========================================================================
+
+So a re-run with nothing changed computes nothing, and changing one option recomputes only the stages
+downstream of it. Every result is a directory of npz/JSON/CSV files, written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from lgi.dataset.importing import RawShapes
+from lgi.dataset.markers import read_layout
+from lgi.dataset.shapes import ShapeDataset
+from lgi.index.build import IndexOptions, LGIIndex, assemble_index, clouds_stage, natural_stage
+from lgi.io.npz import save_npz
+from lgi.io.obj import PolyMesh
+from lgi.jobs.dataset import AugmentOptions, ImportOptions, augment, read_shapes, stabilise_shapes
+from lgi.jobs.index import VerifyOptions, verify
+from lgi.pipeline.cache import StageCache, hash_file, hash_tree
+
+
+def _load_npz(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def read_stage(cache: StageCache, shapes_dir: str, options: ImportOptions) -> tuple[Path, bool]:
+    """Read a folder of OBJ shapes (:func:`lgi.jobs.dataset.read_shapes`); result: ``raw.npz`` + ``raw.json``."""
+    inputs = {"objs": hash_tree(shapes_dir, "*.obj"),
+              "options": {k: v for k, v in options.to_json().items() if k != "rigid_vertices"}}
+
+    def make(out: Path) -> None:
+        raw = read_shapes(shapes_dir, options)
+        m = raw.mesh
+        arrays = {"neutral": raw.neutral, "positions": raw.positions, "vertices": m.vertices,
+                  "face_vertices": m.face_vertices, "face_offsets": m.face_offsets, "face_material": m.face_material}
+        if m.uvs is not None:
+            arrays.update(uvs=m.uvs, face_uvs=m.face_uvs)
+        save_npz(out / "raw.npz", **arrays)
+        (out / "raw.json").write_text(json.dumps({"names": raw.names, "sources": raw.sources, "info": raw.info,
+                                                  "materials": m.materials, "mtllib": m.mtllib}, indent=1))
+
+    return cache.run("read", inputs, make)
+
+
+def _load_raw(path: Path) -> RawShapes:
+    a = _load_npz(path / "raw.npz")
+    meta = json.loads((path / "raw.json").read_text())
+    mesh = PolyMesh(a["vertices"], a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"),
+                    a["face_material"], meta["materials"], meta["mtllib"])
+    return RawShapes(mesh, a["neutral"], a["positions"], meta["names"], meta["sources"], meta["info"])
+
+
+def stabilise_stage(cache: StageCache, raw_dir: Path, options: ImportOptions) -> tuple[Path, bool]:
+    """Remove head motion (:func:`lgi.jobs.dataset.stabilise_shapes`); result: a dataset directory."""
+    rigid = options.rigid_vertices
+    rigid_id = rigid if rigid in (None, "auto", "none") else hash_file(rigid)
+    inputs = {"raw": raw_dir.name, "rigid_vertices": rigid_id}
+
+    def make(out: Path) -> None:
+        stabilise_shapes(_load_raw(raw_dir), options).save(out / "dataset")
+
+    return cache.run("stabilise", inputs, make)
+
+
+def augment_stage(cache: StageCache, dataset_dir: Path, options: AugmentOptions,
+                  jaw_rig: str | None = None) -> tuple[Path, bool]:
+    """In-betweens (:func:`lgi.jobs.dataset.augment`); result: a dataset directory with the captured shapes
+    first."""
+    inputs = {"dataset": [hash_file(dataset_dir / f) for f in ("manifest.json", "mesh.npz", "deltas.npy")],
+              "options": options.to_json(), "jaw_rig": hash_file(jaw_rig) if jaw_rig else None}
+
+    def make(out: Path) -> None:
+        ds = ShapeDataset.load(dataset_dir)
+        rig = None
+        if jaw_rig:
+            from lgi.solve.jaw import JawRig
+
+            rig = JawRig.load(jaw_rig, ds.n_vertices)
+        augment(ds, options, rig).save(out / "dataset")
+
+    return cache.run("augment", inputs, make)
+
+
+def natural_stage_cached(cache: StageCache, dataset_dir: Path, markers: str,
+                         opts: IndexOptions) -> tuple[Path, bool]:
+    """Natural-neighbour weights and the correction basis; result: ``natural.npz``."""
+    inputs = {"mesh": hash_file(dataset_dir / "mesh.npz"), "markers": hash_file(markers),
+              "region_radius": opts.region_radius, "nn_subdivisions": opts.nn_subdivisions, "ks": opts.ks,
+              "kb": opts.kb}
+
+    def make(out: Path) -> None:
+        ds = ShapeDataset.load(dataset_dir, mmap=True)
+        save_npz(out / "natural.npz", **natural_stage(ds, read_layout(markers, ds.triangles), opts))
+
+    return cache.run("natural", inputs, make)
+
+
+def clouds_stage_cached(cache: StageCache, dataset_dir: Path, markers: str, natural_dir: Path, opts: IndexOptions,
+                        jaw_rig: str | None = None) -> tuple[Path, bool]:
+    """Point clouds, pruning, simplices, grids; result: ``clouds.npz``, ``pruning.csv``, ``bundles.csv``."""
+    opt = {k: v for k, v in opts.to_json().items() if k not in ("region_radius", "nn_subdivisions", "ks", "kb")}
+    inputs = {"dataset": json.loads((dataset_dir / "manifest.json").read_text())["content_hash"],
+              "markers": hash_file(markers), "natural": natural_dir.name, "options": opt,
+              "jaw_rig": None if not jaw_rig else hash_file(jaw_rig)}
+
+    def make(out: Path) -> None:
+        from lgi.solve.jaw import JawRig
+
+        ds = ShapeDataset.load(dataset_dir, mmap=True)
+        rig = JawRig.load(jaw_rig, ds.n_vertices) if jaw_rig else None
+        arrays, reports = clouds_stage(ds, read_layout(markers, ds.triangles), opts,
+                                       _load_npz(natural_dir / "natural.npz"), rig)
+        save_npz(out / "clouds.npz", **arrays)
+        for name, df in reports.items():
+            df.to_csv(out / name, index=False, float_format="%.6g")
+
+    return cache.run("clouds", inputs, make)
+
+
+def index_stage(cache: StageCache, dataset_dir: Path, markers: str, natural_dir: Path, clouds_dir: Path,
+                opts: IndexOptions, jaw_rig: str | None = None) -> tuple[Path, bool]:
+    """Assemble the index; result: ``index/`` (an index directory)."""
+    inputs = {"natural": natural_dir.name, "clouds": clouds_dir.name, "options": opts.to_json(),
+              "dataset": json.loads((dataset_dir / "manifest.json").read_text())["content_hash"],
+              "markers": hash_file(markers), "jaw_rig": None if not jaw_rig else hash_file(jaw_rig)}
+
+    def make(out: Path) -> None:
+        from lgi.solve.jaw import JawRig
+
+        ds = ShapeDataset.load(dataset_dir, mmap=True)
+        rig = JawRig.load(jaw_rig, ds.n_vertices) if jaw_rig else None
+        index = assemble_index(ds, read_layout(markers, ds.triangles), opts, _load_npz(natural_dir / "natural.npz"),
+                               _load_npz(clouds_dir / "clouds.npz"), rig)
+        reports = {name: pd.read_csv(clouds_dir / name) for name in ("pruning.csv", "bundles.csv")}
+        index.save(out / "index", reports)
+
+    return cache.run("index", inputs, make)
+
+
+def verify_stage(cache: StageCache, index_dir: Path, options: VerifyOptions) -> tuple[Path, bool]:
+    """The paper's verification (:func:`lgi.jobs.index.verify`); result: ``verification.csv`` and
+    ``summary.json``."""
+    inputs = {"index": index_dir.name, "options": options.to_json()}
+
+    def make(out: Path) -> None:
+        table, summary = verify(index_dir / "index", options)
+        table.to_csv(out / "verification.csv", index=False, float_format="%.6g")
+        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+
+    return cache.run("verify", inputs, make)
+
+
+def options_from(params: dict[str, Any] | None) -> IndexOptions:
+    """IndexOptions from a flat dict (cloud options and index options mixed, unknown keys refused)."""
+    from lgi.errors import InputError
+    from lgi.index.cloud import CloudOptions
+
+    params = dict(params or {})
+    cloud_keys = set(asdict(CloudOptions()))
+    index_keys = set(IndexOptions.__dataclass_fields__) - {"cloud"}
+    unknown = sorted(set(params) - cloud_keys - index_keys)
+    if unknown:
+        raise InputError(f"unknown index options {unknown}; known: {sorted(cloud_keys | index_keys)}")
+    cloud = CloudOptions(**{k: params.pop(k) for k in list(params) if k in cloud_keys})
+    return IndexOptions(cloud=cloud, **params)
+
+
+def publish(src: Path, dest: str | os.PathLike[str]) -> Path:
+    """Copy a cached result directory to its user-facing place, atomically."""
+    import shutil
+
+    from lgi.io.atomic import atomic_dir
+
+    dest = Path(dest)
+    with atomic_dir(dest) as tmp:
+        shutil.copytree(src, tmp, dirs_exist_ok=True)
+    return dest
+
+
+def rebuild_report(s: dict[str, Any]) -> list[str]:
+    """The rebuild-dataset flow's summary as the lines ``lgi import --flow`` prints."""
+    lines = [f"rebuild-dataset flow: {s['n_shapes']} shapes -> {s['path']}"]
+    if "augmented" in s:
+        lines.append(f"augmented: {s['augmented']['n_shapes']} shapes -> {s['augmented']['path']}")
+    if "verification" in s:
+        v = s["verification"]
+        lines.append(f"index: {s['index']}; verification of {v['shapes']} shapes: worst RMS {v['worst_rms_mm']:.5f} mm "
+                     f"({v['worst_shape']}), tolerance {v['tolerance_mm']} mm: {'passed' if v['passed'] else 'FAILED'}")
+    lines.append(f"stages computed: {[k for k, hit in s['stages'].items() if not hit] or 'none (all cached)'}")
+    return lines
+
+
+def rebuild_markdown(summary: dict[str, Any], out_dir: Path) -> tuple[str, Path | None]:
+    """The rebuild's markdown report (relative links; also written to ``OUT/report.md``) and, with an index, the
+    heat map of the worst verification error (``OUT/verification/worst.png``)."""
+    lines = ["# Dataset rebuild\n", f"`dataset/`: {summary['n_shapes']} shapes, {summary['n_vertices']} "
+             f"vertices, content hash `{summary['content_hash'][:16]}`, stabilisation: {summary['stabilisation']}.\n",
+             "| stage | " + " | ".join(summary["stages"]) + " |", "|---|" + "---|" * len(summary["stages"]),
+             "| cached | " + " | ".join("yes" if v else "computed" for v in summary["stages"].values()) + " |\n"]
+    png = None
+    if "verification" in summary:
+        v = summary["verification"]
+        bundles = pd.read_csv(out_dir / "index" / "bundles.csv")
+        png = verification_heatmap(out_dir, v["worst_shape"])
+        lines += [f"Verification of {v['shapes']} shapes: worst RMS {v['worst_rms_mm']:.5f} mm ({v['worst_shape']}), "
+                  f"worst max {v['worst_max_mm']:.4f} mm; tolerance {v['tolerance_mm']} mm: "
+                  f"{'passed' if v['passed'] else 'FAILED'}.\n",
+                  f"Points per bundle after pruning: median {bundles.points_after.median():.0f} of "
+                  f"{bundles.points_before.iloc[0]}; simplices: {bundles.simplices.sum()}.\n",
+                  "![worst verification error](verification/worst.png)\n"]
+    md = "\n".join(lines)
+    (out_dir / "report.md").write_text(md)
+    return md, png
+
+
+def verification_heatmap(out_dir: Path, shape: str) -> Path:
+    """PNG of the vertex error of ``shape`` reconstructed from its own bundles with ``OUT/index``."""
+    from lgi.dataset.mesh import triangulate
+    from lgi.evaluation.render import heatmap_row
+    from lgi.solve.solver import LGISolver
+    from lgi.units import MM_PER_CM
+
+    index = LGIIndex.load(out_dir / "index")
+    k = index.manifest["shapes"].index(shape)
+    truth = np.asarray(index.arrays["neutral"], np.float64) + np.asarray(index.deltas[k + 1], np.float64)
+    jaw = None
+    if index.jaw_rig() is not None:
+        jaw = index.arrays["jaw_shape_params"][k]
+        truth = index.jaw_rig().skin(truth, jaw)
+    solver = LGISolver(index)
+    r = solver.solve_frame(solver.layout.evaluate(truth), jaw=jaw)
+    err = np.linalg.norm(r.vertices - truth, axis=1) * MM_PER_CM
+    tris, _ = triangulate(index.arrays["face_vertices"], index.arrays["face_offsets"])
+    return heatmap_row(out_dir / "verification" / "worst.png", index.arrays["neutral"], tris,
+                       {f"{shape} (worst)": err}, mask=index.arrays["nn_region"],
+                       title="verification: vertex error of the worst shape", label="error (mm)").resolve()
