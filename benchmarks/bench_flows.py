@@ -26,7 +26,7 @@ def main() -> None:
     args = ap.parse_args()
     from prefect_dask import DaskTaskRunner
 
-    from flows.reconstruct_shot import reconstruct_shot
+    from lgi.orchestration.reconstruct import reconstruct_shot
     from lgi.cli import main as lgi
 
     with tempfile.TemporaryDirectory() as t:
