@@ -182,6 +182,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="lgi", description="Facial performance capture by Local Geometric Indexing.")
     p.add_argument("--version", action="version", version=f"lgi {__version__}")
+    p.add_argument("--debug", action="store_true",
+                   help="on an error, also print the traceback (anywhere on the command line)")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("import", help="import a folder of OBJ shapes into a shape dataset",
@@ -446,7 +448,48 @@ class _WarningHandler(logging.Handler):
         print(f"lgi {self.command}: warning: {record.getMessage()}", file=sys.stderr)
 
 
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is, or was caused by, a Ctrl-C (numba's dispatcher wraps an interrupt that lands inside a
+    compiled kernel in a SystemError)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _input_error_of(exc: BaseException) -> LgiError | None:
+    """The project's input error inside ``exc``: itself, or one a flow or task runner wrapped."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, LgiError):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null: a reader that went away (``lgi ... | head``) must not turn the flush at exit
+    into an error."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one ``lgi`` command; returns the exit status (README: 0 success, 1 a check failed, 2 bad input, 3 an
+    internal error, 130 interrupted). No traceback reaches the user unless ``--debug`` is given."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    if debug:
+        argv.remove("--debug")
     parser = build_parser()
     args = parser.parse_args(argv)
     lgi_log = logging.getLogger("lgi")
@@ -461,16 +504,36 @@ def main(argv: list[str] | None = None) -> int:
 
         # A first run creates the local Prefect database, which takes longer than Prefect's default wait.
         os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
+    name = f"lgi {args.command}"
     try:
         return int(args.func(args) or 0)
-    except LgiError as exc:
-        print(f"lgi {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except ValueError as exc:
-        print(f"lgi {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+    except BrokenPipeError:
+        _quiet_stdout()
+        return 0 if not debug else 1
+    except BaseException as exc:  # noqa: BLE001 - the one place that turns every failure into an exit status
+        if isinstance(exc, SystemExit):
+            raise
+        if debug:
+            import traceback
+
+            traceback.print_exc()
+        if _interrupted(exc):
+            print(f"{name}: interrupted; the outputs of this run were not written", file=sys.stderr)
+            return 130
+        err = _input_error_of(exc)
+        if err is not None:
+            print(f"{name}: error: {err}", file=sys.stderr)
+            return 2
+        if isinstance(exc, OSError):
+            where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+            print(f"{name}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+            return 2
+        if isinstance(exc, ValueError):
+            print(f"{name}: error: {exc}", file=sys.stderr)
+            return 2
+        print(f"{name}: internal error: {type(exc).__name__}: {exc} (a bug in lgi; run with --debug for the "
+              "traceback and report it)", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":

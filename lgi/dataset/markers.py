@@ -141,7 +141,17 @@ def read_layout(path: str | os.PathLike[str], triangles: np.ndarray | None = Non
             r = int(np.flatnonzero(bad.to_numpy())[0])
             raise InputError(f"column {col!r} has a non-numeric or missing value {df[col].iloc[r]!r}",
                              path=path, line=r + 2, marker=str(df["name"].iloc[r]))
+        if col in ("triangle", "v0", "v1", "v2"):
+            frac = (num != np.round(num)) | (num < 0)
+            if frac.any():
+                r = int(np.flatnonzero(frac.to_numpy())[0])
+                raise InputError(f"column {col!r} must hold a non-negative whole number, not {df[col].iloc[r]!r}",
+                                 path=path, line=r + 2, marker=str(df["name"].iloc[r]))
         df[col] = num
+    names = df["name"]
+    if names.isna().any() or (names.astype(str).str.strip() == "").any():
+        r = int(np.flatnonzero((names.isna() | (names.astype(str).str.strip() == "")).to_numpy())[0])
+        raise InputError("marker without a name", path=path, line=r + 2)
     dup = df["name"][df["name"].duplicated()]
     if len(dup):
         r = int(dup.index[0])

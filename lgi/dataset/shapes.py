@@ -259,9 +259,19 @@ class ShapeDataset:
         if manifest.get("units", "cm") != "cm":
             raise InputError(f"dataset in {manifest['units']!r}: datasets are stored in cm (lgi import converts); "
                              f"re-import it with lgi import --units {manifest['units']}", path=mpath)
-        with np.load(directory / "mesh.npz") as z:
-            arrays = {k: z[k] for k in z.files}
-        deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None)
+        from lgi.io.npz import load_npz
+
+        missing = [k for k in ("shapes", "n_vertices") if k not in manifest]
+        if missing:
+            raise InputError(f"manifest lacks {missing} (a damaged dataset: re-import it)", path=mpath)
+        arrays = load_npz(directory / "mesh.npz", required=("neutral", "face_vertices", "face_offsets"))
+        try:
+            deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise InputError(f"not a readable array ({exc})", path=directory / "deltas.npy") from None
+        if not np.all(np.isfinite(arrays["neutral"])) or not np.all(np.isfinite(deltas)):
+            raise InputError("non-finite positions or displacements (a damaged dataset: re-import it)",
+                             path=directory)
         shapes = manifest["shapes"]
         if deltas.shape != (len(shapes), manifest["n_vertices"], 3):
             raise InputError(f"deltas.npy has shape {deltas.shape}, manifest says "

@@ -153,17 +153,42 @@ class LGIIndex:
         mpath = directory / "manifest.json"
         if not mpath.is_file():
             raise InputError("not an LGI index (no manifest.json)", path=directory)
-        manifest = json.loads(mpath.read_text())
-        if manifest.get("format") != FORMAT:
-            raise InputError(f"manifest format is {manifest.get('format')!r}, expected {FORMAT!r}", path=mpath)
+        try:
+            manifest = json.loads(mpath.read_text())
+        except json.JSONDecodeError as exc:
+            raise InputError(f"manifest is not valid JSON: {exc.msg}", path=mpath, line=exc.lineno) from None
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+            got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
+            raise InputError(f"manifest format is {got!r}, expected {FORMAT!r}", path=mpath)
         if manifest.get("format_version", 0) > FORMAT_VERSION:
             raise InputError(f"index format version {manifest['format_version']} is newer than this lgi reads",
                              path=mpath)
-        with np.load(directory / "index.npz") as z:
-            arrays = {k: z[k] for k in z.files}
-        deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None)
+        missing = [k for k in ("markers", "shapes", "counts", "options") if k not in manifest]
+        if missing:
+            raise InputError(f"manifest lacks {missing} (a damaged index: rebuild it)", path=mpath)
+        from lgi.io.npz import load_npz
+
+        arrays = load_npz(directory / "index.npz", required=("neutral", "ptab", "marker_triangle", "w_indptr"))
+        try:
+            deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise InputError(f"not a readable array ({exc})", path=directory / "deltas.npy") from None
+        n_v = arrays["neutral"].shape[0]
+        if deltas.ndim != 3 or deltas.shape[1:] != (n_v, 3) or len(deltas) != len(manifest["shapes"]) + 1:
+            raise InputError(f"deltas.npy has shape {deltas.shape}; the index has {len(manifest['shapes'])} shapes "
+                             f"and {n_v} vertices (a damaged index: rebuild it)", path=directory / "deltas.npy")
+        if len(manifest["markers"]) != len(arrays["marker_triangle"]):
+            raise InputError("manifest and index.npz disagree on the markers (a damaged index: rebuild it)",
+                             path=directory)
+        for name in ("neutral", "ptab"):
+            if not np.all(np.isfinite(arrays[name])):
+                raise InputError(f"{name} holds non-finite values (built from a bad dataset?)",
+                                 path=directory / "index.npz")
         build = directory / "build.json"
-        timings = json.loads(build.read_text()).get("timings_s", {}) if build.is_file() else {}
+        try:
+            timings = json.loads(build.read_text()).get("timings_s", {}) if build.is_file() else {}
+        except (json.JSONDecodeError, AttributeError):
+            timings = {}
         return cls(manifest, arrays, deltas, timings)
 
 

@@ -1,6 +1,8 @@
 """Atomic output: write to a temporary sibling, then rename into place.
 
-A crash, a kill or an exception midway leaves no partial file or directory under the final name.
+A crash, a kill or an exception midway leaves no partial file or directory under the final name. Every
+temporary carries the writing process's id (``.NAME.tmp-<pid>-<random>``); a later run removes the
+temporaries of processes that no longer exist (a killed run's leftovers), never those of a live one.
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from lgi.errors import InputError
+
 
 def _umask() -> int:
     mask = os.umask(0)
@@ -19,12 +23,73 @@ def _umask() -> int:
     return mask
 
 
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def sweep(parent: Path, prefix: str) -> int:
+    """Remove the entries of ``parent`` named ``<prefix><pid>-...`` whose process is gone; returns how many."""
+    removed = 0
+    if not parent.is_dir():
+        return 0
+    for entry in parent.iterdir():
+        name = entry.name
+        if not name.startswith(prefix):
+            continue
+        pid = name[len(prefix):].split("-", 1)[0]
+        if not pid.isdigit() or _alive(int(pid)):
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+        removed += 1
+    return removed
+
+
 def make_temp_dir(parent: Path, prefix: str) -> Path:
-    """A new directory in ``parent`` with the permissions a plain ``mkdir`` would give."""
-    tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    """A new directory ``<prefix><pid>-<random>`` in ``parent`` with the permissions a plain ``mkdir`` gives."""
+    tmp = Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-", dir=parent))
     # mkdtemp makes 0700 directories; outputs should follow the user's umask like any other file.
     tmp.chmod(0o777 & ~_umask())
     return tmp
+
+
+def _fsync_tree(path: Path) -> None:
+    """Flush a file, or every file of a directory, to disk (a rename must not publish data still in cache)."""
+    files = [path] if path.is_file() else [p for p in path.rglob("*") if p.is_file()]
+    for f in files:
+        fd = os.open(f, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def check_output(path: str | os.PathLike[str], kind: str = "dir") -> None:
+    """Refuse, before any work, an output path that cannot become a ``kind`` ("dir" or "file") output: the other
+    kind is there, or the nearest existing folder is not writable."""
+    p = Path(path)
+    if p.exists() or p.is_symlink():
+        if kind == "dir" and not p.is_dir():
+            raise InputError("the output must be a directory; a file of that name exists", path=p)
+        if kind == "file" and p.is_dir():
+            raise InputError("the output must be a file; a directory of that name exists", path=p)
+    parent = p if (kind == "dir" and p.is_dir()) else p.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError("cannot create the output: a file is in its path", path=parent)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError("the output cannot be written here (permission denied)", path=parent)
 
 
 @contextlib.contextmanager
@@ -35,17 +100,21 @@ def atomic_dir(final: str | os.PathLike[str]) -> Iterator[Path]:
     mix of old and new files. On error the temporary directory is removed and ``final`` is untouched.
     """
     final = Path(final)
+    check_output(final, "dir")
     final.parent.mkdir(parents=True, exist_ok=True)
+    for prefix in (f".{final.name}.tmp-", f".{final.name}.old-"):
+        sweep(final.parent, prefix)
     tmp = make_temp_dir(final.parent, f".{final.name}.tmp-")
     try:
         yield tmp
+        _fsync_tree(tmp)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     old = None
     if final.exists():
-        old = final.parent / f".{final.name}.old-{os.getpid()}-{tmp.name[-8:]}"
-        os.replace(final, old)
+        old = make_temp_dir(final.parent, f".{final.name}.old-")
+        os.replace(final, old / final.name)
     os.replace(tmp, final)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
@@ -59,13 +128,17 @@ def atomic_file(final: str | os.PathLike[str], suffix: str = "") -> Iterator[Pat
     extension (pandas, numpy) still see it.
     """
     final = Path(final)
+    check_output(final, "file")
     final.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{final.name}.tmp-", suffix=suffix or final.suffix, dir=final.parent)
+    sweep(final.parent, f".{final.name}.tmp-")
+    fd, name = tempfile.mkstemp(prefix=f".{final.name}.tmp-{os.getpid()}-", suffix=suffix or final.suffix,
+                                dir=final.parent)
     os.close(fd)
     tmp = Path(name)
     tmp.chmod(0o666 & ~_umask())
     try:
         yield tmp
+        _fsync_tree(tmp)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -79,14 +152,14 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...]) -> Iterator
     The one output-directory policy of every job that writes a directory of outputs: on success each staged
     entry replaces the one of the same name, and the job's entries this run did not write (an earlier run's
     ``obj/`` when ``--obj`` is not given now) are removed, so ``out`` never mixes two runs; entries that are
-    not the job's are left alone. On error nothing in ``out`` changes and the staging directory is removed.
+    not the job's are left alone. On error nothing in ``out`` changes and the staging directory is removed;
+    a killed run's staging directory is removed by the next run.
     """
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        from lgi.errors import InputError
-
-        raise InputError("the output must be a directory; a file of that name exists", path=out)
+    check_output(out, "dir")
     out.mkdir(parents=True, exist_ok=True)
+    for prefix in (".lgi-staging-", *(f".{name}.old-" for name in owned)):
+        sweep(out, prefix)
     stage = make_temp_dir(out, ".lgi-staging-")
     try:
         yield stage
@@ -94,6 +167,7 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...]) -> Iterator
         unknown = written - set(owned)
         if unknown:
             raise RuntimeError(f"job wrote outputs it does not declare: {sorted(unknown)}")
+        _fsync_tree(stage)
         for name in owned:
             entry, target = stage / name, out / name
             if name in written:

@@ -81,7 +81,7 @@ def _parse_floats(path: Path, lines: list[bytes], numbers: list[int], key: bytes
     try:
         flat = np.array(b" ".join(rows).split(), dtype=np.float64)
         if flat.size == width * len(rows):
-            return flat.reshape(-1, width)
+            return _checked(path, numbers, flat.reshape(-1, width))
     except ValueError:
         pass
     # Slow path: some line is malformed or carries extra values (vertex colours, w).
@@ -101,9 +101,21 @@ def _parse_floats(path: Path, lines: list[bytes], numbers: list[int], key: bytes
                 f"non-numeric value in {key.decode().strip()!r} line: {lines[i].decode(errors='replace')!r}",
                 path=path, line=i + 1,
             ) from None
-    if not np.all(np.isfinite(out)):
-        bad = int(np.nonzero(~np.all(np.isfinite(out), axis=1))[0][0])
-        raise InputError("non-finite coordinate", path=path, line=numbers[bad] + 1)
+    return _checked(path, numbers, out)
+
+
+#: Coordinates beyond this are no face in any unit (and near float32's limit once scaled): refused.
+MAX_COORDINATE = 1e7
+
+
+def _checked(path: Path, numbers: list[int], out: np.ndarray) -> np.ndarray:
+    """``out`` if every value is finite and within :data:`MAX_COORDINATE`, else the first bad line."""
+    ok = np.all(np.isfinite(out) & (np.abs(out) <= MAX_COORDINATE), axis=1)
+    if not ok.all():
+        bad = int(np.flatnonzero(~ok)[0])
+        what = "non-finite coordinate" if not np.all(np.isfinite(out[bad])) else \
+            f"coordinate beyond {MAX_COORDINATE:g} (not a face in any unit)"
+        raise InputError(what, path=path, line=numbers[bad] + 1)
     return out
 
 

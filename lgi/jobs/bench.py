@@ -43,9 +43,10 @@ def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> di
     from lgi.paths import shared_data
 
     o = options or BenchOptions()
+    from lgi.io.atomic import check_output
+
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError("the output must be a directory; a file of that name exists", path=out)
+    check_output(out, "dir")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     names = ["synthetic"]

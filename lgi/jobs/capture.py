@@ -41,11 +41,12 @@ class CalibrateOptions:
 def calibrate(images_dir: str | Path, out: str | Path, options: CalibrateOptions) -> dict[str, Any]:
     """``lgi calibrate``: detect the board, calibrate both cameras and the pair; write the JSON (and YAML)."""
     from lgi.capture.calibration import Board, calibrate_stereo
+    from lgi.io.atomic import check_output
 
     o = options
     for path in (out, o.yaml):
-        if path and Path(path).is_dir():
-            raise InputError("the output is a directory; give a file name", path=path)
+        if path:
+            check_output(path, "file")
     calib = calibrate_stereo(images_dir, Board.parse(o.board), rational=o.rational, fisheye=o.fisheye)
     calib.save(out, o.yaml)
     return {"path": str(Path(out).resolve()), "yaml": str(Path(o.yaml).resolve()) if o.yaml else None,
@@ -101,8 +102,12 @@ def track(footage_dir: str | Path, calib: str | Path, markers: str | Path, out: 
     :func:`lgi.capture.footage.track_to_files`. A median reprojection error above :data:`MOVED_RIG_PX` is logged as a
     warning (the rig may have moved since its calibration) and flagged in the summary."""
     from lgi.capture.footage import track_to_files
+    from lgi.io.atomic import check_output
 
     o = options or TrackFootageOptions()
+    out = Path(out)
+    check_output(out, "file")
+    check_output(o.tracks or out.with_name(out.stem + ".tracks.parquet"), "file")
     _, r = track_to_files(footage_dir, calib, markers, out, o.tracks, o.dataset, o.units, o.labels,
                           o.reference_frame, o.helmet, o.gate, o.dot_size)
     r["rig_may_have_moved"] = bool(r["reprojection_median_px"] > MOVED_RIG_PX)

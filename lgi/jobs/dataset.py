@@ -97,7 +97,10 @@ def stabilise_shapes(raw, options: ImportOptions):
 def import_dataset(shapes_dir: str | Path, out: str | Path, options: ImportOptions | None = None,
                    show_progress: bool = False) -> dict[str, Any]:
     """``lgi import``: read, stabilise and save a dataset directory; returns a summary (:func:`import_report`)."""
+    from lgi.io.atomic import check_output
+
     options = options or ImportOptions()
+    check_output(out, "dir")
     t0 = time.perf_counter()
     ds = stabilise_shapes(read_shapes(shapes_dir, options, show_progress), options)
     ds.save(out)
@@ -250,7 +253,9 @@ def augment_dataset(dataset_dir: str | Path, out: str | Path, options: AugmentOp
     """``lgi augment``: the augmented dataset saved to ``out`` (with ``markers``, also the per-bundle
     report ``augmentation.csv`` in it); returns a summary (:func:`augment_report`)."""
     from lgi.dataset.shapes import ShapeDataset
+    from lgi.io.atomic import check_output
 
+    check_output(out, "dir")
     ds = ShapeDataset.load(dataset_dir)
     rig = None
     if jaw_rig:
@@ -316,8 +321,11 @@ def dataset_bundles(dataset_dir: str | Path, markers: str | Path, out: str | Pat
     from lgi.capture.bundles import Bundles, write_bundles
     from lgi.dataset.markers import read_layout
     from lgi.dataset.shapes import ShapeDataset
-    from lgi.io.atomic import atomic_file
+    from lgi.io.atomic import atomic_file, check_output
 
+    out = Path(out)
+    check_output(out, "file")
+    check_output(out.with_name(out.stem + ".shapes.csv"), "file")
     ds = ShapeDataset.load(dataset_dir)
     if shapes:
         ds = ds.select(include=shapes)

@@ -42,14 +42,15 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     written last, so none appears if the maps fail)."""
     from lgi.export.formats import displacement_map, write_exr, write_usd
     from lgi.index.build import LGIIndex
-    from lgi.io.atomic import atomic_dir
+    from lgi.io.atomic import atomic_dir, check_output
     from lgi.io.npz import load_npz
     from lgi.progress import progress
 
     o = options
-    for path in (o.usd, o.exr):
-        if path and Path(path).exists() and Path(path).is_dir() != (path == o.exr):
-            raise InputError("an output of the other kind (file or directory) exists there", path=path)
+    if o.usd:
+        check_output(o.usd, "file")
+    if o.exr:
+        check_output(o.exr, "dir")
     src = Path(recon_dir) / "meshes.npz"
     if not src.is_file():
         raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)

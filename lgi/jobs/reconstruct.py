@@ -474,15 +474,10 @@ def report_lines(s: dict[str, Any]) -> list[str]:
 
 
 def check_output(out: str | Path) -> None:
-    """Refuse an output path that cannot become the job's directory, before any work."""
-    p = Path(out)
-    if p.exists() and not p.is_dir():
-        raise InputError("the output must be a directory; a file of that name exists", path=p)
-    parent = p if p.exists() else next((q for q in p.parents if q.exists()), Path("."))
-    import os
+    """Refuse, before any work, an output path that cannot become the job's directory."""
+    from lgi.io.atomic import check_output as check
 
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError("the output directory cannot be written (permission denied)", path=parent)
+    check(out, "dir")
 
 
 def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,

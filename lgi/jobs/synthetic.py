@@ -76,11 +76,12 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
     """
     from lgi.capture.bundles import Bundles, write_bundles
     from lgi.dataset.markers import write_layout
-    from lgi.io.atomic import job_outputs
+    from lgi.io.atomic import check_output, job_outputs
     from lgi.io.npz import save_npz
     from lgi.synthetic import actor as synth
 
     o = options
+    check_output(out, "dir")
     hmc = o.footage()
     actor = synth.make_actor(o.vertices)
     ds = synth.make_dataset(actor)

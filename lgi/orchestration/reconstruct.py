@@ -10,7 +10,6 @@ task_runner=DaskTaskRunner(...))``) give the files ``lgi reconstruct`` writes, b
 from __future__ import annotations
 
 import shutil
-import uuid
 from dataclasses import fields
 from pathlib import Path
 
@@ -101,8 +100,14 @@ def reconstruct_shot(
                               key="shot-tracking", description="footage to bundles: tracking summary")
     n = job.preflight(index_dir, bundles, opts)
     bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
-    # One working folder per run: two runs into the same OUT never touch each other's chunk files.
-    work = Path(out).parent / f".{Path(out).name}.chunks-{uuid.uuid4().hex[:12]}"
+    # One working folder per run: two runs into the same OUT never touch each other's chunk files, and a killed
+    # run's folder (its process gone) is removed by the next.
+    from lgi.io.atomic import make_temp_dir, sweep
+
+    parent, prefix = Path(out).absolute().parent, f".{Path(out).name}.chunks-"
+    parent.mkdir(parents=True, exist_ok=True)
+    sweep(parent, prefix)
+    work = make_temp_dir(parent, prefix)
     o = opts.to_json()
     try:
         progress = create_progress_artifact(progress=0.0, description=f"frames chosen, in chunks of {chunk_size}")
