@@ -1,7 +1,5 @@
 """``python -m lgi``: the command line."""
 
-import sys
+from lgi._entry import run
 
-from lgi.cli import main
-
-sys.exit(main())
+run()

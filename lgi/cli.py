@@ -448,23 +448,12 @@ class _WarningHandler(logging.Handler):
         print(f"lgi {self.command}: warning: {record.getMessage()}", file=sys.stderr)
 
 
-def _interrupted(exc: BaseException) -> bool:
-    """Whether ``exc`` is, or was caused by, a Ctrl-C (numba's dispatcher wraps an interrupt that lands inside a
-    compiled kernel in a SystemError)."""
+def _in_chain(exc: BaseException | None, kind: type) -> BaseException | None:
+    """The first exception of ``kind`` in ``exc``'s cause chain: numba's dispatcher wraps a Ctrl-C that lands in
+    a compiled kernel in a SystemError, and flows and task runners wrap the errors of their tasks."""
     seen = set()
     while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
-
-
-def _input_error_of(exc: BaseException) -> LgiError | None:
-    """The project's input error inside ``exc``: itself, or one a flow or task runner wrapped."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, LgiError):
+        if isinstance(exc, kind):
             return exc
         seen.add(id(exc))
         exc = exc.__cause__ or exc.__context__
@@ -517,10 +506,10 @@ def main(argv: list[str] | None = None) -> int:
             import traceback
 
             traceback.print_exc()
-        if _interrupted(exc):
+        if _in_chain(exc, KeyboardInterrupt) is not None:
             print(f"{name}: interrupted; the outputs of this run were not written", file=sys.stderr)
             return 130
-        err = _input_error_of(exc)
+        err = _in_chain(exc, LgiError)
         if err is not None:
             print(f"{name}: error: {err}", file=sys.stderr)
             return 2

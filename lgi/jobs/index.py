@@ -94,7 +94,7 @@ def verify(index_dir: str | Path, options: VerifyOptions | None = None,
     # A non-finite error fails the check (NaN > tolerance is false, so compare the other way round).
     bad = ~(table.rms_mm <= o.tolerance)
     unseen = table[(table.rms_all_mm > o.tolerance) & ~bad]
-    k = int(table.rms_mm.argmax())
+    k = int(np.nan_to_num(table.rms_mm.to_numpy(float), nan=np.inf).argmax())  # a NaN is the worst
     summary = {"shapes": len(table), "worst_rms_mm": float(table.rms_mm.max()),
                "worst_shape": str(table["shape"].iloc[k]),
                "worst_max_mm": float(table.max_mm.max()), "worst_rms_all_mm": float(table.rms_all_mm.max()),

@@ -109,10 +109,15 @@ class JawRig:
         path = Path(path)
         if not path.is_file():
             raise InputError("jaw rig file not found", path=path)
-        with np.load(path) as z:
-            if "pivot" not in z or "weights" not in z:
-                raise InputError(f"jaw rig needs arrays 'pivot' and 'weights', has {list(z.keys())}", path=path)
-            rig = cls(np.asarray(z["pivot"], np.float64).reshape(3), np.asarray(z["weights"], np.float64))
+        from lgi.io.npz import load_npz
+
+        z = load_npz(path, required=("pivot", "weights"))
+        if z["pivot"].size != 3 or z["weights"].ndim != 1:
+            raise InputError(f"jaw rig arrays have shapes {z['pivot'].shape} (pivot, 3 expected) and "
+                             f"{z['weights'].shape} (weights, one per vertex)", path=path)
+        rig = cls(np.asarray(z["pivot"], np.float64).reshape(3), np.asarray(z["weights"], np.float64))
+        if not (np.all(np.isfinite(rig.pivot)) and np.all(np.isfinite(rig.weights))):
+            raise InputError("jaw rig holds non-finite values", path=path)
         if n_vertices is not None and rig.weights.shape != (n_vertices,):
             raise InputError(f"jaw rig has {rig.weights.shape[0]} weights, the mesh {n_vertices} vertices", path=path)
         return rig

@@ -1,0 +1,526 @@
+"""A corpus of bad input, bad options, bad output paths, corrupt stored files, re-runs and interrupts, through
+the command line: each case asserts the exit status, that no traceback reaches the user, that the message
+names the culprit, and what is left on disk."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lgi.cli import main
+from lgi.io.npz import save_npz
+from lgi.io.obj import write_obj
+
+
+def run(argv: list[str], capsys) -> tuple[int, str, str]:
+    capsys.readouterr()
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse's own usage errors
+        code = int(exc.code or 0)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> Path:
+    """A small synthetic actor, its OBJ folder, two indexes (with and without a jaw rig), a reconstruction."""
+    w = tmp_path_factory.mktemp("world")
+    assert main(["synth", "--out", str(w / "s"), "--vertices", "1500", "--frames", "12", "-q"]) == 0
+    for name, extra in (("idx", []), ("idxr", ["--jaw-rig", str(w / "s" / "jaw_rig.npz")])):
+        assert main(["build", str(w / "s" / "dataset"), "--markers", str(w / "s" / "markers.csv"), "--out",
+                     str(w / name), "-q", *extra]) == 0
+    assert main(["reconstruct", str(w / "idx"), "--bundles", str(w / "s" / "bundles.csv"), "--out",
+                 str(w / "rec"), "-q"]) == 0
+    from lgi.synthetic import actor as synth
+
+    a = synth.make_actor(1500)
+    objs = w / "objs"
+    write_obj(objs / "neutral.obj", a.neutral, a.face_vertices, a.face_offsets, a.uvs, a.face_uvs)
+    eye = np.eye(len(synth.CONTROLS))
+    for name in ("jaw_open", "smile_L"):
+        write_obj(objs / f"{name}.obj", a.evaluate(eye[synth.C[name]]), a.face_vertices, a.face_offsets, a.uvs,
+                  a.face_uvs)
+    (w / "jaw.csv").write_text("frame,open_deg,yaw_deg,roll_deg,forward_cm\n" +
+                               "".join(f"{f},5,0,0,0\n" for f in range(12)))
+    return w
+
+
+# ------------------------------------------------------------------------------------------- mutations
+def text_edit(rel: str, old: str, new: str, count: int = 1):
+    def f(w: Path, c: Path) -> None:
+        p = c / rel
+        s = p.read_text()
+        assert old in s, (rel, old)
+        p.write_text(s.replace(old, new, count))
+    return f
+
+
+def write(rel: str, text: str | bytes):
+    def f(w: Path, c: Path) -> None:
+        p = c / rel
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_bytes(text if isinstance(text, bytes) else text.encode())
+    return f
+
+
+def copy(src: str, dst: str | None = None):
+    def f(w: Path, c: Path) -> None:
+        s, d = w / src, c / (dst or src)
+        d.parent.mkdir(parents=True, exist_ok=True)
+        (shutil.copytree if s.is_dir() else shutil.copy)(s, d)
+    return f
+
+
+def truncate(rel: str, keep: int):
+    def f(w: Path, c: Path) -> None:
+        p = c / rel
+        p.write_bytes(p.read_bytes()[:keep])
+    return f
+
+
+def chain(*fs):
+    def f(w: Path, c: Path) -> None:
+        for g in fs:
+            g(w, c)
+    return f
+
+
+def obj_vertex(rel: str, k: int, line: str):
+    """Replace the k-th ``v`` line of an OBJ in the case's copy of the OBJ folder."""
+    def f(w: Path, c: Path) -> None:
+        p = c / rel
+        lines = p.read_text().splitlines()
+        vs = [i for i, ln in enumerate(lines) if ln.startswith("v ")]
+        lines[vs[k]] = line
+        p.write_text("\n".join(lines) + "\n")
+    return f
+
+
+def bundles_csv(edit: Callable[[pd.DataFrame], pd.DataFrame]):
+    def f(w: Path, c: Path) -> None:
+        d = pd.read_csv(w / "s" / "bundles.csv", dtype=str)
+        edit(d).to_csv(c / "b.csv", index=False)
+    return f
+
+
+def set_cell(row: int, col: str, value: str):
+    def e(d: pd.DataFrame) -> pd.DataFrame:
+        d.loc[row, col] = value
+        return d
+    return e
+
+
+def npz_edit(rel: str, edit: Callable[[dict], dict]):
+    def f(w: Path, c: Path) -> None:
+        p = c / rel
+        with np.load(p) as z:
+            a = {k: z[k] for k in z.files}
+        save_npz(p, **edit(a))
+    return f
+
+
+def manifest_edit(rel: str, edit: Callable[[dict], dict | list]):
+    def f(w: Path, c: Path) -> None:
+        p = c / rel
+        p.write_text(json.dumps(edit(json.loads(p.read_text()))))
+    return f
+
+
+def pickled_npz(rel: str):
+    def f(w: Path, c: Path) -> None:
+        p = c / rel
+        with np.load(p) as z:
+            a = {k: z[k] for k in z.files}
+        a["evil"] = np.array([{"x": 1}], dtype=object)
+        np.savez(p.with_suffix(""), **a)  # numpy's writer pickles object arrays
+    return f
+
+
+def drop_key(key: str):
+    def e(d: dict) -> dict:
+        d.pop(key)
+        return d
+    return e
+
+
+# ------------------------------------------------------------------------------------------------ cases
+@dataclass
+class Case:
+    id: str
+    argv: list[str]
+    code: int
+    says: str
+    setup: Callable[[Path, Path], None] | None = None
+    absent: tuple[str, ...] = ("out",)  # case-dir entries that must not exist afterwards
+
+
+W, C = "{w}", "{c}"
+S = f"{W}/s"
+REC = ["reconstruct", f"{W}/idx", "--bundles", f"{S}/bundles.csv", "--out", f"{C}/out", "-q"]
+RECB = ["reconstruct", f"{W}/idx", "--bundles", f"{C}/b.csv", "--out", f"{C}/out", "-q"]
+RECI = ["reconstruct", f"{C}/idx", "--bundles", f"{S}/bundles.csv", "--out", f"{C}/out", "-q"]
+IMP = ["import", f"{C}/objs", "--out", f"{C}/out", "-q", "--rigid-vertices", "none"]
+BUILD = ["build", f"{S}/dataset", "--markers", f"{S}/markers.csv", "--out", f"{C}/out", "-q"]
+BUILDM = ["build", f"{S}/dataset", "--markers", f"{C}/m.csv", "--out", f"{C}/out", "-q"]
+BUILDD = ["build", f"{C}/ds", "--markers", f"{S}/markers.csv", "--out", f"{C}/out", "-q"]
+AUG = ["augment", f"{S}/dataset", "--out", f"{C}/out", "-q"]
+RIG = ["rig", f"{S}/dataset", "--shapes", "jaw_*", "--out", f"{C}/out"]
+EXP = ["export", f"{C}/rec", "--index", f"{W}/idx", "-q"]
+CAL = ["calibrate", f"{C}/imgs", "--out", f"{C}/out"]
+TRK = ["track", f"{C}/foot", "--calib", f"{C}/calib.json", "--markers", f"{S}/markers.csv", "--out", f"{C}/out"]
+OBJS = copy("objs")
+REC_COPY = copy("rec")
+IDX = copy("idx")
+
+
+def markers_cell(row: int, col: str, value: str):
+    def f(w: Path, c: Path) -> None:
+        d = pd.read_csv(w / "s" / "markers.csv", dtype=str, keep_default_na=False)
+        d.loc[row, col] = value(d) if callable(value) else value
+        d.to_csv(c / "m.csv", index=False)
+    return f
+
+CASES = [
+    # --- import: malformed OBJ files ------------------------------------------------------------------
+    Case("obj-nan-in-shape", IMP, 2, "non-finite coordinate",
+         chain(OBJS, obj_vertex("objs/smile_L.obj", 3, "v nan nan nan"))),
+    Case("obj-inf-in-neutral", IMP, 2, "neutral.obj", chain(OBJS, obj_vertex("objs/neutral.obj", 0, "v inf 0.5 0.5"))),
+    Case("obj-1e39", IMP, 2, "beyond", chain(OBJS, obj_vertex("objs/jaw_open.obj", 5, "v 1e39 0 0"))),
+    Case("obj-non-numeric", IMP, 2, "non-numeric", chain(OBJS, obj_vertex("objs/smile_L.obj", 2, "v 1 two 3"))),
+    Case("obj-two-values", IMP, 2, "expected 3", chain(OBJS, obj_vertex("objs/smile_L.obj", 2, "v 1 2"))),
+    Case("obj-vertex-missing", IMP, 2, "vertex count", chain(OBJS, obj_vertex("objs/smile_L.obj", 2, "# gone"))),
+    Case("obj-face-out-of-range", IMP, 2, "out of range",
+         chain(OBJS, text_edit("objs/neutral.obj", "\nf ", "\nf 99999 ", 1))),
+    Case("obj-face-zero", IMP, 2, "index 0", chain(OBJS, text_edit("objs/neutral.obj", "\nf ", "\nf 0 ", 1))),
+    Case("obj-face-differs", IMP, 2, "face", chain(OBJS, text_edit("objs/smile_L.obj", "\nf ", "\nf 1 2 3\n#", 1))),
+    Case("obj-binary-garbage", IMP, 2, "smile_L.obj", chain(OBJS, write("objs/smile_L.obj", b"\x00\xff\x13garbage\n"))),
+    Case("obj-uv-nan", IMP, 2, "non-finite", chain(OBJS, text_edit("objs/neutral.obj", "\nvt ", "\nvt nan 0\n#", 1))),
+    Case("import-empty-folder", IMP, 2, "no OBJ files", write("objs/readme.txt", "nothing")),
+    Case("import-missing-folder", IMP, 2, "not found", None),
+    Case("import-neutral-unknown", [*IMP, "--neutral", "nobody"], 2, "nobody", OBJS),
+    Case("import-include-nothing", [*IMP, "--include", "zzz*"], 2, "no shapes selected", OBJS),
+    Case("import-units-unknown", [*IMP, "--units", "furlong"], 2, "furlong", OBJS),
+    Case("import-rigid-file-missing", ["import", f"{C}/objs", "--out", f"{C}/out", "-q", "--rigid-vertices",
+                                       f"{C}/nope.json"], 2, "nope.json", OBJS),
+    Case("import-rigid-out-of-range", ["import", f"{C}/objs", "--out", f"{C}/out", "-q", "--rigid-vertices",
+                                       f"{C}/r.json"], 2, "r.json", chain(OBJS, write("r.json", "[1, 2, 999999]"))),
+    Case("import-rigid-not-json", ["import", f"{C}/objs", "--out", f"{C}/out", "-q", "--rigid-vertices",
+                                   f"{C}/r.json"], 2, "r.json", chain(OBJS, write("r.json", "[1, 2,"))),
+    Case("import-identity-bad-weight", [*IMP, "--identity", "identity_a=heavy"], 2, "--identity", OBJS),
+    Case("import-identity-unknown", [*IMP, "--identity", "identity_a=1"], 2, "identity_a", OBJS),
+    Case("import-identity-inf", [*IMP, "--identity", "identity_a=inf"], 2, "finite", OBJS),
+    Case("import-out-is-file", IMP, 2, "a file of that name exists", chain(OBJS, write("out", "precious")), ()),
+    Case("import-out-under-file", ["import", f"{C}/objs", "--out", f"{C}/f/sub", "-q"], 2, "a file is in its path",
+         chain(OBJS, write("f", "x")), ("f/sub",)),
+    Case("import-markers-without-flow", [*IMP, "--markers", f"{S}/markers.csv"], 2, "--flow", OBJS),
+    # --- reconstruct: bundles files -------------------------------------------------------------------
+    Case("bundles-missing", RECB, 2, "b.csv", None),
+    Case("bundles-empty-file", RECB, 2, "b.csv", write("b.csv", "")),
+    Case("bundles-header-only", RECB, 2, "no rows", write("b.csv", "frame,marker,x,y,z\n")),
+    Case("bundles-missing-column", RECB, 2, "missing columns", write("b.csv", "frame,marker,x,y\n0,a,1,2\n")),
+    Case("bundles-non-numeric-x", RECB, 2, "non-numeric x", bundles_csv(set_cell(5, "x", "abc"))),
+    Case("bundles-fractional-frame", RECB, 2, "not an integer", bundles_csv(set_cell(7, "frame", "1.5"))),
+    Case("bundles-frame-1e20", RECB, 2, "outside", bundles_csv(set_cell(7, "frame", "1e20"))),
+    Case("bundles-coordinate-1e30", RECB, 2, "beyond", bundles_csv(set_cell(9, "y", "1e30"))),
+    Case("bundles-inf", RECB, 2, "non-finite", bundles_csv(set_cell(9, "z", "inf"))),
+    Case("bundles-partial-coordinates", RECB, 2, "some coordinates missing", bundles_csv(set_cell(3, "y", ""))),
+    Case("bundles-unknown-marker", RECB, 2, "unknown marker", bundles_csv(set_cell(4, "marker", "nose_ring"))),
+    Case("bundles-duplicate-row", RECB, 2, "b.csv",
+         bundles_csv(lambda d: pd.concat([d, d.iloc[[10]]], ignore_index=True))),
+    Case("bundles-frame-all-missing", RECB, 2, "frame 3",
+         bundles_csv(lambda d: d.assign(**{c: d[c].where(d.frame != "3", "") for c in "xyz"}))),
+    Case("bundles-binary-garbage", RECB, 2, "b.csv", write("b.csv", b"\x89PNG\r\n\x1a\n\x00\x00garbage")),
+    Case("bundles-parquet-garbage", ["reconstruct", f"{W}/idx", "--bundles", f"{C}/b.parquet", "--out",
+                                     f"{C}/out", "-q"], 2, "b.parquet", write("b.parquet", b"not parquet")),
+    Case("bundles-parquet-columns", ["reconstruct", f"{W}/idx", "--bundles", f"{C}/b.parquet", "--out",
+                                     f"{C}/out", "-q"], 2, "missing columns",
+         lambda w, c: pd.DataFrame({"frame": [0], "x": [1.0]}).to_parquet(c / "b.parquet")),
+    Case("bundles-marker-empty", RECB, 2, "b.csv", bundles_csv(set_cell(4, "marker", ""))),
+    # --- reconstruct: options ------------------------------------------------------------------------
+    *[Case(f"reconstruct-{flag.strip('-')}-{val}", [*REC, flag, val], 2, flag) for flag, val in (
+        ("--smooth", "0"), ("--smooth", "-3"), ("--jaw-smooth", "0"), ("--chunk-size", "0"), ("--max-gap", "-1"),
+        ("--temporal-weight", "nan"), ("--temporal-weight", "-1"), ("--spatial-weight", "inf"), ("--noise", "-1"),
+        ("--noise", "abc"), ("--noise", "nan"), ("--fps", "0"), ("--fps", "-5"), ("--bilateral", "1"),
+        ("--bilateral", "1:0"), ("--bilateral", "a:b"), ("--bilateral", "1:2:3:4"))],
+    Case("reconstruct-method-unknown", [*REC, "--method", "magic"], 2, "magic"),
+    Case("reconstruct-smooth-not-a-number", [*REC, "--smooth", "three"], 2, "--smooth"),
+    Case("reconstruct-jaw-none-rigged", ["reconstruct", f"{W}/idxr", "--bundles", f"{S}/bundles.csv", "--out",
+                                         f"{C}/out", "-q", "--jaw", "none"], 2, "jaw rig"),
+    Case("reconstruct-jaw-file-no-rig", [*REC, "--jaw", f"{W}/jaw.csv"], 2, "--jaw-rig"),
+    Case("reconstruct-jaw-file-missing", ["reconstruct", f"{W}/idxr", "--bundles", f"{S}/bundles.csv", "--out",
+                                          f"{C}/out", "-q", "--jaw", f"{C}/j.csv"], 2, "j.csv"),
+    *[Case(f"reconstruct-jaw-file-{name}", ["reconstruct", f"{W}/idxr", "--bundles", f"{S}/bundles.csv", "--out",
+                                            f"{C}/out", "-q", "--jaw", f"{C}/j.csv"], 2, says,
+           write("j.csv", text)) for name, text, says in (
+        ("no-column", "frame,open_deg\n0,1\n", "missing columns"),
+        ("duplicate-frame", "frame,open_deg,yaw_deg,roll_deg,forward_cm\n0,1,0,0,0\n0,2,0,0,0\n", "twice"),
+        ("missing-frame", "frame,open_deg,yaw_deg,roll_deg,forward_cm\n0,1,0,0,0\n", "no jaw parameters"),
+        ("nan", "frame,open_deg,yaw_deg,roll_deg,forward_cm\n" + "".join(f"{f},nan,0,0,0\n" for f in range(12)),
+         "non-finite"),
+        ("garbage", "\x00\x01\x02", "j.csv"))],
+    Case("reconstruct-out-is-file", REC, 2, "a file of that name exists", write("out", "precious"), ()),
+    Case("reconstruct-out-under-file", ["reconstruct", f"{W}/idx", "--bundles", f"{S}/bundles.csv", "--out",
+                                        f"{C}/f/sub", "-q"], 2, "a file is in its path", write("f", "x"), ("f/sub",)),
+    Case("reconstruct-flow-bad-bundles", [*RECB, "--flow"], 2, "non-numeric x", bundles_csv(set_cell(5, "x", "abc"))),
+    # --- corrupt stored index ----------------------------------------------------------------------------
+    Case("index-missing", ["reconstruct", f"{C}/nothing", "--bundles", f"{S}/bundles.csv", "--out", f"{C}/out",
+                           "-q"], 2, "not an LGI index"),
+    Case("index-manifest-not-json", RECI, 2, "manifest.json", chain(IDX, write("idx/manifest.json", "{broken"))),
+    Case("index-manifest-a-list", RECI, 2, "manifest", chain(IDX, write("idx/manifest.json", "[1, 2]"))),
+    Case("index-manifest-missing-key", RECI, 2, "manifest lacks",
+         chain(IDX, manifest_edit("idx/manifest.json", drop_key("markers")))),
+    Case("index-npz-missing", RECI, 2, "index.npz", chain(IDX, lambda w, c: (c / "idx" / "index.npz").unlink())),
+    Case("index-npz-truncated", RECI, 2, "index.npz", chain(IDX, truncate("idx/index.npz", 4000))),
+    Case("index-npz-pickled", RECI, 2, "index.npz", chain(IDX, pickled_npz("idx/index.npz"))),
+    Case("index-npz-missing-array", RECI, 2, "missing arrays",
+         chain(IDX, npz_edit("idx/index.npz", drop_key("ptab")))),
+    Case("index-deltas-truncated", RECI, 2, "deltas.npy", chain(IDX, truncate("idx/deltas.npy", 200))),
+    Case("index-deltas-wrong-shape", RECI, 2, "deltas.npy",
+         chain(IDX, lambda w, c: np.save(c / "idx" / "deltas.npy", np.zeros((3, 4, 3), np.float32)))),
+    Case("index-neutral-nan", RECI, 2, "non-finite",
+         chain(IDX, npz_edit("idx/index.npz", lambda a: {**a, "neutral": a["neutral"] * np.nan}))),
+    # --- build ---------------------------------------------------------------------------------------
+    Case("build-dataset-missing", ["build", f"{C}/nope", "--markers", f"{S}/markers.csv", "--out", f"{C}/out",
+                                   "-q"], 2, "nope"),
+    Case("build-markers-missing", ["build", f"{S}/dataset", "--markers", f"{C}/m.csv", "--out", f"{C}/out", "-q"],
+         2, "m.csv"),
+    Case("markers-missing-column", BUILDM, 2, "missing columns", write("m.csv", "name,triangle\na,1\n")),
+    Case("markers-fractional-triangle", BUILDM, 2, "whole number",
+         markers_cell(0, "triangle", lambda d: d.triangle[0] + ".5")),
+    Case("markers-negative-vertex", BUILDM, 2, "whole number", markers_cell(0, "v0", lambda d: "-" + d.v0[0])),
+    Case("markers-weights-not-convex", BUILDM, 2, "not convex", markers_cell(0, "w0", "1.5")),
+    Case("markers-duplicate-name", BUILDM, 2, "duplicate marker name",
+         markers_cell(1, "name", lambda d: d.name[0])),
+    Case("markers-triangle-out-of-range", BUILDM, 2, "out of range", markers_cell(0, "triangle", "999999")),
+    Case("markers-triangle-mismatch", BUILDM, 2, "forehead_L_01",
+         markers_cell(0, "triangle", lambda d: str(int(d.triangle[0]) + 1))),
+    Case("markers-no-name", BUILDM, 2, "without a name", markers_cell(0, "name", "")),
+    Case("markers-non-numeric", BUILDM, 2, "non-numeric", markers_cell(0, "w0", "heavy")),
+    Case("markers-empty", BUILDM, 2, "m.csv", write("m.csv", "")),
+    *[Case(f"build-{flag.strip('-')}-{val}", [*BUILD, flag, val], 2, flag) for flag, val in (
+        ("--knn", "-3"), ("--subset-fraction", "2"), ("--budget", "0"), ("--region-radius", "0"),
+        ("--min-quality", "2"), ("--min-motion-rel", "-0.1"), ("--merge-tol", "nan"), ("--subsets", "-1"),
+        ("--seed", "-4"))],
+    Case("build-jaw-rig-missing", [*BUILD, "--jaw-rig", f"{C}/rig.npz"], 2, "rig.npz"),
+    Case("build-jaw-rig-garbage", [*BUILD, "--jaw-rig", f"{C}/rig.npz"], 2, "rig.npz", write("rig.npz", "junk")),
+    Case("build-out-is-file", BUILD, 2, "a file of that name exists", write("out", "precious"), ()),
+    Case("dataset-manifest-broken", BUILDD, 2, "manifest", chain(copy("s/dataset", "ds"),
+                                                                write("ds/manifest.json", "{"))),
+    Case("dataset-deltas-truncated", BUILDD, 2, "deltas.npy", chain(copy("s/dataset", "ds"),
+                                                                   truncate("ds/deltas.npy", 100))),
+    Case("dataset-mesh-missing", BUILDD, 2, "mesh.npz", chain(copy("s/dataset", "ds"),
+                                                             lambda w, c: (c / "ds" / "mesh.npz").unlink())),
+    Case("dataset-units-mm", BUILDD, 2, "re-import", chain(copy("s/dataset", "ds"), manifest_edit(
+        "ds/manifest.json", lambda m: {**m, "units": "mm"}))),
+    Case("dataset-deltas-nan", BUILDD, 2, "non-finite", chain(copy("s/dataset", "ds"), lambda w, c: np.save(
+        c / "ds" / "deltas.npy", np.load(c / "ds" / "deltas.npy") * np.nan))),
+    # --- verify ------------------------------------------------------------------------------------------
+    Case("verify-index-missing", ["verify", f"{C}/nope", "-q"], 2, "not an LGI index"),
+    Case("verify-tolerance-negative", ["verify", f"{W}/idx", "--tolerance", "-1", "-q"], 2, "--tolerance"),
+    Case("verify-shapes-nothing", ["verify", f"{W}/idx", "--shapes", "zzz", "-q"], 2, "zzz"),
+    Case("verify-non-finite-fails", ["verify", f"{C}/idx", "-q"], 1, "non-finite",
+         chain(IDX, lambda w, c: np.save(c / "idx" / "deltas.npy", np.load(c / "idx" / "deltas.npy") * np.nan)),
+         ()),
+    # --- augment -----------------------------------------------------------------------------------------
+    Case("augment-no-method", AUG, 2, "--linear"),
+    *[Case(f"augment-{flag.strip('-')}-{val}", [*AUG, "--linear", flag, val], 2, flag) for flag, val in (
+        ("--orders", "9"), ("--orders", "x"), ("--levels", "0"), ("--levels", "1.5"), ("--levels", "abc"),
+        ("--budget", "0"), ("--thickness", "0"), ("--iterations", "0"), ("--requires", "mouthClose"))],
+    Case("augment-include-nothing", [*AUG, "--linear", "--include", "zzz"], 2, "zzz"),
+    Case("augment-dataset-missing", ["augment", f"{C}/nope", "--out", f"{C}/out", "--linear"], 2, "nope"),
+    Case("augment-out-is-file", [*AUG, "--linear"], 2, "a file of that name exists", write("out", "x"), ()),
+    # --- rig ---------------------------------------------------------------------------------------------
+    *[Case(f"rig-jaw-vertices-{name}", [*RIG, "--jaw-vertices", spec], 2, says) for name, spec, says in (
+        ("two", "5:6", "at least 3"), ("letters", "a:b", "--jaw-vertices"), ("reversed", "10:5", "out of range"),
+        ("beyond", "0:99999", "out of range"), ("file-missing", "{c}/jv.txt", "jv.txt"))],
+    Case("rig-shapes-nothing", ["rig", f"{S}/dataset", "--jaw-vertices", "0:100", "--shapes", "zzz", "--out",
+                                f"{C}/out"], 2, "zzz"),
+    Case("rig-out-is-dir", [*RIG, "--jaw-vertices", "0:100"], 2, "a directory of that name exists",
+         lambda w, c: (c / "out").mkdir(), ()),
+    # --- export ------------------------------------------------------------------------------------------
+    Case("export-no-meshes", [*EXP, "--usd", f"{C}/o.usdc"], 2, "no meshes.npz", lambda w, c: (c / "rec").mkdir(),
+         ("o.usdc",)),
+    Case("export-meshes-no-frames", [*EXP, "--usd", f"{C}/o.usdc"], 2, "missing arrays",
+         chain(REC_COPY, npz_edit("rec/meshes.npz", drop_key("frames"))), ("o.usdc",)),
+    Case("export-meshes-wrong-vertices", [*EXP, "--usd", f"{C}/o.usdc"], 2, "do not fit",
+         chain(REC_COPY, npz_edit("rec/meshes.npz", lambda a: {**a, "vertices": a["vertices"][:, :10]})), ("o.usdc",)),
+    Case("export-meshes-nan", [*EXP, "--usd", f"{C}/o.usdc"], 2, "non-finite",
+         chain(REC_COPY, npz_edit("rec/meshes.npz", lambda a: {**a, "vertices": a["vertices"] * np.nan})),
+         ("o.usdc",)),
+    Case("export-meshes-truncated", [*EXP, "--usd", f"{C}/o.usdc"], 2, "meshes.npz",
+         chain(REC_COPY, truncate("rec/meshes.npz", 500)), ("o.usdc",)),
+    Case("export-nothing-asked", EXP, 2, "nothing to export", REC_COPY),
+    Case("export-exr-size-0", [*EXP, "--exr", f"{C}/x", "--exr-size", "0"], 2, "--exr-size", REC_COPY, ("x",)),
+    Case("export-fps-0", [*EXP, "--usd", f"{C}/o.usdc", "--fps", "0"], 2, "--fps", REC_COPY, ("o.usdc",)),
+    Case("export-usd-extension", [*EXP, "--usd", f"{C}/o.txt"], 2, "--usd", REC_COPY, ("o.txt",)),
+    Case("export-usd-is-dir", [*EXP, "--usd", f"{C}/o.usdc"], 2, "a directory of that name exists",
+         chain(REC_COPY, lambda w, c: (c / "o.usdc").mkdir()), ()),
+    Case("export-exr-is-file", [*EXP, "--exr", f"{C}/x"], 2, "a file of that name exists",
+         chain(REC_COPY, write("x", "y")), ()),
+    Case("export-index-missing", ["export", f"{C}/rec", "--index", f"{C}/nope", "--usd", f"{C}/o.usdc"], 2,
+         "not an LGI index", REC_COPY, ("o.usdc",)),
+    # --- calibrate ---------------------------------------------------------------------------------------
+    Case("calibrate-images-missing", [*CAL, "--board", "chessboard:9x6:25"], 2, "imgs"),
+    Case("calibrate-images-empty", [*CAL, "--board", "chessboard:9x6:25"], 2, "imgs",
+         lambda w, c: (c / "imgs").mkdir()),
+    *[Case(f"calibrate-board-{name}", [*CAL, "--board", spec], 2, "board") for name, spec in (
+        ("kind", "dartboard:9x6:25"), ("size", "chessboard:9by6:25"), ("square", "chessboard:9x6:-1"),
+        ("charuco-dict", "charuco:7x5:15:11:DICT_NOPE"))],
+    Case("calibrate-two-models", [*CAL, "--board", "chessboard:9x6:25", "--rational", "--fisheye"], 2, "choose one"),
+    Case("calibrate-out-is-dir", [*CAL, "--board", "chessboard:9x6:25"], 2, "a directory of that name exists",
+         lambda w, c: (c / "out").mkdir(), ()),
+    # --- track ---------------------------------------------------------------------------------------------
+    Case("track-footage-missing", TRK, 2, "foot", write("calib.json", "{}")),
+    Case("track-calib-missing", TRK, 2, "calib.json", lambda w, c: (c / "foot").mkdir()),
+    Case("track-calib-not-json", TRK, 2, "calib.json", chain(write("calib.json", "{oops"),
+                                                             lambda w, c: (c / "foot").mkdir())),
+    *[Case(f"track-{flag.strip('-')}-{val}", [*TRK, flag, val], 2, flag) for flag, val in (
+        ("--gate", "0"), ("--dot-size", "-1"), ("--reference-frame", "-1"), ("--units", "furlong"))],
+    # --- synth, bundles, bench, demo ---------------------------------------------------------------------
+    *[Case(f"synth-{flag.strip('-')}-{val}", ["synth", "--out", f"{C}/out", "-q", flag, val], 2, flag)
+      for flag, val in (("--vertices", "0"), ("--frames", "-1"), ("--board-views", "1"), ("--image-size", "10x10"),
+                        ("--dot-noise", "-1"), ("--lens", "fish"))],
+    Case("synth-out-is-file", ["synth", "--out", f"{C}/out", "-q"], 2, "a file of that name exists",
+         write("out", "x"), ()),
+    Case("bundles-cmd-dataset-missing", ["bundles", f"{C}/nope", "--markers", f"{S}/markers.csv", "--out",
+                                         f"{C}/out.csv"], 2, "nope", None, ("out.csv",)),
+    Case("bundles-cmd-shapes-nothing", ["bundles", f"{S}/dataset", "--markers", f"{S}/markers.csv", "--out",
+                                        f"{C}/out.csv", "--shapes", "zzz"], 2, "zzz", None, ("out.csv",)),
+    Case("bundles-cmd-out-is-dir", ["bundles", f"{S}/dataset", "--markers", f"{S}/markers.csv", "--out",
+                                    f"{C}/out.csv"], 2, "a directory of that name exists",
+         lambda w, c: (c / "out.csv").mkdir(), ()),
+    Case("bench-noise-negative", ["bench", "--out", f"{C}/out", "--noise", "-1", "--no-ict"], 2, "--noise"),
+    Case("bench-out-is-file", ["bench", "--out", f"{C}/out", "--no-ict"], 2, "a file of that name exists",
+         write("out", "x"), ()),
+    Case("demo-out-is-file", ["demo", "--out", f"{C}/out", "-q"], 2, "a file of that name exists",
+         write("out", "x"), ()),
+    Case("demo-vertices-0", ["demo", "--out", f"{C}/out", "--vertices", "0"], 2, "--vertices"),
+    Case("unknown-command", ["fly"], 2, "fly"),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_input(case: Case, world: Path, tmp_path: Path, capsys) -> None:
+    c = tmp_path
+    if case.setup is not None:
+        case.setup(world, c)
+    before = {p: p.read_bytes() for p in c.rglob("*") if p.is_file()}
+    argv = [a.replace("{w}", str(world)).replace("{c}", str(c)) for a in case.argv]
+    code, out, err = run(argv, capsys)
+    assert code == case.code, (code, err)
+    assert "Traceback" not in err + out
+    said = err if case.code != 1 else out + err  # a failed check is a report (stdout), not an error
+    assert case.says.lower() in said.lower(), said[-2000:]
+    for rel in case.absent:
+        assert not (c / rel).exists(), f"{rel} left behind"
+    for p, data in before.items():  # a failed run changes nothing that was there
+        assert p.read_bytes() == data, p
+    assert not [p for p in c.rglob("*") if ".tmp-" in p.name or ".lgi-staging-" in p.name or ".old-" in p.name]
+
+
+# ----------------------------------------------------------------------------------------------- re-runs
+def test_rerun_leaves_exactly_what_it_wrote(world: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "out"
+    base = ["reconstruct", str(world / "idx"), "--bundles", str(world / "s" / "bundles.csv"), "--out", str(out), "-q"]
+    assert run([*base, "--obj", "--usd", "--plot"], capsys)[0] == 0
+    assert (out / "obj").is_dir() and (out / "shot.usdc").is_file()
+    # A killed run's leftovers (a process that no longer exists) and a live run's staging folder.
+    dead = 2**22 + 12345
+    (out / f".lgi-staging-{dead}-abc").mkdir()
+    (out / f".obj.old-{dead}-x").mkdir()
+    alive = out / f".lgi-staging-{os.getpid()}-live"
+    alive.mkdir()
+    assert run(base, capsys)[0] == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == sorted(["meshes.npz", "diagnostics.csv", "per_frame.csv", alive.name]), names
+    alive.rmdir()
+    # A failed re-run leaves the earlier outputs untouched.
+    snap = {p.name: p.read_bytes() for p in out.iterdir()}
+    code, _, err = run([*base[:3], str(tmp_path / "missing.csv"), *base[4:]], capsys)
+    assert code == 2 and "missing.csv" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == snap
+
+
+def test_synth_rerun_drops_the_earlier_hmc(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "s"
+    assert run(["synth", "--out", str(out), "--vertices", "800", "--frames", "3", "-q"], capsys)[0] == 0
+    (out / "hmc").mkdir()  # as an earlier --hmc run leaves it
+    (out / "hmc" / "old.png").write_bytes(b"x")
+    (out / "mine.txt").write_text("keep")
+    assert run(["synth", "--out", str(out), "--vertices", "800", "--frames", "3", "-q"], capsys)[0] == 0
+    assert not (out / "hmc").exists() and (out / "mine.txt").read_text() == "keep"
+
+
+def test_import_over_a_dataset_and_a_dead_temporary(world: Path, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "ds"
+    argv = ["import", str(world / "objs"), "--out", str(out), "-q", "--rigid-vertices", "none"]
+    assert run(argv, capsys)[0] == 0
+    first = (out / "manifest.json").read_bytes()
+    (tmp_path / f".ds.tmp-{2**22 + 777}-zz").mkdir()
+    assert run(argv, capsys)[0] == 0
+    assert (out / "manifest.json").read_bytes() == first
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+
+
+# ---------------------------------------------------------------------------------------------- interrupts
+def _spawn(argv: list[str], cwd: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen([sys.executable, "-m", "lgi", *argv], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+@pytest.fixture(scope="module")
+def long_shot(world: Path, tmp_path_factory) -> Path:
+    """A 400-frame performance on the small actor, for interrupting a reconstruction midway."""
+    t = tmp_path_factory.mktemp("long")
+    assert main(["synth", "--out", str(t / "s"), "--vertices", "1500", "--frames", "400", "-q"]) == 0
+    return t / "s" / "bundles.csv"
+
+
+@pytest.mark.parametrize("after", [0.6, 1.5, 3.0, 4.5])
+def test_sigint_during_the_solve(world: Path, long_shot: Path, tmp_path: Path, after: float) -> None:
+    out = tmp_path / "out"
+    p = _spawn(["reconstruct", str(world / "idx"), "--bundles", str(long_shot), "--out", str(out), "-q"], tmp_path)
+    time.sleep(after)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    if p.returncode == 0:
+        pytest.skip(f"the run finished within {after} s, before the interrupt")
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and "interrupted" in err
+    assert not out.exists() or not [q for q in out.iterdir()]
+
+
+def test_sigkill_then_rerun_cleans_up(world: Path, long_shot: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    argv = ["reconstruct", str(world / "idx"), "--bundles", str(long_shot), "--out", str(out), "-q", "--obj"]
+    p = _spawn(argv, tmp_path)
+    deadline = time.time() + 120
+    while time.time() < deadline and not list(out.glob(".lgi-staging-*/obj/*")):  # killed while writing
+        time.sleep(0.05)
+    p.kill()
+    p.communicate(timeout=60)
+    assert list(out.glob(".lgi-staging-*")), "the kill was meant to land during the write"
+    r = subprocess.run([sys.executable, "-m", "lgi", *argv[:-1]], cwd=tmp_path, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert sorted(q.name for q in out.iterdir()) == ["diagnostics.csv", "meshes.npz", "per_frame.csv"]
+
+
+def test_closed_pipe_is_quiet(world: Path, tmp_path: Path) -> None:
+    cmd = f"{sys.executable} -m lgi verify {world / 'idx'} -q | head -1"
+    r = subprocess.run(cmd, shell=True, capture_output=True, text=True, cwd=tmp_path)
+    assert "Traceback" not in r.stderr and "BrokenPipe" not in r.stderr, r.stderr
+    assert len(r.stdout.splitlines()) == 1
