@@ -14,6 +14,7 @@ Board units: the square size is in mm; distances in the result (translation, bas
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 from dataclasses import dataclass, field
@@ -137,6 +138,11 @@ def pair_images(folder: str | os.PathLike[str], strict: bool = False) -> list[tu
                          path=path)
     if not pairs:
         raise InputError("no image pairs (left*/right* files, or cam0/ and cam1/ folders)", path=folder)
+    lone = sorted(set(left) ^ set(right))
+    if lone:
+        first = left.get(lone[0]) or right.get(lone[0])
+        logging.getLogger(__name__).warning("%d image%s without a partner in the other camera left out (first: %s)",
+                                            len(lone), "s" if len(lone) > 1 else "", first)
     return pairs
 
 
