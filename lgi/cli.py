@@ -493,6 +493,10 @@ def main(argv: list[str] | None = None) -> int:
 
         # A first run creates the local Prefect database, which takes longer than Prefect's default wait.
         os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "120")
+        if not debug:
+            # The command prints its own report and errors; Prefect's console log would add a traceback for a
+            # task that failed on bad input. PREFECT_LOGGING_LEVEL set by the user wins; the UI keeps the logs.
+            os.environ.setdefault("PREFECT_LOGGING_LEVEL", "CRITICAL")
     name = f"lgi {args.command}"
     try:
         return int(args.func(args) or 0)

@@ -537,3 +537,17 @@ def test_unpaired_calibration_image_is_reported(tmp_path: Path, caplog) -> None:
         pairs = pair_images(tmp_path)
     assert [p[0] for p in pairs] == ["pair1.png"]
     assert "without a partner" in caplog.text and "left2.png" in caplog.text
+
+
+@pytest.mark.slow
+def test_flow_task_failing_on_bad_input_prints_no_traceback(world: Path, tmp_path: Path) -> None:
+    """A bad OBJ found inside a task of the rebuild flow: one line and exit 2 (Prefect's own console log, which
+    would print the task's traceback, is quiet unless PREFECT_LOGGING_LEVEL or --debug asks for it)."""
+    shutil.copytree(world / "objs", tmp_path / "objs")
+    obj_vertex("objs/smile_L.obj", 3, "v nan nan nan")(world, tmp_path)
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}
+    env["PREFECT_HOME"] = str(tmp_path / "prefect")
+    r = subprocess.run([sys.executable, "-m", "lgi", "import", str(tmp_path / "objs"), "--out", str(tmp_path / "out"),
+                        "--flow", "-q"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 2, r.stderr[-2000:]
+    assert "Traceback" not in r.stderr and "smile_L.obj" in r.stderr and "non-finite" in r.stderr
