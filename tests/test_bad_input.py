@@ -156,6 +156,22 @@ def drop_key(key: str):
     return e
 
 
+def _cam(d: dict, k: int, key: str, value) -> dict:
+    cams = [dict(c) for c in d["cameras"]]
+    cams[k][key] = value
+    return {**d, "cameras": cams}
+
+
+def calib_json(edit: Callable[[dict], dict]):
+    """A valid stereo calibration document (lgi calibrate's format), edited, as ``calib.json``."""
+    def f(w: Path, c: Path) -> None:
+        cam = {"K": [[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]], "dist": [0.0, 0, 0, 0, 0]}
+        doc = {"image_size": [640, 480], "model": "pinhole", "cameras": [cam, dict(cam)],
+               "R": [[1.0, 0, 0], [0, 1, 0], [0, 0, 1]], "T": [-60.0, 0, 0]}
+        (c / "calib.json").write_text(json.dumps(edit(doc)))  # Python's JSON writes NaN and Infinity as such
+    return f
+
+
 # ------------------------------------------------------------------------------------------------ cases
 @dataclass
 class Case:
@@ -387,6 +403,16 @@ CASES = [
     Case("track-calib-missing", TRK, 2, "calib.json", lambda w, c: (c / "foot").mkdir()),
     Case("track-calib-not-json", TRK, 2, "calib.json", chain(write("calib.json", "{oops"),
                                                              lambda w, c: (c / "foot").mkdir())),
+    *[Case(f"track-calib-{name}", TRK, 2, says, chain(calib_json(edit), lambda w, c: (c / "foot").mkdir()))
+      for name, edit, says in (
+          ("no-cameras", lambda d: {k: v for k, v in d.items() if k != "cameras"}, "not a stereo calibration"),
+          ("K-nan", lambda d: _cam(d, 0, "K", [[float("nan"), 0, 320], [0, 500, 240], [0, 0, 1]]), "intrinsic matrix"),
+          ("K-negative", lambda d: _cam(d, 1, "K", [[-500, 0, 320], [0, 500, 240], [0, 0, 1]]), "intrinsic matrix"),
+          ("R-not-rotation", lambda d: {**d, "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]]}, "rotation"),
+          ("dist-nan", lambda d: _cam(d, 0, "dist", [float("nan"), 0, 0, 0, 0]), "distortion"),
+          ("T-inf", lambda d: {**d, "T": [float("inf"), 0, 0]}, "translation"),
+          ("size-negative", lambda d: {**d, "image_size": [-640, 480]}, "image size"),
+          ("three-cameras", lambda d: {**d, "cameras": d["cameras"] * 2}, "not a stereo calibration"))],
     *[Case(f"track-{flag.strip('-')}-{val}", [*TRK, flag, val], 2, flag) for flag, val in (
         ("--gate", "0"), ("--dot-size", "-1"), ("--reference-frame", "-1"), ("--units", "furlong"))],
     # --- synth, bundles, bench, demo ---------------------------------------------------------------------

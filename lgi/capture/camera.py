@@ -309,6 +309,13 @@ class StereoRig:
                 raise InputError("camera matrix K is not a valid intrinsic matrix", path=path)
             if not np.allclose(c.R @ c.R.T, np.eye(3), atol=1e-6):
                 raise InputError("camera rotation R is not a rotation matrix", path=path)
+            if not np.all(np.isfinite(np.asarray(c.dist, float))):
+                raise InputError("distortion coefficients are not all finite", path=path)
+            if not np.all(np.isfinite(np.asarray(c.t, float))):
+                raise InputError("camera translation T is not finite", path=path)
+            size = np.asarray(c.size, float)
+            if size.shape != (2,) or not np.all(size >= 1) or not np.all(size == np.round(size)):
+                raise InputError(f"image size {list(c.size)} is not two positive whole numbers", path=path)
         return cls(cams)
 
     @classmethod
