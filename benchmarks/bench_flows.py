@@ -26,8 +26,8 @@ def main() -> None:
     args = ap.parse_args()
     from prefect_dask import DaskTaskRunner
 
-    from lgi.orchestration.reconstruct import reconstruct_shot
     from lgi.cli import main as lgi
+    from lgi.orchestration.reconstruct import reconstruct_shot
 
     with tempfile.TemporaryDirectory() as t:
         t = Path(t)
