@@ -243,32 +243,21 @@ class ShapeDataset:
         verify
             Recompute the content hash and fail if it differs from the manifest's.
         """
+        from lgi.io.manifest import read_manifest
+
         directory = Path(directory)
         mpath = directory / "manifest.json"
-        if not mpath.is_file():
-            raise InputError("not a shape dataset (no manifest.json)", path=directory)
-        try:
-            manifest = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(f"manifest is not valid JSON: {exc.msg}", path=mpath, line=exc.lineno) from None
-        if manifest.get("format") != FORMAT:
-            raise InputError(f"manifest format is {manifest.get('format')!r}, expected {FORMAT!r}", path=mpath)
-        if manifest.get("format_version", 0) > FORMAT_VERSION:
-            raise InputError(f"dataset format version {manifest['format_version']} is newer than this lgi "
-                             f"reads ({FORMAT_VERSION})", path=mpath)
+        manifest = read_manifest(directory, FORMAT, FORMAT_VERSION, "shape dataset")
         if manifest.get("units", "cm") != "cm":
             raise InputError(f"dataset in {manifest['units']!r}: datasets are stored in cm (lgi import converts); "
                              f"re-import it with lgi import --units {manifest['units']}", path=mpath)
-        from lgi.io.npz import load_npz
+        from lgi.io.npz import load_npy, load_npz
 
         missing = [k for k in ("shapes", "n_vertices") if k not in manifest]
         if missing:
             raise InputError(f"manifest lacks {missing} (a damaged dataset: re-import it)", path=mpath)
         arrays = load_npz(directory / "mesh.npz", required=("neutral", "face_vertices", "face_offsets"))
-        try:
-            deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as exc:
-            raise InputError(f"not a readable array ({exc})", path=directory / "deltas.npy") from None
+        deltas = load_npy(directory / "deltas.npy", mmap)
         if not np.all(np.isfinite(arrays["neutral"])) or not np.all(np.isfinite(deltas)):
             raise InputError("non-finite positions or displacements (a damaged dataset: re-import it)",
                              path=directory)

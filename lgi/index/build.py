@@ -149,30 +149,17 @@ class LGIIndex:
 
     @classmethod
     def load(cls, directory: str | os.PathLike[str], mmap: bool = True) -> LGIIndex:
+        from lgi.io.manifest import read_manifest
+        from lgi.io.npz import load_npy, load_npz
+
         directory = Path(directory)
         mpath = directory / "manifest.json"
-        if not mpath.is_file():
-            raise InputError("not an LGI index (no manifest.json)", path=directory)
-        try:
-            manifest = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(f"manifest is not valid JSON: {exc.msg}", path=mpath, line=exc.lineno) from None
-        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-            got = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
-            raise InputError(f"manifest format is {got!r}, expected {FORMAT!r}", path=mpath)
-        if manifest.get("format_version", 0) > FORMAT_VERSION:
-            raise InputError(f"index format version {manifest['format_version']} is newer than this lgi reads",
-                             path=mpath)
+        manifest = read_manifest(directory, FORMAT, FORMAT_VERSION, "LGI index")
         missing = [k for k in ("markers", "shapes", "counts", "options") if k not in manifest]
         if missing:
             raise InputError(f"manifest lacks {missing} (a damaged index: rebuild it)", path=mpath)
-        from lgi.io.npz import load_npz
-
         arrays = load_npz(directory / "index.npz", required=("neutral", "ptab", "marker_triangle", "w_indptr"))
-        try:
-            deltas = np.load(directory / "deltas.npy", mmap_mode="r" if mmap else None, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as exc:
-            raise InputError(f"not a readable array ({exc})", path=directory / "deltas.npy") from None
+        deltas = load_npy(directory / "deltas.npy", mmap)
         n_v = arrays["neutral"].shape[0]
         if deltas.ndim != 3 or deltas.shape[1:] != (n_v, 3) or len(deltas) != len(manifest["shapes"]) + 1:
             raise InputError(f"deltas.npy has shape {deltas.shape}; the index has {len(manifest['shapes'])} shapes "

@@ -46,3 +46,16 @@ def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> di
     if missing:
         raise InputError(f"missing arrays {missing}", path=path)
     return out
+
+
+
+def load_npy(path: str | os.PathLike[str], mmap: bool = False) -> np.ndarray:
+    """An ``.npy`` array (memory-mapped with ``mmap``, never unpickled), or an InputError naming the file."""
+    from lgi.errors import InputError
+
+    try:
+        return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
+    except FileNotFoundError:
+        raise InputError("file not found", path=path) from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise InputError(f"not a readable array ({exc})", path=path) from None
