@@ -472,9 +472,18 @@ def _quiet_stdout() -> None:
         pass
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler or a farm cancelling the job), unwound like Ctrl-C so the run cleans up after itself."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one ``lgi`` command; returns the exit status (README: 0 success, 1 a check failed, 2 bad input, 3 an
-    internal error, 130 interrupted). No traceback reaches the user unless ``--debug`` is given."""
+    internal error, 130 interrupted, 143 terminated by SIGTERM). No traceback reaches the user unless
+    ``--debug`` is given."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     if debug:
@@ -497,7 +506,23 @@ def main(argv: list[str] | None = None) -> int:
             # The command prints its own report and errors; Prefect's console log would add a traceback for a
             # task that failed on bad input. PREFECT_LOGGING_LEVEL set by the user wins; the UI keeps the logs.
             os.environ.setdefault("PREFECT_LOGGING_LEVEL", "CRITICAL")
+            # The ephemeral server's own services log too (an offline machine's failed telemetry is an ERROR).
+            os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "CRITICAL")
     name = f"lgi {args.command}"
+    import signal
+
+    try:
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # not the main thread (a caller embedding lgi): leave SIGTERM alone
+        previous = None
+    try:
+        return _run(args, name, debug)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(args: argparse.Namespace, name: str, debug: bool) -> int:
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:
@@ -510,9 +535,11 @@ def main(argv: list[str] | None = None) -> int:
             import traceback
 
             traceback.print_exc()
-        if _in_chain(exc, KeyboardInterrupt) is not None:
-            print(f"{name}: interrupted; the outputs of this run were not written", file=sys.stderr)
-            return 130
+        stop = _in_chain(exc, KeyboardInterrupt)
+        if stop is not None:
+            how = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
+            print(f"{name}: {how}; the outputs of this run were not written", file=sys.stderr)
+            return 143 if isinstance(stop, Terminated) else 130
         err = _in_chain(exc, LgiError)
         if err is not None:
             print(f"{name}: error: {err}", file=sys.stderr)

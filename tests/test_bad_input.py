@@ -577,3 +577,43 @@ def test_flow_task_failing_on_bad_input_prints_no_traceback(world: Path, tmp_pat
                         "--flow", "-q"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 2, r.stderr[-2000:]
     assert "Traceback" not in r.stderr and "smile_L.obj" in r.stderr and "non-finite" in r.stderr
+
+
+def test_sigterm_cleans_up_like_ctrl_c(world: Path, long_shot: Path, tmp_path: Path) -> None:
+    """A scheduler cancelling the job (SIGTERM) gets status 143, one line, and nothing written."""
+    out = tmp_path / "out"
+    p = _spawn(["reconstruct", str(world / "idx"), "--bundles", str(long_shot), "--out", str(out), "-q"], tmp_path)
+    time.sleep(1.5)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=120)
+    if p.returncode == 0:
+        pytest.skip("the run finished within 1.5 s, before the signal")
+    assert p.returncode == 143, err
+    assert "Traceback" not in err and "SIGTERM" in err
+    assert not out.exists() or not [q for q in out.iterdir()]
+
+
+def test_sigint_inside_a_flow_task_stops_the_local_server(world: Path, long_shot: Path, tmp_path: Path) -> None:
+    """Ctrl-C while the reconstruct-shot flow's tasks run: status 130, no traceback, the chunk folder removed and
+    the local Prefect server the command started stopped (left running it would keep the pipes open, and
+    ``communicate`` below would time out)."""
+    out = tmp_path / "out"
+    env = {k: v for k, v in os.environ.items() if k != "PREFECT_LOGGING_LEVEL"}  # the command's own default
+    env.update(PYTHONUNBUFFERED="1", PREFECT_HOME=str(tmp_path / "prefect"))
+    p = subprocess.Popen([sys.executable, "-m", "lgi", "reconstruct", str(world / "idx"), "--bundles", str(long_shot),
+                          "--out", str(out), "--flow", "--chunk-size", "40", "-q"], cwd=tmp_path, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and p.poll() is None and not list(tmp_path.glob(".out.chunks-*/choice_*.npz")):
+        time.sleep(0.05)
+    assert p.poll() is None, "the flow ended before a chunk was chosen"
+    p.send_signal(signal.SIGINT)
+    try:
+        _, err = p.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        pytest.fail("the command's pipes stayed open after the interrupt: the local Prefect server was left running")
+    assert p.returncode == 130, err[-2000:]
+    assert "Traceback" not in err and "interrupted" in err, err[-4000:]
+    assert not out.exists() or not [q for q in out.iterdir()]
+    assert not list(tmp_path.glob(".out.chunks-*"))

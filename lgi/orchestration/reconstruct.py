@@ -38,10 +38,21 @@ def track_footage(footage: str, calib: str, markers: str, bundles: str, dataset:
     return summary
 
 
+_STOP = ".stopped"
+
+
+def _stopped(out: str) -> bool:
+    """True once the flow has been interrupted: its chunk tasks still queued then return at once instead of
+    running (or failing on the working folder the flow is about to remove)."""
+    return (Path(out).parent / _STOP).exists()
+
+
 @task(name="choose-chunk", **_T)
 def choose_chunk(index_dir: str, bundles: str, options: dict, lo: int, hi: int, out: str,
                  previous: str | None = None) -> str:
     """Choose shapes and weights for frames lo:hi (see :func:`lgi.jobs.reconstruct.choose_chunk`)."""
+    if _stopped(out):
+        return ""
     return job.choose_chunk(index_dir, bundles, job.ReconstructOptions.from_json(options), lo, hi, out, previous)
 
 
@@ -49,6 +60,8 @@ def choose_chunk(index_dir: str, bundles: str, options: dict, lo: int, hi: int, 
 def finish_chunk(index_dir: str, bundles: str, options: dict, choices: list[str], lo: int, hi: int,
                  out: str) -> str:
     """Blend, skin and correct frames lo:hi (see :func:`lgi.jobs.reconstruct.finish_chunk`)."""
+    if _stopped(out):
+        return ""
     return job.finish_chunk(index_dir, bundles, job.ReconstructOptions.from_json(options), choices, lo, hi, out)
 
 
@@ -109,9 +122,9 @@ def reconstruct_shot(
     sweep(parent, prefix)
     work = make_temp_dir(parent, prefix)
     o = opts.to_json()
+    futures, parts, prev = [], [], None
     try:
         progress = create_progress_artifact(progress=0.0, description=f"frames chosen, in chunks of {chunk_size}")
-        futures, prev = [], None
         for lo, hi in bounds:
             prev = choose_chunk.submit(index_dir, bundles, o, lo, hi, str(work / f"choice_{lo:06d}.npz"), prev)
             futures.append(prev)
@@ -123,6 +136,16 @@ def reconstruct_shot(
                                  [b[0] for b in bounds], [b[1] for b in bounds],
                                  [str(work / f"part_{lo:06d}.npz") for lo, _ in bounds])
         summary = write_shot(index_dir, bundles, o, choices, [p.result() for p in parts], out)
+    except BaseException:
+        # Interrupted (or a chunk failed): the tasks already submitted keep running on the task runner, so stop
+        # them at their next start and let the running ones end before their folder goes.
+        (work / _STOP).touch()
+        for fut in [*futures, *parts]:
+            try:
+                fut.wait(timeout=120)
+            except BaseException:  # noqa: BLE001 - a second Ctrl-C or a failed task: stop waiting, clean up
+                break
+        raise
     finally:
         shutil.rmtree(work, ignore_errors=True)
     _report(summary, out)
