@@ -23,8 +23,11 @@ def cmd_import(args: argparse.Namespace) -> int:
 
     opts = _import_options(args)
     if args.flow:
+        from lgi.jobs.dataset import check_rebuild
         from lgi.orchestration.rebuild import rebuild_dataset
         from lgi.pipeline.stages import rebuild_report
+
+        check_rebuild(args.shapes_dir, args.out, opts, args.markers)  # before Prefect starts
 
         s = rebuild_dataset(args.shapes_dir, args.out, markers=args.markers, **opts.to_json())
         for line in rebuild_report(s):
@@ -101,7 +104,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
     opts = _reconstruct_options(args)
     if args.flow:
-        check_output(args.out)
+        check_output(args.out, (args.index_dir, args.bundles, opts.jaw))
         preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
         from lgi.orchestration.reconstruct import reconstruct_shot
 
@@ -494,9 +497,6 @@ def main(argv: list[str] | None = None) -> int:
     for h in [h for h in lgi_log.handlers if isinstance(h, _WarningHandler)]:
         lgi_log.removeHandler(h)
     lgi_log.addHandler(_WarningHandler(args.command))
-    for name in ("vertices", "frames"):
-        if getattr(args, name, 1) is not None and getattr(args, name, 1) < 1:
-            parser.error(f"--{name} must be positive")
     if getattr(args, "flow", False):
         import os
 

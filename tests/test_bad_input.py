@@ -202,6 +202,12 @@ REC_COPY = copy("rec")
 IDX = copy("idx")
 
 
+def null_marker(path: Path, row: int) -> pd.DataFrame:
+    d = pd.read_csv(path).astype({"marker": object})
+    d.loc[row, "marker"] = None
+    return d
+
+
 def markers_cell(row: int, col: str, value: str):
     def f(w: Path, c: Path) -> None:
         d = pd.read_csv(w / "s" / "markers.csv", dtype=str, keep_default_na=False)
@@ -434,6 +440,88 @@ CASES = [
     Case("demo-out-is-file", ["demo", "--out", f"{C}/out", "-q"], 2, "a file of that name exists",
          write("out", "x"), ()),
     Case("demo-vertices-0", ["demo", "--out", f"{C}/out", "--vertices", "0"], 2, "--vertices"),
+    # --- outputs that would destroy inputs or someone else's files (campaign 2) ----------------------------
+    Case("import-out-is-the-input", [*IMP[:3], f"{C}/objs", *IMP[4:]], 2, "would replace this run's input", OBJS,
+         ()),
+    Case("import-out-holds-the-input", [*IMP[:3], f"{C}", *IMP[4:]], 2, "would replace this run's input", OBJS, ()),
+    Case("import-out-inside-the-input", [*IMP[:3], f"{C}/objs/ds", *IMP[4:]], 2, "inside the input folder", OBJS,
+         ("objs/ds",)),
+    Case("import-out-foreign-folder", [*IMP[:3], f"{C}/mine", *IMP[4:]], 2, "thesis.tex",
+         chain(OBJS, write("mine/thesis.tex", "precious")), ()),
+    Case("build-out-foreign-folder", [*BUILD[:5], f"{C}/mine", "-q"], 2, "not an lgi index's",
+         write("mine/thesis.tex", "precious"), ()),
+    Case("build-out-is-the-dataset", [*BUILDD[:5], f"{C}/ds", "-q"], 2, "would replace this run's input",
+         copy("s/dataset", "ds"), ()),
+    Case("augment-out-foreign-folder", [*AUG[:3], f"{C}/mine", "-q", "--linear", "--budget", "2"], 2,
+         "not an lgi dataset's", write("mine/thesis.tex", "precious"), ()),
+    Case("export-exr-is-the-reconstruction", [*EXP, "--exr", f"{C}/rec", "--exr-size", "16"], 2,
+         "would replace this run's input", REC_COPY, ()),
+    Case("export-exr-foreign-folder", [*EXP, "--exr", f"{C}/x", "--exr-size", "16"], 2, "notes.txt",
+         chain(REC_COPY, write("x/notes.txt", "precious")), ()),
+    Case("export-usd-equals-exr", [*EXP, "--exr", f"{C}/o.usdc", "--usd", f"{C}/o.usdc"], 2, "same path", REC_COPY,
+         ("o.usdc",)),
+    Case("bundles-out-is-the-markers", ["bundles", f"{S}/dataset", "--markers", f"{C}/m.csv", "--out", f"{C}/m.csv"],
+         2, "would replace this run's input", markers_cell(0, "name", "forehead_L_01"), ()),
+    Case("rig-out-inside-the-dataset", ["rig", f"{C}/ds", "--shapes", "jaw_*", "--jaw-vertices", "0:200", "--out",
+                                        f"{C}/ds/mesh.npz"], 2, "inside the input folder", copy("s/dataset", "ds"),
+         ()),
+    Case("calibrate-out-equals-yaml", [*CAL, "--board", "chessboard:9x6:25", "--yaml", f"{C}/out"], 2, "same path",
+         lambda w, c: (c / "imgs").mkdir()),
+    Case("track-out-equals-tracks", [*TRK, "--tracks", f"{C}/out"], 2, "same path",
+         chain(calib_json(lambda d: d), lambda w, c: (c / "foot").mkdir())),
+    # --- corrupt stored arrays the compiled kernels would read out of bounds (a crash before) --------------
+    *[Case(f"index-{name}", RECI, 2, says, chain(IDX, npz_edit("idx/index.npz", edit))) for name, edit, says in (
+        ("sx-out-of-range", lambda a: {**a, "sx": a["sx"] + 10**6}, "sx row"),
+        ("sx-other-marker", lambda a: {**a, "sx": np.where(a["sx"] >= 0, (a["sx"] + 7) % len(a["pts"]), -1)},
+         "sx row"),
+        ("cell-items-out-of-range", lambda a: {**a, "cell_items": a["cell_items"] + 10**6}, "cell_items"),
+        ("hull-out-of-range", lambda a: {**a, "hull": a["hull"] + 10**6}, "hull"),
+        ("pt-off-reversed", lambda a: {**a, "pt_off": a["pt_off"][::-1].copy()}, "pt_off"),
+        ("ptab-strings", lambda a: {**a, "ptab": a["ptab"].astype(str)}, "ptab holds"),
+        ("face-vertices-out-of-range", lambda a: {**a, "face_vertices": a["face_vertices"] + 10**6}, "face_vertices"),
+        ("alias-shape-out-of-range", lambda a: {**a, "alias_shape": a["alias_shape"] + 10**6}, "alias_shape"),
+        ("w-indices-out-of-range", lambda a: {**a, "w_indices": a["w_indices"] + 10**6}, "w_indices"),
+        ("grid-dims-wrong", lambda a: {**a, "grid_dims": a["grid_dims"] + 1}, "grid_dims"))],
+    Case("export-index-faces-out-of-range", [*EXP[:3], f"{C}/idx", "-q", "--usd", f"{C}/o.usdc"], 2, "face_vertices",
+         chain(REC_COPY, IDX, npz_edit("idx/index.npz", lambda a: {**a, "face_vertices": a["face_vertices"] + 10**6})),
+         ("o.usdc",)),
+    *[Case(f"dataset-{name}", BUILDD, 2, says, chain(copy("s/dataset", "ds"), npz_edit("ds/mesh.npz", edit)))
+      for name, edit, says in (
+          ("face-uvs-out-of-range", lambda a: {**a, "face_uvs": a["face_uvs"] + 10**6}, "mesh.npz: face_uvs"),
+          ("face-vertices-out-of-range", lambda a: {**a, "face_vertices": a["face_vertices"] + 10**6},
+           "mesh.npz: face_vertices"),
+          ("face-offsets-broken", lambda a: {**a, "face_offsets": a["face_offsets"][::-1].copy()}, "face_offsets"),
+          ("neutral-wrong-shape", lambda a: {**a, "neutral": a["neutral"][:-5]}, "neutral has shape"))],
+    # --- option values far out of range (a memory error or the OOM killer before) -------------------------
+    Case("synth-vertices-huge", ["synth", "--out", f"{C}/out", "-q", "--vertices", "2000000000"], 2, "--vertices"),
+    Case("synth-too-much-memory", ["synth", "--out", f"{C}/out", "-q", "--vertices", "1000000", "--frames",
+                                   "1000000"], 2, "GiB of memory"),
+    Case("synth-image-size-huge", ["synth", "--out", f"{C}/out", "-q", "--hmc", "--image-size", "100000x100000"], 2,
+         "--image-size"),
+    Case("synth-rig-flex-without-hmc", ["synth", "--out", f"{C}/out", "-q", "--rig-flex", "5"], 2, "add --hmc"),
+    Case("demo-vertices-huge", ["demo", "--out", f"{C}/out", "--vertices", "100000000000"], 2, "--vertices"),
+    Case("demo-frames-0", ["demo", "--out", f"{C}/out", "--frames", "0"], 2, "lgi demo: error: --frames"),
+    Case("bench-frames-0", ["bench", "--out", f"{C}/out", "--frames", "0", "--no-ict"], 2,
+         "lgi bench: error: --frames"),
+    Case("bench-ict-not-a-folder", ["bench", "--out", f"{C}/out", "--frames", "2", "--ict", f"{C}/ict"], 2,
+         "not an ICT FaceKit folder", write("ict", "x")),
+    Case("reconstruct-smooth-huge", [*REC, "--smooth", "100000001"], 2, "--smooth"),
+    Case("augment-iterations-huge", [*AUG, "--simulate", "--iterations", "1000000000"], 2, "--iterations"),
+    Case("augment-requires-unknown-shape", [*AUG, "--linear", "--requires", "nobody=jaw_open", "--budget", "2"], 2,
+         "nobody"),
+    # --- typed tables and jaw files ----------------------------------------------------------------------------
+    Case("bundles-parquet-bool-x", [*RECB[:3], f"{C}/b.parquet", *RECB[4:]], 2, "true/false",
+         lambda w, c: pd.read_csv(w / "s" / "bundles.csv").assign(x=lambda d: d.x > 0).to_parquet(c / "b.parquet")),
+    Case("bundles-parquet-null-marker", [*RECB[:3], f"{C}/b.parquet", *RECB[4:]], 2, "(row 7)",
+         lambda w, c: null_marker(w / "s" / "bundles.csv", 7).to_parquet(c / "b.parquet")),
+    *[Case(f"reconstruct-jaw-file-{name}", ["reconstruct", f"{W}/idxr", "--bundles", f"{S}/bundles.csv", "--out",
+                                            f"{C}/out", "-q", "--jaw", f"{C}/j.csv"], 2, says,
+           write("j.csv", "frame,open_deg,yaw_deg,roll_deg,forward_cm\n" +
+                 "".join(f"{f},{v},0,0,0\n" for f in range(12))))
+      for name, v, says in (("720-degrees", "720", "outside a jaw's range"), ("text", "wide", "j.csv:2"))],
+    Case("reconstruct-jaw-file-fractional-frame", ["reconstruct", f"{W}/idxr", "--bundles", f"{S}/bundles.csv",
+                                                   "--out", f"{C}/out", "-q", "--jaw", f"{C}/j.csv"], 2,
+         "not a whole number", write("j.csv", "frame,open_deg,yaw_deg,roll_deg,forward_cm\n0.5,1,0,0,0\n")),
     Case("unknown-command", ["fly"], 2, "fly"),
 ]
 
@@ -455,6 +543,94 @@ def test_bad_input(case: Case, world: Path, tmp_path: Path, capsys) -> None:
     for p, data in before.items():  # a failed run changes nothing that was there
         assert p.read_bytes() == data, p
     assert not [p for p in c.rglob("*") if ".tmp-" in p.name or ".lgi-staging-" in p.name or ".old-" in p.name]
+
+
+# ------------------------------------------------------------------- camera footage and calibration images
+@pytest.fixture(scope="module")
+def hmc(world: Path) -> Path:
+    """The small actor's head-mounted camera footage (4 frames) and 6 board views, 640x480."""
+    h = world / "h"
+    assert main(["synth", "--out", str(h), "--vertices", "1500", "--frames", "4", "--hmc", "--image-size", "640x480",
+                 "--board-views", "6", "-q"]) == 0
+    return h
+
+
+def footage_copy(w: Path, c: Path) -> None:
+    shutil.copytree(w / "h" / "hmc", c / "foot", ignore=shutil.ignore_patterns("calib"))
+
+
+def images_copy(w: Path, c: Path) -> None:
+    shutil.copytree(w / "h" / "hmc" / "calib", c / "imgs")
+
+
+def same_view_six_times(w: Path, c: Path) -> None:
+    (c / "imgs").mkdir()
+    for i in range(1, 7):
+        for side in ("left", "right"):
+            shutil.copy(w / "h" / "hmc" / "calib" / f"{side}02.png", c / "imgs" / f"{side}0{i}.png")
+
+
+def shrink_image(rel: str):
+    def f(w: Path, c: Path) -> None:
+        import cv2
+
+        img = cv2.imread(str(c / rel), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(c / rel), cv2.resize(img, (320, 240)))
+    return f
+
+
+H = f"{W}/h"
+TRKH = ["track", f"{C}/foot", "--calib", f"{H}/hmc/cameras_true.json", "--markers", f"{H}/markers.csv", "--out",
+        f"{C}/out.csv"]
+CALH = ["calibrate", f"{C}/imgs", "--board", "chessboard:9x6:12", "--fisheye", "--out", f"{C}/out.json"]
+HMC_CASES = [
+    Case("calibrate-same-view-six-times", CALH, 2, "a copy adds nothing", same_view_six_times, ("out.json",)),
+    Case("calibrate-left-image-smaller", CALH, 2, "left02.png: image is 320x240",
+         chain(images_copy, shrink_image("imgs/left02.png")), ("out.json",)),
+    Case("calibrate-out-inside-the-images", [*CALH[:-1], f"{C}/imgs/left01.png"], 2, "inside the input folder",
+         images_copy, ()),
+    Case("track-out-inside-the-footage", [*TRKH[:-1], f"{C}/foot/b.csv"], 2, "inside the input folder",
+         footage_copy, ("foot/b.csv",)),
+    Case("track-image-undecodable", TRKH, 2, "000002.png", chain(footage_copy, write("foot/cam1/000002.png", "junk")),
+         ("out.csv",)),
+    Case("track-image-empty", TRKH, 2, "unreadable image", chain(footage_copy, write("foot/cam0/000001.png", b"")),
+         ("out.csv",)),
+    Case("track-image-smaller", TRKH, 2, "image is 320x240", chain(footage_copy, shrink_image("foot/cam0/000003.png")),
+         ("out.csv",)),
+    *[Case(f"track-labels-{name}", [*TRKH, "--labels", f"{C}/l.csv"], 2, says,
+           chain(footage_copy, write("l.csv", text)), ("out.csv",)) for name, text, says in (
+        ("empty", "", "l.csv: label file is empty"),
+        ("header-only", "camera,x,y,marker\n", "no rows"),
+        ("text-in-y", "camera,x,y,marker\n0,100,left,forehead_L_01\n", "l.csv:2, marker 'forehead_L_01'"),
+        ("nan-x", "camera,x,y,marker\n0,nan,3,forehead_L_01\n", "non-finite x"),
+        ("camera-2", "camera,x,y,marker\n2,100,3,forehead_L_01\n", "camera must be 0 or 1"))],
+    *[Case(f"track-helmet-{name}", [*TRKH, "--helmet", f"{C}/hm.csv"], 2, says,
+           chain(footage_copy, write("hm.csv", text)), ("out.csv",)) for name, text, says in (
+        ("empty", "", "helmet marker file is empty"),
+        ("text", "name,x,y,z\nh1,far,0,0\nh2,1,0,0\nh3,0,1,0\nh4,0,0,1\n", "hm.csv:2, marker 'h1'"),
+        ("three", "name,x,y,z\nh1,0,0,0\nh2,1,0,0\nh3,0,1,0\n", "at least 4"))],
+    Case("track-markers-text-in-x", [*TRKH[:5], f"{C}/m.csv", *TRKH[6:]], 2, "m.csv:5",
+         chain(footage_copy, lambda w, c: pd.read_csv(w / "h" / "markers.csv", dtype=str).assign(
+             x=lambda d: d.x.where(d.index != 3, "left")).to_csv(c / "m.csv", index=False)), ("out.csv",)),
+]
+
+
+@pytest.mark.parametrize("case", HMC_CASES, ids=[c.id for c in HMC_CASES])
+def test_bad_capture_input(case: Case, hmc: Path, world: Path, tmp_path: Path, capsys) -> None:
+    test_bad_input(case, world, tmp_path, capsys)
+
+
+def test_csv_with_a_byte_order_mark_is_read(world: Path, tmp_path: Path, capsys) -> None:
+    """Excel's "CSV UTF-8" starts the file with a byte-order mark: bundles and marker files read as without."""
+    for name in ("bundles.csv", "markers.csv"):
+        (tmp_path / name).write_bytes(b"\xef\xbb\xbf" + (world / "s" / name).read_bytes())
+    assert run(["build", str(world / "s" / "dataset"), "--markers", str(tmp_path / "markers.csv"), "--out",
+                str(tmp_path / "idx"), "-q"], capsys)[0] == 0
+    code, _, err = run(["reconstruct", str(tmp_path / "idx"), "--bundles", str(tmp_path / "bundles.csv"), "--out",
+                        str(tmp_path / "rec"), "-q"], capsys)
+    assert code == 0, err
+    ref = np.load(world / "rec" / "meshes.npz")["vertices"]
+    assert np.array_equal(np.load(tmp_path / "rec" / "meshes.npz")["vertices"], ref)
 
 
 # ----------------------------------------------------------------------------------------------- re-runs

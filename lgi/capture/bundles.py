@@ -45,14 +45,23 @@ class Bundles:
         return np.all(np.isfinite(self.positions), axis=2)
 
 
+def _show(value: object) -> str:
+    """A cell as the user wrote it: text quoted, numbers plain (not numpy's ``np.float64(0.5)``)."""
+    return repr(value) if isinstance(value, str) else str(value.item() if hasattr(value, "item") else value)
+
+
 def _row_ref(path: Path, df: pd.DataFrame, r: int, is_csv: bool) -> dict:
     frame = df["frame"].iloc[r] if "frame" in df else None
     try:
         frame = int(frame)
     except (TypeError, ValueError):
         frame = None
-    return {"path": path, "line": r + 2 if is_csv else None, "frame": frame,
-            "marker": None if "marker" not in df else str(df["marker"].iloc[r])}
+    marker = df["marker"].iloc[r] if "marker" in df else None
+    if marker is None or (isinstance(marker, float) and np.isnan(marker)) or str(marker).strip() == "":
+        marker = None
+    # Parquet has no lines: its row (0-based, as pandas and pyarrow count them) is given instead.
+    where = {"line": r + 2} if is_csv else {"path": f"{path} (row {r})"}
+    return {"path": path, "frame": frame, "marker": None if marker is None else str(marker), **where}
 
 
 #: Frame numbers above this are refused (they would not survive the int64 and float conversions downstream).
@@ -104,26 +113,36 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None)
         df = _read_csv_typed(path) if is_csv else None
         if is_csv and df is None:
             df = pd.read_csv(path, dtype={"marker": str, "frame": str, "x": str, "y": str, "z": str},
-                             keep_default_na=False)
+                             keep_default_na=False, encoding="utf-8-sig")
         elif not is_csv:
             df = pd.read_parquet(path)
     except Exception as exc:  # pandas raises many kinds for unreadable files
         raise InputError(f"cannot read bundles file: {exc}", path=path) from None
+    df.columns = [str(c).strip() for c in df.columns]
     missing = [c for c in COLUMNS if c not in df.columns]
     if missing:
         raise InputError(f"missing columns {missing} (need {COLUMNS})", path=path)
     if df.empty:
         raise InputError("bundles file has no rows", path=path)
+    for col in ("frame", "x", "y", "z"):
+        # A typed table (Parquet) can hold true/false, which pandas would take as 0/1.
+        if pd.api.types.is_bool_dtype(df[col]) or (df[col].dtype == object and
+                                                   df[col].map(lambda v: isinstance(v, bool)).any()):
+            raise InputError(f"column {col!r} holds true/false values, not numbers", path=path)
+    no_name = df["marker"].isna().to_numpy() | (df["marker"].astype(str).str.strip() == "").to_numpy()
+    if no_name.any():
+        r = int(np.flatnonzero(no_name)[0])
+        raise InputError("row without a marker name", **_row_ref(path, df, r, is_csv))
 
     frame_num = pd.to_numeric(df["frame"], errors="coerce").to_numpy(float)
     bad = ~np.isfinite(frame_num) | (frame_num != np.round(frame_num))
     if bad.any():
         r = int(np.flatnonzero(bad)[0])
-        raise InputError(f"frame {df['frame'].iloc[r]!r} is not an integer", **_row_ref(path, df, r, is_csv))
+        raise InputError(f"frame {_show(df['frame'].iloc[r])} is not an integer", **_row_ref(path, df, r, is_csv))
     big = np.abs(frame_num) > MAX_FRAME
     if big.any():
         r = int(np.flatnonzero(big)[0])
-        raise InputError(f"frame {df['frame'].iloc[r]!r} is outside -{MAX_FRAME}..{MAX_FRAME}",
+        raise InputError(f"frame {_show(df['frame'].iloc[r])} is outside -{MAX_FRAME}..{MAX_FRAME}",
                          **_row_ref(path, df, r, is_csv))
     df["frame"] = frame_num.astype(np.int64)
 
@@ -137,7 +156,7 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None)
             badnum = num.isna() & ~empty
             if badnum.any():
                 r = int(np.flatnonzero(badnum.to_numpy())[0])
-                raise InputError(f"non-numeric {col} value {raw.iloc[r]!r}", **_row_ref(path, df, r, is_csv))
+                raise InputError(f"non-numeric {col} value {_show(raw.iloc[r])}", **_row_ref(path, df, r, is_csv))
             xyz[:, k] = num.to_numpy(float)
         else:
             xyz[:, k] = pd.to_numeric(raw, errors="coerce").to_numpy(float)

@@ -146,13 +146,15 @@ def pair_images(folder: str | os.PathLike[str], strict: bool = False) -> list[tu
     return pairs
 
 
-def read_gray(path: Path) -> np.ndarray:
-    """(H, W) uint8 image; :class:`InputError` naming the file if it cannot be read."""
+def read_gray(path: Path, frame: int | None = None) -> np.ndarray:
+    """(H, W) uint8 image; :class:`InputError` naming the file (and ``frame``) if it cannot be read."""
     import cv2
 
+    # OpenCV would also print its own warning for an unreadable file, before lgi's message.
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if img is None:
-        raise InputError("unreadable image", path=path)
+        raise InputError("unreadable image (missing, not an image, or damaged)", path=path, frame=frame)
     return img
 
 
@@ -300,8 +302,10 @@ def calibrate_views(views: dict[str, View], size: tuple[int, int], model: str = 
     rejected = dict(rejected or {})
     names = sorted(views)
     if len(names) < min_views:
-        raise InputError(f"the board was found in {len(names)} image pairs, at least {min_views} are needed "
-                         f"(rejected: {rejected})", path=source)
+        shown = "; ".join(f"{k}: {v}" for k, v in list(rejected.items())[:3])
+        more = f"; and {len(rejected) - 3} more" if len(rejected) > 3 else ""
+        raise InputError(f"{len(names)} usable image pair{'s' if len(names) != 1 else ''}, at least {min_views} are "
+                         f"needed" + (f" (rejected: {shown}{more})" if rejected else ""), path=source)
 
     def calibrate(use: list[str]) -> list:
         obj = [views[n][0] for n in use]
@@ -365,8 +369,14 @@ def _detect_pairs(pairs, board: Board, cameras=None) -> tuple[dict[str, View], d
     for name, lp, rp in pairs:
         imgs = [read_gray(lp), read_gray(rp)]
         sl, sr = (imgs[0].shape[1], imgs[0].shape[0]), (imgs[1].shape[1], imgs[1].shape[0])
-        if sl != sr or (size is not None and sl != size):
-            raise InputError(f"image sizes differ: {sl} and {sr} (expected {size or sl})", path=rp)
+        if size is not None:
+            for path, s in ((lp, sl), (rp, sr)):
+                if s != size:
+                    raise InputError(f"image is {s[0]}x{s[1]}, the images before it are {size[0]}x{size[1]}",
+                                     path=path)
+        elif sl != sr:
+            raise InputError(f"image is {sr[0]}x{sr[1]}, its left partner {Path(lp).name} is {sl[0]}x{sl[1]}",
+                             path=rp)
         size = sl
         found = [detect_board(im, board, None if cameras is None else cameras[k]) for k, im in enumerate(imgs)]
         if found[0] is None or found[1] is None:
@@ -375,6 +385,14 @@ def _detect_pairs(pairs, board: Board, cameras=None) -> tuple[dict[str, View], d
         common, i0, i1 = np.intersect1d(found[0][0], found[1][0], return_indices=True)
         if len(common) < 6:
             rejected[name] = f"only {len(common)} corners seen by both cameras (at least 6 needed)"
+            continue
+        # A copy of an earlier view (the same file twice, or a frame grabbed twice from a still board) adds no
+        # constraint but makes the fit look better determined than it is.
+        copy = next((other for other, v in views.items() if len(v[0]) == len(common)
+                     and np.array_equal(v[0], obj_all[common]) and np.abs(v[1] - found[0][1][i0]).max() < 0.5
+                     and np.abs(v[2] - found[1][1][i1]).max() < 0.5), None)
+        if copy is not None:
+            rejected[name] = f"the same board position as {copy} (within 0.5 px): a copy adds nothing"
             continue
         views[name] = (obj_all[common], found[0][1][i0], found[1][1][i1])
     return views, rejected, size

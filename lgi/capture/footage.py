@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,11 +39,9 @@ class ShotTracks:
 
 
 def _detect(path: Path, frame: int, size: tuple[int, int] | None, options: DotOptions) -> tuple[Dots, np.ndarray]:
-    import cv2
+    from lgi.capture.calibration import read_gray
 
-    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise InputError("unreadable image", path=path, frame=frame)
+    img = read_gray(path, frame)
     if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
         raise InputError(f"image is {img.shape[1]}x{img.shape[0]}, the calibration is {size[0]}x{size[1]}",
                          path=path, frame=frame)
@@ -76,14 +75,11 @@ def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots
     Each labelled point takes the nearest detection within ``max_px``; a label with none is left out with a
     warning, unless most are (then the file is refused). Returns (M, 2, 2), NaN where unlabelled.
     """
-    try:
-        df = pd.read_csv(path)
-    except (OSError, pd.errors.ParserError, UnicodeDecodeError) as e:
-        raise InputError(f"cannot read the label file: {e}", path=path) from e
-    missing = {"camera", "x", "y", "marker"} - set(df.columns)
-    if missing:
-        raise InputError(f"label file needs columns camera,x,y,marker; missing {sorted(missing)}", path=path)
-    import sys
+    import logging
+
+    from lgi.io.csvio import read_table
+
+    df = read_table(path, "label file", ("camera", "x", "y", "marker"), numeric=("camera", "x", "y"), key="marker")
 
     index = {n: i for i, n in enumerate(names)}
     uv = np.full((len(names), 2, 2), np.nan)
@@ -106,22 +102,16 @@ def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots
         raise InputError(f"{len(misses)} of {len(df)} labels have no detected dot near them (wrong reference frame "
                          f"or shot?); first: {misses[0]}", path=path)
     for m in misses:
-        print(f"warning: {m} (left unlabelled)", file=sys.stderr)
+        logging.getLogger(__name__).warning("%s (left unlabelled)", m)
     return uv
 
 
 def read_helmet(path: str | os.PathLike[str]) -> np.ndarray:
     """Helmet marker positions (H, 3), mm in the calibration's frame, from a CSV ``name,x,y,z``."""
-    try:
-        df = pd.read_csv(path)
-    except (OSError, pd.errors.ParserError, UnicodeDecodeError) as e:
-        raise InputError(f"cannot read the helmet marker file: {e}", path=path) from e
-    if not {"x", "y", "z"} <= set(df.columns):
-        raise InputError("helmet marker file needs columns name,x,y,z (mm)", path=path)
+    from lgi.io.csvio import read_table
+
+    df = read_table(path, "helmet marker file", ("name", "x", "y", "z"), numeric=("x", "y", "z"), key="name")
     pts = df[["x", "y", "z"]].to_numpy(np.float64)
-    bad = np.flatnonzero(~np.all(np.isfinite(pts), axis=1))
-    if len(bad):
-        raise InputError("non-numeric position", path=path, line=int(bad[0]) + 2)
     if len(pts) < 4:
         raise InputError(f"{len(pts)} helmet markers, at least 4 are needed", path=path)
     return pts
@@ -146,9 +136,22 @@ def refine_rig(rig: StereoRig, helmet: np.ndarray, dots: list[tuple[Dots, Dots]]
             j = np.argmin(d, axis=1)
             hit = d[np.arange(len(helmet)), j] <= gate_px
             per[f, hit] = xy[j[hit]]
-        with np.errstate(all="ignore"):
-            obs.append(np.nanmedian(per, axis=0) if np.isfinite(per).any() else per[0])
-    return rig.refine_with_points(helmet, obs[0], obs[1])
+        with warnings.catch_warnings():  # a marker never found is NaN, and counted below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            obs.append(np.nanmedian(per, axis=0))
+    for c in (0, 1):
+        seen = int(np.isfinite(obs[c]).all(1).sum())
+        if seen < 4:
+            raise InputError(f"only {seen} of {len(helmet)} helmet markers were found in camera {c} within "
+                             f"{gate_px:g} px of where the calibration projects them (at least 4 are needed): the "
+                             "calibration is too far off, or the helmet file is not this rig's")
+    refined, rms = rig.refine_with_points(helmet, obs[0], obs[1])
+    after = rms[:, 1]
+    if not np.all(np.isfinite(after)) or np.any(after > np.maximum(5.0, 2.0 * rms[:, 0])):
+        raise InputError("refining the rig from the helmet markers failed (reprojection RMS per camera "
+                         f"{rms[0, 0]:.2f}/{rms[1, 0]:.2f} px before, {after[0]:.2f}/{after[1]:.2f} px after): the "
+                         "calibration is too far off for them; re-calibrate, or track without --helmet")
+    return refined, rms
 
 
 def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.ndarray, names: list[str],
@@ -212,10 +215,13 @@ def neutral_layout(markers: str | os.PathLike[str], dataset: str | os.PathLike[s
         ds = ShapeDataset.load(dataset)
         layout = read_layout(markers, ds.triangles)
         return layout.names, layout.evaluate(ds.neutral[None].astype(np.float64))[0], ds.units
+    from lgi.io.csvio import read_table
+
     layout = read_layout(markers)
-    df = pd.read_csv(markers)
-    if not {"x", "y", "z"} <= set(df.columns) or df[["x", "y", "z"]].isna().any().any():
+    head = read_table(markers, "marker file", ("name",), need_rows=False)
+    if not {"x", "y", "z"} <= set(head.columns):
         raise InputError("the marker file has no neutral positions (x, y, z): pass a dataset", path=markers)
+    df = read_table(markers, "marker file", ("name", "x", "y", "z"), numeric=("x", "y", "z"), key="name")
     return layout.names, df[["x", "y", "z"]].to_numpy(np.float64), units
 
 

@@ -126,7 +126,7 @@ def read_layout(path: str | os.PathLike[str], triangles: np.ndarray | None = Non
     if not path.is_file():
         raise InputError("marker layout file not found", path=path)
     try:
-        df = pd.read_csv(path, dtype={"name": str})
+        df = pd.read_csv(path, dtype={"name": str}, encoding="utf-8-sig")
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot parse marker CSV: {exc}", path=path) from None
     missing = [c for c in COLUMNS if c not in df.columns]

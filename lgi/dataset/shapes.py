@@ -30,6 +30,9 @@ from lgi.io.npz import save_npz
 
 FORMAT = "lgi-shape-dataset"
 FORMAT_VERSION = 1
+#: What a dataset directory holds (with the augment job's report): a folder holding anything else is not
+#: replaced by a dataset.
+ENTRIES = ("manifest.json", "mesh.npz", "deltas.npy", "augmentation.csv")
 
 
 @dataclass
@@ -202,7 +205,7 @@ class ShapeDataset:
         """
         directory = Path(directory)
         digest = self.content_hash()
-        with atomic_dir(directory) as tmp:
+        with atomic_dir(directory, ENTRIES, "lgi dataset") as tmp:
             arrays = {
                 "neutral": self.neutral,
                 "face_vertices": np.asarray(self.face_vertices, np.int32),
@@ -257,6 +260,14 @@ class ShapeDataset:
         if missing:
             raise InputError(f"manifest lacks {missing} (a damaged dataset: re-import it)", path=mpath)
         arrays = load_npz(directory / "mesh.npz", required=("neutral", "face_vertices", "face_offsets"))
+        from lgi.io.arrays import check_kind, check_mesh
+
+        check_kind(arrays, directory / "mesh.npz", ints=("face_material",), floats=("neutral",))
+        if arrays["neutral"].shape != (manifest["n_vertices"], 3):
+            raise InputError(f"neutral has shape {arrays['neutral'].shape}, the manifest says "
+                             f"({manifest['n_vertices']}, 3) (a damaged dataset: re-import it)",
+                             path=directory / "mesh.npz")
+        check_mesh(arrays, manifest["n_vertices"], directory / "mesh.npz")
         deltas = load_npy(directory / "deltas.npy", mmap)
         if not np.all(np.isfinite(arrays["neutral"])) or not np.all(np.isfinite(deltas)):
             raise InputError("non-finite positions or displacements (a damaged dataset: re-import it)",

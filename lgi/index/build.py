@@ -40,6 +40,9 @@ from lgi.units import MM_PER_CM
 
 FORMAT = "lgi-index"
 FORMAT_VERSION = 1
+#: What an index directory holds (arrays, manifest, timings, CSV reports): a folder holding anything else is
+#: not replaced by an index.
+ENTRIES = ("manifest.json", "index.npz", "deltas.npy", "build.json", "*.csv")
 
 
 @dataclass
@@ -136,7 +139,7 @@ class LGIIndex:
     # --------------------------------------------------------------- disk
     def save(self, directory: str | os.PathLike[str], reports: dict[str, pd.DataFrame] | None = None) -> Path:
         directory = Path(directory)
-        with atomic_dir(directory) as tmp:
+        with atomic_dir(directory, ENTRIES, "lgi index") as tmp:
             save_npz(tmp / "index.npz", **self.arrays)
             np.save(tmp / "deltas.npy", self.deltas)
             for name, df in (reports or {}).items():
@@ -149,6 +152,8 @@ class LGIIndex:
 
     @classmethod
     def load(cls, directory: str | os.PathLike[str], mmap: bool = True) -> LGIIndex:
+        """Read an index directory; a damaged one (missing or inconsistent files, arrays of the wrong kind, shape
+        or range) is refused with :class:`~lgi.errors.InputError` naming the file."""
         from lgi.io.manifest import read_manifest
         from lgi.io.npz import load_npy, load_npz
 
@@ -168,15 +173,83 @@ class LGIIndex:
             raise InputError("manifest and index.npz disagree on the markers (a damaged index: rebuild it)",
                              path=directory)
         for name in ("neutral", "ptab"):
-            if not np.all(np.isfinite(arrays[name])):
+            if arrays[name].dtype.kind in "fiu" and not np.all(np.isfinite(arrays[name])):
                 raise InputError(f"{name} holds non-finite values (built from a bad dataset?)",
                                  path=directory / "index.npz")
+        check_structure(arrays, len(manifest["shapes"]) + 1, directory / "index.npz")
         build = directory / "build.json"
         try:
             timings = json.loads(build.read_text()).get("timings_s", {}) if build.is_file() else {}
         except (json.JSONDecodeError, AttributeError):
             timings = {}
         return cls(manifest, arrays, deltas, timings)
+
+
+_INTS = ("dim", "pt_off", "pt_shape", "alias_off", "class_off", "alias_shape", "sx", "sx_off", "sx_kind", "hull",
+         "hull_off", "grid_dims", "cell_off", "cell_start", "cell_items", "w_indptr", "w_indices", "nn_owner",
+         "nb_off", "nb_idx", "corr_indptr", "corr_indices", "marker_triangle", "marker_vertices")
+_FLOATS = ("origin", "basis", "pts", "tinv", "snap_radius", "grid_lo", "grid_h", "ptab", "w_data", "corr_data",
+           "neutral", "marker_weights")
+
+
+def check_structure(a: dict[str, np.ndarray], n_shapes: int, path: Path) -> None:
+    """Refuse index arrays the compiled kernels would read out of bounds: kinds, shapes, offsets and the range
+    of every index array (each marker's simplices, hull and grid cells pointing at its own points and
+    simplices). ``n_shapes`` counts the neutral. Cost: a few passes over the arrays (milliseconds)."""
+    from lgi.io.arrays import check_grouped, check_kind, check_mesh, check_offsets, check_range
+
+    check_kind(a, path, _INTS, _FLOATS)
+    present = set(a)
+    if "nn_distance" in present and (a["nn_distance"].dtype.kind != "f" or np.isnan(a["nn_distance"]).any()):
+        # inf is a vertex no bundle's region reaches; NaN or another kind is damage
+        raise InputError("nn_distance holds NaN or non-float values (a damaged index: rebuild it)", path=path)
+    n_v = len(a["neutral"])
+    m = len(a["marker_triangle"])
+    if a["ptab"].shape != (n_shapes, m, 3):
+        raise InputError(f"ptab has shape {a['ptab'].shape}, expected ({n_shapes}, {m}, 3) (a damaged index: "
+                         "rebuild it)", path=path)
+    check_offsets(a["w_indptr"], len(a.get("w_indices", [])), "w_indptr", path, n_v)
+    if "w_indices" in present:
+        check_range(a["w_indices"], 0, m, "w_indices", path)
+    if {"face_vertices", "face_offsets"} <= present:
+        check_mesh(a, n_v, path)
+    if "marker_vertices" in present:
+        check_range(a["marker_vertices"], 0, n_v, "marker_vertices", path)
+    if "nn_owner" in present:
+        check_range(a["nn_owner"], 0, m, "nn_owner", path, allow=-1)  # -1: no bundle's region
+    if "pt_off" not in present:
+        return
+    n_p = len(a["pts"])
+    check_offsets(a["pt_off"], n_p, "pt_off", path, m)
+    check_range(a["pt_shape"], 0, n_shapes, "pt_shape", path)
+    check_range(a["dim"], 1, 4, "dim", path)
+    per_marker = np.arange(m)
+    k = len(a["sx"])
+    check_offsets(a["sx_off"], k, "sx_off", path, m)
+    check_grouped(a["sx"], np.repeat(per_marker, np.diff(a["sx_off"])), a["pt_off"], "sx", path, allow=-1)
+    check_offsets(a["hull_off"], len(a["hull"]), "hull_off", path, m)
+    check_grouped(a["hull"], np.repeat(per_marker, np.diff(a["hull_off"])), a["pt_off"], "hull", path, allow=-1)
+    cells = np.prod(a["grid_dims"], axis=1)
+    check_offsets(a["cell_off"], int(cells.sum()), "cell_off", path, m)
+    if np.any(np.diff(a["cell_off"]) != cells):
+        raise InputError("grid_dims and cell_off disagree (a damaged index: rebuild it)", path=path)
+    check_offsets(a["cell_start"], len(a["cell_items"]), "cell_start", path, int(cells.sum()))
+    cell_marker = np.repeat(per_marker, cells)
+    check_grouped(a["cell_items"], np.repeat(cell_marker, np.diff(a["cell_start"])), a["sx_off"], "cell_items", path)
+    check_offsets(a["alias_off"], len(a["class_off"]) - 1, "alias_off", path, n_p)
+    check_offsets(a["class_off"], len(a["alias_shape"]), "class_off", path)
+    check_range(a["alias_shape"], 0, n_shapes, "alias_shape", path)
+    for off, idx, n in (("nb_off", "nb_idx", m), ("corr_indptr", "corr_indices", n_v)):
+        if off in present:
+            check_offsets(a[off], len(a[idx]), off, path, m)
+            check_range(a[idx], 0, n, idx, path)
+    shapes = {"tinv": (k, 3, 3), "sx_kind": (k,), "sx": (k, 4), "origin": (m, 3), "basis": (m, 3, 3),
+              "snap_radius": (m,), "grid_lo": (m, 3), "grid_h": (m,), "grid_dims": (m, 3), "dim": (m,),
+              "pts": (n_p, 3), "pt_shape": (n_p,)}
+    for name, shape in shapes.items():
+        if name in present and a[name].shape != shape:
+            raise InputError(f"{name} has shape {a[name].shape}, expected {shape} (a damaged index: rebuild it)",
+                             path=path)
 
 
 def _alias_classes(aliases: np.ndarray, tab: np.ndarray, neighbours: np.ndarray, tol: float) -> list[list[int]]:

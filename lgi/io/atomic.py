@@ -8,11 +8,13 @@ temporaries of processes that no longer exist (a killed run's leftovers), never 
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 from lgi.errors import InputError
 
@@ -74,9 +76,30 @@ def _fsync_tree(path: Path) -> None:
             os.close(fd)
 
 
-def check_output(path: str | os.PathLike[str], kind: str = "dir") -> None:
-    """Refuse, before any work, an output path that cannot become a ``kind`` ("dir" or "file") output: the other
-    kind is there, or the nearest existing folder is not writable."""
+def _ours(name: str, owned: tuple[str, ...]) -> bool:
+    """An entry an output directory of this kind may hold: one of its ``owned`` names (fnmatch patterns) or a
+    temporary of an lgi run."""
+    if any(fnmatch.fnmatchcase(name, pat) for pat in owned):
+        return True
+    return name.startswith(".") and any(t in name for t in (".tmp-", ".old-", ".lgi-staging-", ".chunks-"))
+
+
+def _resolved(p: str | os.PathLike[str]) -> Path:
+    return Path(os.path.abspath(Path(p).expanduser())).resolve()
+
+
+def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Iterable[Any] = (),
+                 read_folders: Iterable[Any] = (), owned: tuple[str, ...] | None = None,
+                 what: str = "lgi output") -> None:
+    """Refuse, before any work, an output path that cannot become a ``kind`` ("dir" or "file") output.
+
+    Refused: the other kind is there; the nearest existing folder is not writable; the output is one of the
+    run's ``inputs`` or contains one (it would be replaced by the output); the output is inside one of
+    ``read_folders`` (folders the run reads as a whole, such as the calibration images: an output there would
+    overwrite what it reads, or be read as input next time); and, for a directory replaced as a
+    whole (``owned`` given: the fnmatch patterns of what ``what`` holds), an existing directory holding anything
+    else (a folder that is not an earlier output of this kind is never wiped).
+    """
     p = Path(path)
     if p.exists() or p.is_symlink():
         if kind == "dir" and not p.is_dir():
@@ -90,17 +113,48 @@ def check_output(path: str | os.PathLike[str], kind: str = "dir") -> None:
         raise InputError("cannot create the output: a file is in its path", path=parent)
     if not os.access(parent, os.W_OK | os.X_OK):
         raise InputError("the output cannot be written here (permission denied)", path=parent)
+    target = _resolved(p)
+    for inp in inputs:
+        if inp is None or inp == "":
+            continue
+        src = _resolved(inp)
+        if src == target or target in src.parents:
+            raise InputError(f"the {what} would replace this run's input {inp}: choose another path", path=p)
+    for folder in read_folders:
+        if folder and _resolved(folder) in target.parents:
+            raise InputError(f"the {what} is inside the input folder {folder}, which this run reads as a whole: "
+                             "choose a path outside it", path=p)
+    if owned is not None and kind == "dir" and p.is_dir():
+        foreign = sorted(e.name for e in p.iterdir() if not _ours(e.name, owned))
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+            raise InputError(f"the folder exists and holds entries that are not an {what}'s "
+                             f"({shown}); lgi replaces this output as a whole, so it will not write here: remove "
+                             "them or choose another path", path=p)
+
+
+def check_distinct(outputs: dict[str, Any]) -> None:
+    """Refuse two outputs of one run (option name -> path; ``None`` for one not asked for) that are the same path
+    or one inside the other: one would silently replace the other."""
+    given = [(k, _resolved(v)) for k, v in outputs.items() if v]
+    for i, (ka, a) in enumerate(given):
+        for kb, b in given[i + 1:]:
+            if a == b or a in b.parents or b in a.parents:
+                raise InputError(f"{ka} and {kb} are the same path (or one is inside the other)",
+                                 path=outputs[kb])
 
 
 @contextlib.contextmanager
-def atomic_dir(final: str | os.PathLike[str]) -> Iterator[Path]:
+def atomic_dir(final: str | os.PathLike[str], owned: tuple[str, ...] | None = None,
+               what: str = "lgi output") -> Iterator[Path]:
     """Yield a temporary directory that replaces ``final`` when the block exits without error.
 
     An existing ``final`` is replaced as a whole (moved aside, then removed), so readers never see a
     mix of old and new files. On error the temporary directory is removed and ``final`` is untouched.
+    ``owned``/``what``: see :func:`check_output` (an existing folder holding anything else is refused).
     """
     final = Path(final)
-    check_output(final, "dir")
+    check_output(final, "dir", owned=owned, what=what)
     final.parent.mkdir(parents=True, exist_ok=True)
     for prefix in (f".{final.name}.tmp-", f".{final.name}.old-"):
         sweep(final.parent, prefix)
@@ -157,6 +211,7 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...]) -> Iterator
     """
     out = Path(out)
     check_output(out, "dir")
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     for prefix in (".lgi-staging-", *(f".{name}.old-" for name in owned)):
         sweep(out, prefix)
@@ -185,4 +240,7 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...]) -> Iterator
         stage.rmdir()
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
+        if created:  # a failed first run leaves no empty folder behind either
+            with contextlib.suppress(OSError):
+                out.rmdir()
         raise

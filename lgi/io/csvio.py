@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 import pandas as pd
 
 
@@ -20,3 +21,62 @@ def write_csv(table: pd.DataFrame, path: str | os.PathLike[str]) -> None:
 
     arrow = pa.Table.from_pandas(table, preserve_index=False)
     pacsv.write_csv(arrow, os.fspath(path), write_options=pacsv.WriteOptions(quoting_style="needed"))
+
+
+def read_table(path: str | os.PathLike[str], what: str, columns: tuple[str, ...], numeric: tuple[str, ...] = (),
+               key: str | None = None, allow_missing: tuple[str, ...] = (), need_rows: bool = True) -> pd.DataFrame:
+    """Read a user's CSV table, refusing what is wrong with the file, line and row named.
+
+    Parameters
+    ----------
+    what : str
+        The table's name in messages ("helmet marker file").
+    columns : tuple of str
+        Required columns (header names, surrounding spaces and a UTF-8 byte-order mark ignored).
+    numeric : tuple of str
+        Columns that must hold finite numbers (returned as float64).
+    key : str, optional
+        A column naming the row's marker, given in messages.
+    allow_missing : tuple of str
+        Numeric columns whose empty cells become NaN instead of an error.
+
+    Returns
+    -------
+    DataFrame, numeric columns float64, the others str.
+    """
+    from lgi.errors import InputError
+
+    if not os.path.isfile(path):
+        raise InputError(f"{what} not found", path=path)
+    try:
+        df = pd.read_csv(path, dtype=str, keep_default_na=False, encoding="utf-8-sig", skipinitialspace=True)
+    except pd.errors.EmptyDataError:
+        raise InputError(f"{what} is empty (no header line {','.join(columns)})", path=path) from None
+    except (pd.errors.ParserError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"cannot read the {what} as CSV: {exc}", path=path) from None
+    df.columns = [str(c).strip() for c in df.columns]
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise InputError(f"missing columns {missing} (the {what} needs {','.join(columns)})", path=path)
+    if need_rows and df.empty:
+        raise InputError(f"{what} has a header but no rows", path=path)
+
+    def ref(r: int) -> dict:
+        out = {"path": path, "line": r + 2}
+        if key is not None and key in df.columns:
+            out["marker"] = str(df[key].iloc[r])
+        return out
+
+    for col in numeric:
+        text = df[col].str.strip()
+        num = pd.to_numeric(text, errors="coerce").to_numpy(np.float64)
+        blank = text.isin(["", "NA"]).to_numpy()
+        empty = blank | text.str.lower().isin(["nan"]).to_numpy()
+        bad = ~np.isfinite(num) & ~(empty & (col in allow_missing))
+        if bad.any():
+            r = int(np.flatnonzero(bad)[0])
+            if blank[r]:
+                raise InputError(f"missing {col} value", **ref(r))
+            raise InputError(f"non-numeric or non-finite {col} value {df[col].iloc[r]!r}", **ref(r))
+        df[col] = np.where(empty, np.nan, num)
+    return df

@@ -24,8 +24,8 @@ class BenchOptions:
     no_ict: bool = False
 
     def __post_init__(self) -> None:
-        if isinstance(self.frames, bool) or not isinstance(self.frames, int) or self.frames < 1:
-            raise InputError(f"--frames must be a whole number >= 1, not {self.frames!r}")
+        if isinstance(self.frames, bool) or not isinstance(self.frames, int) or not 1 <= self.frames <= 100_000:
+            raise InputError(f"--frames must be a whole number in [1, 100000], not {self.frames!r}")
         if not isinstance(self.noise, (int, float)) or not math.isfinite(self.noise) or self.noise < 0:
             raise InputError(f"--noise must be a number of mm >= 0, not {self.noise}")
 
@@ -46,8 +46,7 @@ def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> di
     from lgi.io.atomic import check_output
 
     out = Path(out)
-    check_output(out, "dir")
-    out.mkdir(parents=True, exist_ok=True)
+    check_output(out, "dir", inputs=[o.ict])
     t0 = time.perf_counter()
     names = ["synthetic"]
     ict = Path(o.ict) if o.ict else shared_data("ict-facekit")
@@ -55,10 +54,13 @@ def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> di
     if o.no_ict:
         skipped = "--no-ict"
     elif not (ict / "generic_neutral_mesh.obj").is_file():
+        if o.ict:  # asked for by name: not finding it is an error, not a reason to skip
+            raise InputError("not an ICT FaceKit folder (no generic_neutral_mesh.obj in it)", path=ict)
         skipped = f"ICT FaceKit not found at {ict}"
         log(f"{skipped}: the ICT sets are skipped")
     else:
         names += ["ict_jaw", "ict_heldout", "ict_combination"]
+    out.mkdir(parents=True, exist_ok=True)
     sets = {}
     for name in names:
         bs = (benchsets.synthetic_set(frames=o.frames) if name == "synthetic"

@@ -97,14 +97,40 @@ def stabilise_shapes(raw, options: ImportOptions):
 def import_dataset(shapes_dir: str | Path, out: str | Path, options: ImportOptions | None = None,
                    show_progress: bool = False) -> dict[str, Any]:
     """``lgi import``: read, stabilise and save a dataset directory; returns a summary (:func:`import_report`)."""
+    from lgi.dataset.shapes import ENTRIES
     from lgi.io.atomic import check_output
 
     options = options or ImportOptions()
-    check_output(out, "dir")
+    check_output(out, "dir", inputs=[shapes_dir, options.neutral, options.identity], read_folders=[shapes_dir],
+                 owned=ENTRIES, what="lgi dataset")
     t0 = time.perf_counter()
     ds = stabilise_shapes(read_shapes(shapes_dir, options, show_progress), options)
     ds.save(out)
     return dataset_summary(ds, out, time.perf_counter() - t0)
+
+
+#: The folders the rebuild publishes in its OUT, and their kinds (:func:`lgi.pipeline.stages.published`).
+REBUILD_OUTPUTS = {"dataset": "dataset", "dataset_augmented": "dataset", "index": "index",
+                   "verification": "verification"}
+
+
+def check_rebuild(shapes_dir: str | Path, out: str | Path, options: ImportOptions, markers: str | Path | None = None,
+                  jaw_rig: str | Path | None = None, cache_dir: str | Path | None = None) -> None:
+    """The rebuild's checks before any work (the rebuild-dataset flow and ``lgi import --flow``): ``out`` and the
+    folders it publishes there (``dataset``, ``dataset_augmented``, ``index``, ``verification``) can be written
+    and replace none of the inputs, and the marker file parses."""
+    from lgi.io.atomic import check_output
+    from lgi.pipeline.stages import published
+
+    inputs = [shapes_dir, options.neutral, options.identity, markers, jaw_rig, cache_dir]
+    check_output(out, "dir")
+    for name, kind in REBUILD_OUTPUTS.items():
+        owned, what = published(kind)
+        check_output(Path(out) / name, "dir", inputs=inputs, read_folders=[shapes_dir], owned=owned, what=what)
+    if markers:
+        from lgi.dataset.markers import read_layout
+
+        read_layout(markers)  # the file itself; against the mesh once the dataset is read
 
 
 def dataset_summary(ds, out: str | Path, seconds: float | None = None) -> dict[str, Any]:
@@ -186,10 +212,10 @@ class AugmentOptions:
         object.__setattr__(self, "orders", orders)
         if not (self.linear or self.simulate):
             raise InputError("choose an augmentation: --linear and/or --simulate")
-        for name, least in (("budget", 1), ("iterations", 1), ("seed", 0)):
+        for name, least, most in (("budget", 1, 100_000), ("iterations", 1, 10_000), ("seed", 0, 2**32 - 1)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
-                raise InputError(f"--{name} must be a whole number >= {least}, not {v!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not least <= v <= most:
+                raise InputError(f"--{name} must be a whole number in [{least}, {most}], not {v!r}")
         if not isinstance(self.thickness, (int, float)) or not math.isfinite(self.thickness) or self.thickness <= 0:
             raise InputError(f"--thickness must be a positive length, not {self.thickness!r}")
         self.requires_map()
@@ -228,7 +254,11 @@ def augment(ds, options: AugmentOptions, rig=None, show_progress: bool = False):
     src = ds.select(include=o.include) if o.include else ds
     if src.n_shapes == 0:
         raise InputError(f"--include {o.include!r} matches no shape")
-    picks = pick_combinations(src.names, o.budget, o.levels, o.orders, o.seed, o.requires_map())
+    requires = o.requires_map()
+    unknown = sorted({n for pair in (requires or {}).items() for n in pair} - set(src.names))
+    if unknown:
+        raise InputError(f"--requires names shapes the dataset does not have: {unknown}")
+    picks = pick_combinations(src.names, o.budget, o.levels, o.orders, o.seed, requires)
     aug = ds
     if o.linear:
         aug = linear_combinations(aug, 0, o.levels, o.orders, o.seed, picks=picks)
@@ -252,10 +282,11 @@ def augment_dataset(dataset_dir: str | Path, out: str | Path, options: AugmentOp
                     show_progress: bool = False) -> dict[str, Any]:
     """``lgi augment``: the augmented dataset saved to ``out`` (with ``markers``, also the per-bundle
     report ``augmentation.csv`` in it); returns a summary (:func:`augment_report`)."""
-    from lgi.dataset.shapes import ShapeDataset
+    from lgi.dataset.shapes import ENTRIES, ShapeDataset
     from lgi.io.atomic import check_output
 
-    check_output(out, "dir")
+    check_output(out, "dir", inputs=[dataset_dir, jaw_rig, markers], read_folders=[dataset_dir], owned=ENTRIES,
+                 what="lgi dataset")
     ds = ShapeDataset.load(dataset_dir)
     rig = None
     if jaw_rig:
@@ -324,8 +355,8 @@ def dataset_bundles(dataset_dir: str | Path, markers: str | Path, out: str | Pat
     from lgi.io.atomic import atomic_file, check_output
 
     out = Path(out)
-    check_output(out, "file")
-    check_output(out.with_name(out.stem + ".shapes.csv"), "file")
+    for path in (out, out.with_name(out.stem + ".shapes.csv")):
+        check_output(path, "file", inputs=[dataset_dir, markers], read_folders=[dataset_dir])
     ds = ShapeDataset.load(dataset_dir)
     if shapes:
         ds = ds.select(include=shapes)

@@ -11,6 +11,9 @@ import numpy as np
 
 from lgi.errors import InputError
 
+#: What a displacement map folder holds: a folder holding anything else is not replaced by one.
+EXR_ENTRIES = ("frame_*.exr",)
+
 
 @dataclass(frozen=True)
 class ExportOptions:
@@ -42,15 +45,16 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     written last, so none appears if the maps fail)."""
     from lgi.export.formats import displacement_map, write_exr, write_usd
     from lgi.index.build import LGIIndex
-    from lgi.io.atomic import atomic_dir, check_output
+    from lgi.io.atomic import atomic_dir, check_distinct, check_output
     from lgi.io.npz import load_npz
     from lgi.progress import progress
 
     o = options
+    check_distinct({"--usd": o.usd, "--exr": o.exr})
     if o.usd:
-        check_output(o.usd, "file")
+        check_output(o.usd, "file", inputs=[recon_dir, index_dir])
     if o.exr:
-        check_output(o.exr, "dir")
+        check_output(o.exr, "dir", inputs=[recon_dir, index_dir], owned=EXR_ENTRIES, what="lgi displacement map folder")
     src = Path(recon_dir) / "meshes.npz"
     if not src.is_file():
         raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)
@@ -69,7 +73,7 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
         if "uvs" not in a:
             raise InputError("the mesh has no texture coordinates: no displacement maps", path=index_dir)
         x0 = np.asarray(a["neutral"], np.float64)
-        with atomic_dir(o.exr) as tmp:
+        with atomic_dir(o.exr, EXR_ENTRIES, "lgi displacement map folder") as tmp:
             for f, v in progress(list(zip(frames, vertices, strict=True)), "displacement maps",
                                  disable=not show_progress):
                 img, _ = displacement_map(v - x0, a["face_vertices"], a["face_offsets"], a["uvs"], a["face_uvs"],

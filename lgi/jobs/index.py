@@ -26,10 +26,11 @@ def build(dataset_dir: str | Path, markers: str | Path, out: str | Path, options
     saved to ``out``; returns a summary (:func:`build_report`)."""
     from lgi.dataset.markers import read_layout
     from lgi.dataset.shapes import ShapeDataset
-    from lgi.index.build import build_index
+    from lgi.index.build import ENTRIES, build_index
     from lgi.io.atomic import check_output
 
-    check_output(out, "dir")
+    check_output(out, "dir", inputs=[dataset_dir, markers, jaw_rig], read_folders=[dataset_dir], owned=ENTRIES,
+                 what="lgi index")
     t0 = time.perf_counter()
     ds = ShapeDataset.load(dataset_dir)
     layout = read_layout(markers, ds.triangles)
@@ -161,7 +162,7 @@ def fit_jaw_rig(dataset_dir: str | Path, out: str | Path, options: RigOptions) -
     from lgi.io.atomic import check_output
     from lgi.solve.jaw import PARAM_NAMES, fit_rig
 
-    check_output(out, "file")
+    check_output(out, "file", inputs=[dataset_dir], read_folders=[dataset_dir])
     ds = ShapeDataset.load(dataset_dir)
     jv = options.vertex_indices(ds.n_vertices)
     sel = ds.select(include=options.shapes)

@@ -91,12 +91,14 @@ class ReconstructOptions:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise bad(name, f"must be a finite number of mm >= 0, not {v!r}")
-        for name, least in (("smooth", 1), ("jaw_smooth", 1), ("max_gap", 0), ("chunk_size", 1)):
+        # Upper bounds: a smoothing window past 1001 frames (33 s at 30 fps) is not smoothing any more.
+        for name, least, most in (("smooth", 1, 1001), ("jaw_smooth", 1, 1001), ("max_gap", 0, 1_000_000),
+                                  ("chunk_size", 1, 1_000_000)):
             v = getattr(self, name)
             if v is None and name == "jaw_smooth":
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
-                raise bad(name, f"must be a whole number >= {least}, not {v!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not least <= v <= most:
+                raise bad(name, f"must be a whole number in [{least}, {most}], not {v!r}")
         if self.noise != "auto":
             try:
                 value = float(self.noise)
@@ -135,21 +137,26 @@ class ReconstructOptions:
 def read_jaw_file(path: str | Path, frames: np.ndarray) -> np.ndarray:
     """(F, 4) jaw parameters for ``frames`` from a CSV with columns frame, open_deg, yaw_deg, roll_deg,
     forward_cm."""
+    from lgi.io.csvio import read_table
     from lgi.solve.jaw import PARAM_NAMES
 
     p = Path(path)
-    if not p.is_file():
-        raise InputError("jaw parameter file not found", path=p)
-    try:
-        df = pd.read_csv(p)
-    except (ValueError, pd.errors.ParserError) as exc:
-        raise InputError(f"not a readable CSV: {exc}", path=p) from None
-    missing = [c for c in ["frame", *PARAM_NAMES] if c not in df.columns]
-    if missing:
-        raise InputError(f"missing columns {missing}", path=p)
+    df = read_table(p, "jaw parameter file", ("frame", *PARAM_NAMES), numeric=("frame", *PARAM_NAMES))
+    whole = df["frame"].to_numpy() == np.round(df["frame"].to_numpy())
+    if not whole.all():
+        r = int(np.flatnonzero(~whole)[0])
+        raise InputError(f"frame {df['frame'].iloc[r]:g} is not a whole number", path=p, line=r + 2)
+    df["frame"] = df["frame"].astype(np.int64)
     dup = df["frame"][df["frame"].duplicated()]
     if len(dup):
-        raise InputError("frame listed twice", path=p, frame=int(dup.iloc[0]))
+        raise InputError("frame listed twice", path=p, frame=int(dup.iloc[0]), line=int(dup.index[0]) + 2)
+    # Far outside any jaw's range: degrees where radians were meant, or another file.
+    for col, limit in (("open_deg", 90.0), ("yaw_deg", 45.0), ("roll_deg", 45.0), ("forward_cm", 5.0)):
+        out = np.abs(df[col].to_numpy()) > limit
+        if out.any():
+            r = int(np.flatnonzero(out)[0])
+            raise InputError(f"{col} {df[col].iloc[r]:g} is outside a jaw's range (|{col}| <= {limit:g})", path=p,
+                             line=r + 2, frame=int(df["frame"].iloc[r]))
     df = df.set_index("frame")
     absent = [int(f) for f in frames if int(f) not in df.index]
     if absent:
@@ -459,8 +466,12 @@ def report_lines(s: dict[str, Any]) -> list[str]:
     lines.append(f"bundles: {s['contained_share'] * 100:.1f} % contained, {s['projected_share'] * 100:.1f} % projected "
                  f"(median distance {s['median_projection_mm']:.3f} mm), {s['missing_share'] * 100:.1f} % missing; "
                  f"max bundle residual {s['max_residual_mm']:.2e} mm")
-    how = (f"estimated {s['noise_estimate_mm']:.3f} mm, neighbour correlation {s['noise_coherence']:.2f}"
-           if s["noise_estimated"] else "given")
+    if not s["noise_estimated"]:
+        how = "given"
+    elif math.isfinite(s["noise_estimate_mm"]):
+        how = f"estimated {s['noise_estimate_mm']:.3f} mm, neighbour correlation {s['noise_coherence']:.2f}"
+    else:
+        how = "not estimated: no marker is seen for 7 frames in a row; give --noise MM if they are not exact"
     mode = (f"measurements with {s['noise_mm']:.3f} mm noise (fitted, not interpolated)" if s["noise_mm"] > 0
             else "exact (the surface passes through every seen bundle)")
     lines.append(f"bundles treated as {mode} ({how}); local fits for {s['local_fit_share'] * 100:.1f} % of "
@@ -473,11 +484,14 @@ def report_lines(s: dict[str, Any]) -> list[str]:
     return lines
 
 
-def check_output(out: str | Path) -> None:
-    """Refuse, before any work, an output path that cannot become the job's directory."""
+def check_output(out: str | Path, inputs: tuple[Any, ...] = ()) -> None:
+    """Refuse, before any work, an output path that cannot become the job's directory, or whose outputs would
+    replace one of the run's ``inputs`` (index, bundles, jaw file)."""
     from lgi.io.atomic import check_output as check
 
     check(out, "dir")
+    for name in OUTPUTS:
+        check(Path(out) / name, "dir" if name == "obj" else "file", inputs=inputs)
 
 
 def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
@@ -485,7 +499,7 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
     """Reconstruct a shot in this process and write its outputs into ``out``; returns the summary
     (:func:`summarise`; :func:`report_lines` formats it)."""
     options = options or ReconstructOptions()
-    check_output(out)
+    check_output(out, (index_dir, bundles, options.jaw))
     t0 = time.perf_counter()
     shot = Shot(index_dir, bundles, options)
     t1 = time.perf_counter()

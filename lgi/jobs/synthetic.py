@@ -4,9 +4,10 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -19,12 +20,23 @@ from lgi.units import MM_PER_CM
 SYNTH_OUTPUTS = ("dataset", "markers.csv", "bundles.csv", "jaw_rig.npz", "truth.npz", "hmc")
 
 
+def _physical_memory() -> int | None:
+    """This machine's memory in bytes (None where the OS does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
 def parse_size(text: str) -> tuple[int, int]:
-    """``WIDTHxHEIGHT`` (each at least 64) as integers."""
+    """``WIDTHxHEIGHT`` (each 64 to 8192) as integers."""
     m = re.fullmatch(r"(\d+)x(\d+)", str(text).strip())
-    if not m or int(m[1]) < 64 or int(m[2]) < 64:
-        raise InputError(f"--image-size {text!r}: expected WIDTHxHEIGHT, at least 64x64")
+    if not m or not (64 <= int(m[1]) <= 8192 and 64 <= int(m[2]) <= 8192):
+        raise InputError(f"--image-size {text!r}: expected WIDTHxHEIGHT, each side 64 to 8192 pixels")
     return int(m[1]), int(m[2])
+
+
+_HMC_ONLY = ("lens", "image_size", "dot_noise", "board_views", "rig_flex")
 
 
 @dataclass(frozen=True)
@@ -43,10 +55,18 @@ class SynthOptions:
     rig_flex: float = 0.0
 
     def __post_init__(self) -> None:
-        for name, least in (("vertices", 1), ("frames", 1), ("seed", 0), ("board_views", 3)):
+        for name, least, most in (("vertices", 1, 2_000_000), ("frames", 1, 1_000_000), ("seed", 0, 2**32 - 1),
+                                  ("board_views", 3, 500)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
-                raise InputError(f"--{name.replace('_', '-')} must be a whole number >= {least}, not {v!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not least <= v <= most:
+                raise InputError(f"--{name.replace('_', '-')} must be a whole number in [{least}, {most}], not {v!r}")
+        # The true meshes of the whole performance are held in memory (float32) and written to truth.npz.
+        need = 4 * 3 * self.vertices * self.frames * 2
+        have = _physical_memory()
+        if have and need > have // 2:
+            raise InputError(f"--vertices {self.vertices} x --frames {self.frames}: the true meshes need about "
+                             f"{need / 2**30:.1f} GiB of memory, more than half of this machine's "
+                             f"{have / 2**30:.1f} GiB; use fewer vertices or frames")
         if self.lens not in ("fisheye", "pinhole"):
             raise InputError(f"--lens takes fisheye or pinhole, not {self.lens!r}")
         for name in ("dot_noise", "rig_flex"):
@@ -54,6 +74,12 @@ class SynthOptions:
             if not isinstance(v, (int, float)) or not math.isfinite(v) or (name == "dot_noise" and v < 0):
                 raise InputError(f"--{name.replace('_', '-')}: {v!r} is not a valid value")
         parse_size(self.image_size)
+        if not self.hmc:
+            given = [f"--{f.name.replace('_', '-')}" for f in fields(self) if f.name in _HMC_ONLY
+                     and getattr(self, f.name) != f.default]
+            if given:
+                raise InputError(f"{', '.join(given)} shape{'s' if len(given) == 1 else ''} the camera footage: "
+                                 "add --hmc")
 
     def footage(self) -> dict[str, Any] | None:
         """Keyword arguments of :func:`lgi.synthetic.hmc.write_footage`, or None without ``hmc``."""

@@ -9,6 +9,7 @@ same options objects as ``lgi import`` / ``lgi augment`` / ``lgi verify``.
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import fields
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 
 from lgi.index.build import IndexOptions
-from lgi.jobs.dataset import AugmentOptions, ImportOptions
+from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
 from lgi.jobs.index import VerifyOptions
 from lgi.pipeline import stages as pipeline
 from lgi.pipeline.cache import StageCache
@@ -82,9 +83,10 @@ def verify(cache_dir: str, index_dir: str, options: dict) -> tuple[str, bool]:
 
 
 @task(name="publish", **_T)
-def publish(src: str, dest: str) -> str:
-    """Copy a cached result to its user-facing place, atomically."""
-    return str(pipeline.publish(Path(src), dest))
+def publish(src: str, dest: str, kind: str) -> str:
+    """Copy a cached result of ``kind`` ("dataset", "index", "verification") to its user-facing place,
+    atomically."""
+    return str(pipeline.publish(Path(src), dest, kind))
 
 
 @flow(name="rebuild-dataset")
@@ -122,13 +124,15 @@ def rebuild_dataset(
     aug_opts = AugmentOptions.from_json(augmentation) if augmentation else None
     idx_opts = pipeline.options_from(index_options).to_json() if markers else None
     ver_opts = VerifyOptions(tolerance=tolerance, shapes=verify_shapes).to_json()
+    check_rebuild(shapes_dir, out, imp, markers, jaw_rig, cache_dir)
     out_dir = Path(out)
     cache = cache_dir or str(out_dir / ".cache")
     stages: dict[str, bool] = {}
     raw, stages["read"] = read_shapes(cache, shapes_dir, imp.to_json())
     staged, stages["stabilise"] = stabilise(cache, raw, imp.to_json())
     dataset_dir = str(Path(staged) / "dataset")
-    publish(dataset_dir, str(out_dir / "dataset"))
+    # Published only once every stage has succeeded: a run failing at the index leaves OUT as it was.
+    outputs = {"dataset": (dataset_dir, "dataset")}
     manifest = json.loads((Path(dataset_dir) / "manifest.json").read_text())
     summary = {"path": str((out_dir / "dataset").resolve()), "content_hash": manifest["content_hash"],
                "n_shapes": manifest["n_shapes"], "n_vertices": manifest["n_vertices"],
@@ -136,7 +140,7 @@ def rebuild_dataset(
     if aug_opts is not None:
         aug, stages["augment"] = augment(cache, dataset_dir, aug_opts.to_json(), jaw_rig)
         dataset_dir = str(Path(aug) / "dataset")
-        publish(dataset_dir, str(out_dir / "dataset_augmented"))
+        outputs["dataset_augmented"] = (dataset_dir, "dataset")
         aug_manifest = json.loads((Path(dataset_dir) / "manifest.json").read_text())
         summary["augmented"] = {"path": str((out_dir / "dataset_augmented").resolve()),
                                 "n_shapes": aug_manifest["n_shapes"], **aug_manifest["info"].get("augmented", {})}
@@ -145,10 +149,16 @@ def rebuild_dataset(
         clouds, stages["clouds"] = point_clouds(cache, dataset_dir, markers, nat, idx_opts, jaw_rig)
         idx, stages["index"] = assemble(cache, dataset_dir, markers, nat, clouds, idx_opts, jaw_rig)
         ver, stages["verify"] = verify(cache, idx, ver_opts)
-        publish(str(Path(idx) / "index"), str(out_dir / "index"))
-        publish(ver, str(out_dir / "verification"))
+        outputs["index"] = (str(Path(idx) / "index"), "index")
+        outputs["verification"] = (ver, "verification")
         summary["verification"] = json.loads((Path(ver) / "summary.json").read_text())
         summary["index"] = str((out_dir / "index").resolve())
+    for name, (src, kind) in outputs.items():
+        publish(src, str(out_dir / name), kind)
+    for name in sorted(set(REBUILD_OUTPUTS) - set(outputs)):
+        # An earlier run's index or augmented dataset that this run did not make (check_rebuild has checked
+        # they hold only what lgi writes there) would be read as this run's.
+        shutil.rmtree(out_dir / name, ignore_errors=True)
     _artifacts(summary, out_dir)
     logger = get_run_logger()
     for line in pipeline.rebuild_report(summary):

@@ -103,7 +103,7 @@ def reconstruct_shot(
     """
     params = dict(locals())
     opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
-    job.check_output(out)
+    job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet))
     tracking = None
     if footage:
         if not (calib and markers):

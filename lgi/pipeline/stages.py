@@ -185,14 +185,25 @@ def options_from(params: dict[str, Any] | None) -> IndexOptions:
     return IndexOptions(cloud=cloud, **params)
 
 
-def publish(src: Path, dest: str | os.PathLike[str]) -> Path:
-    """Copy a cached result directory to its user-facing place, atomically."""
+def published(kind: str) -> tuple[tuple[str, ...], str]:
+    """What a published result of ``kind`` ("dataset", "index", "verification") holds, and its name: a folder
+    holding anything else is not replaced (:func:`lgi.io.atomic.check_output`)."""
+    from lgi.dataset.shapes import ENTRIES as DATASET
+    from lgi.index.build import ENTRIES as INDEX
+
+    return {"dataset": (DATASET, "lgi dataset"), "index": (INDEX, "lgi index"),
+            "verification": (("verification.csv", "summary.json"), "lgi verification")}[kind]
+
+
+def publish(src: Path, dest: str | os.PathLike[str], kind: str) -> Path:
+    """Copy a cached result directory of ``kind`` (see :func:`published`) to its user-facing place,
+    atomically."""
     import shutil
 
     from lgi.io.atomic import atomic_dir
 
     dest = Path(dest)
-    with atomic_dir(dest) as tmp:
+    with atomic_dir(dest, *published(kind)) as tmp:
         shutil.copytree(src, tmp, dirs_exist_ok=True)
     return dest
 

@@ -597,7 +597,9 @@ class LGISolver:
         self.noise_estimate = est
         self.independent_poses = bool(np.isfinite(est.noise_mm) and est.noise_mm >= NOISE_FLOOR and not est.is_noise)
         if not np.isfinite(est.noise_mm):
-            log.info("too few frames to estimate the bundle noise: bundles treated as exact")
+            # A fallback the user must hear of: noisy bundles taken as exact make a surface that chases the noise.
+            log.warning("the bundle noise cannot be estimated (no marker is seen for 7 frames in a row): bundles "
+                        "treated as exact; give --noise MM if they are not")
             self.set_noise(0.0)
         elif est.noise_mm < NOISE_FLOOR:
             log.info("bundle noise estimated at %.3f mm (below %.2f mm): bundles treated as exact", est.noise_mm,
