@@ -174,6 +174,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_cache(args: argparse.Namespace) -> int:
+    from lgi.jobs.cache import PruneOptions, cache_report, list_cache, prune_cache
+
+    if args.action == "ls":
+        lines = cache_report(list_cache(args.cache_dir))
+    else:
+        opts = PruneOptions(keep=args.keep, older_than=args.older_than)
+        lines = cache_report(prune_cache(args.cache_dir, opts), removed=True)
+    for line in lines:
+        print(line)
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from lgi.jobs.synthetic import DemoOptions, demo
 
@@ -427,6 +440,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--ict", metavar="DIR", help="ICT FaceKit folder (default ../shared/data/ict-facekit)")
     s.add_argument("--no-ict", action="store_true", help="synthetic only")
     s.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("cache", help="list or trim the rebuild's stage cache",
+                       description="List the stage results of a dataset rebuild's cache (OUT/.cache, or the "
+                                   "rebuild's --cache-dir), or remove old ones. Results in use by a running "
+                                   "rebuild are left alone.")
+    s.add_argument("action", choices=["ls", "prune"])
+    s.add_argument("cache_dir", metavar="CACHE_DIR", help="the rebuild's OUT (its .cache) or the cache folder")
+    s.add_argument("--keep", type=int, metavar="N", help="prune: keep the N most recently used results of each stage")
+    s.add_argument("--older-than", type=float, metavar="DAYS", help="prune: remove results unused for DAYS days")
+    s.set_defaults(func=cmd_cache)
 
     s = sub.add_parser("demo", help="run the main job end to end on the built-in synthetic actor",
                        description="Build the synthetic actor and run the pipeline on its performance; "

@@ -9,8 +9,9 @@ from __future__ import annotations
 from os import PathLike
 
 
-class LgiError(Exception):
-    """Base class of all errors that lgi raises on bad input or bad configuration."""
+class LgiError(ValueError):
+    """Base class of all errors that lgi raises on bad input or bad configuration (a ValueError, so that
+    validators such as pydantic's, which checks the flows' parameters, report them as bad values)."""
 
 
 class InputError(LgiError):

@@ -58,8 +58,14 @@ def test_import_identity_and_augment_same_through_the_flow(prefect_harness, tmp_
 def test_flow_parameters_checked(prefect_harness, tmp_path: Path, obj_folder: Path) -> None:
     from flows.rebuild_dataset import rebuild_dataset
 
-    with pytest.raises(InputError, match="linaer"):
+    from prefect.exceptions import ParameterTypeError
+
+    # Typed parameters: checked by Prefect before the flow run starts (no task runs), the field named.
+    with pytest.raises(ParameterTypeError, match="linaer"):
         rebuild_dataset(str(obj_folder), str(tmp_path / "o"), augmentation={"linaer": True})
+    with pytest.raises(ParameterTypeError, match="--budget"):
+        rebuild_dataset(str(obj_folder), str(tmp_path / "o"), augmentation={"linear": True, "budget": 0})
+    assert not (tmp_path / "o").exists()
     with pytest.raises(InputError, match="knn"):
         rebuild_dataset(str(obj_folder), str(tmp_path / "o"), markers="m.csv", index_options={"knn": -3})
 

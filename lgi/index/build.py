@@ -222,7 +222,7 @@ def check_structure(a: dict[str, np.ndarray], n_shapes: int, path: Path) -> None
     n_p = len(a["pts"])
     check_offsets(a["pt_off"], n_p, "pt_off", path, m)
     check_range(a["pt_shape"], 0, n_shapes, "pt_shape", path)
-    check_range(a["dim"], 1, 4, "dim", path)
+    check_range(a["dim"], 0, 4, "dim", path)  # 0: every shape puts the bundle at one point
     per_marker = np.arange(m)
     k = len(a["sx"])
     check_offsets(a["sx_off"], k, "sx_off", path, m)
@@ -353,12 +353,20 @@ def build_index(dataset: ShapeDataset, layout: MarkerLayout, options: IndexOptio
     return index, reports
 
 
+#: The options the natural-neighbour stage reads (and its cache key holds).
+NATURAL_FIELDS = ("region_radius", "nn_subdivisions", "ks", "kb")
+
+
 def natural_stage(dataset: ShapeDataset, layout: MarkerLayout, opts: IndexOptions) -> dict[str, np.ndarray]:
     """Natural-neighbour weights, natural neighbours and the residual-correction basis.
 
-    Depends only on the neutral mesh, the layout and the natural-neighbour and stiffness options (not on
-    the shapes), so a pruning or simplex change never recomputes it.
+    Depends only on the neutral mesh, the layout and the options :data:`NATURAL_FIELDS` (not on the shapes),
+    so a pruning or simplex change never recomputes it. It sees only those options: reading another would
+    fail here rather than leave the cached stage keyed without it.
     """
+    from types import SimpleNamespace
+
+    opts = SimpleNamespace(**{k: getattr(opts, k) for k in NATURAL_FIELDS})
     # Build-time modules (scipy.sparse, csgraph, spatial): imported here so that loading an index does not.
     import scipy.sparse as sp
 

@@ -88,15 +88,25 @@ def _resolved(p: str | os.PathLike[str]) -> Path:
     return Path(os.path.abspath(Path(p).expanduser())).resolve()
 
 
+IMAGES = ("*.png", "*.jpg", "*.jpeg", "*.tif", "*.tiff", "*.bmp", "*.exr")
+
+
+def files_in(folder: str | os.PathLike[str] | None, patterns: tuple[str, ...], recursive: bool = False) -> list[Path]:
+    """The files of ``folder`` matching ``patterns`` (what a run reads there: listed as its inputs, so that no
+    output lands on one of them)."""
+    if not folder or not Path(folder).is_dir():
+        return []
+    root = Path(folder)
+    return [p for pat in patterns for p in (root.rglob(pat) if recursive else root.glob(pat)) if p.is_file()]
+
+
 def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Iterable[Any] = (),
-                 read_folders: Iterable[Any] = (), owned: tuple[str, ...] | None = None,
-                 what: str = "lgi output") -> None:
+                 owned: tuple[str, ...] | None = None, what: str = "lgi output") -> None:
     """Refuse, before any work, an output path that cannot become a ``kind`` ("dir" or "file") output.
 
     Refused: the other kind is there; the nearest existing folder is not writable; the output is one of the
-    run's ``inputs`` or contains one (it would be replaced by the output); the output is inside one of
-    ``read_folders`` (folders the run reads as a whole, such as the calibration images: an output there would
-    overwrite what it reads, or be read as input next time); and, for a directory replaced as a
+    run's ``inputs`` (files and folders; list the files read inside a folder with :func:`files_in`) or
+    contains one (it would be replaced by the output); and, for a directory replaced as a
     whole (``owned`` given: the fnmatch patterns of what ``what`` holds), an existing directory holding anything
     else (a folder that is not an earlier output of this kind is never wiped).
     """
@@ -120,10 +130,6 @@ def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Ite
         src = _resolved(inp)
         if src == target or target in src.parents:
             raise InputError(f"the {what} would replace this run's input {inp}: choose another path", path=p)
-    for folder in read_folders:
-        if folder and _resolved(folder) in target.parents:
-            raise InputError(f"the {what} is inside the input folder {folder}, which this run reads as a whole: "
-                             "choose a path outside it", path=p)
     if owned is not None and kind == "dir" and p.is_dir():
         foreign = sorted(e.name for e in p.iterdir() if not _ours(e.name, owned))
         if foreign:

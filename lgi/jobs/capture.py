@@ -41,13 +41,13 @@ class CalibrateOptions:
 def calibrate(images_dir: str | Path, out: str | Path, options: CalibrateOptions) -> dict[str, Any]:
     """``lgi calibrate``: detect the board, calibrate both cameras and the pair; write the JSON (and YAML)."""
     from lgi.capture.calibration import Board, calibrate_stereo
-    from lgi.io.atomic import check_distinct, check_output
+    from lgi.io.atomic import IMAGES, check_distinct, check_output, files_in
 
     o = options
     check_distinct({"--out": out, "--yaml": o.yaml})
     for path in (out, o.yaml):
         if path:
-            check_output(path, "file", inputs=[images_dir], read_folders=[images_dir])
+            check_output(path, "file", inputs=[images_dir, *files_in(images_dir, IMAGES)])
     calib = calibrate_stereo(images_dir, Board.parse(o.board), rational=o.rational, fisheye=o.fisheye)
     calib.save(out, o.yaml)
     return {"path": str(Path(out).resolve()), "yaml": str(Path(o.yaml).resolve()) if o.yaml else None,
@@ -103,15 +103,15 @@ def track(footage_dir: str | Path, calib: str | Path, markers: str | Path, out: 
     :func:`lgi.capture.footage.track_to_files`. A median reprojection error above :data:`MOVED_RIG_PX` is logged as a
     warning (the rig may have moved since its calibration) and flagged in the summary."""
     from lgi.capture.footage import track_to_files
-    from lgi.io.atomic import check_distinct, check_output
+    from lgi.io.atomic import IMAGES, check_distinct, check_output, files_in
 
     o = options or TrackFootageOptions()
     out = Path(out)
     tracks = o.tracks or out.with_name(out.stem + ".tracks.parquet")
     check_distinct({"--out": out, "--tracks": tracks})
     for path in (out, tracks):
-        check_output(path, "file", inputs=[footage_dir, calib, markers, o.dataset, o.labels, o.helmet],
-                     read_folders=[footage_dir])
+        check_output(path, "file", inputs=[footage_dir, calib, markers, o.dataset, o.labels, o.helmet,
+                                           *files_in(footage_dir, IMAGES, recursive=True)])
     _, r = track_to_files(footage_dir, calib, markers, out, o.tracks, o.dataset, o.units, o.labels,
                           o.reference_frame, o.helmet, o.gate, o.dot_size)
     r["rig_may_have_moved"] = bool(r["reprojection_median_px"] > MOVED_RIG_PX)

@@ -94,14 +94,18 @@ def stabilise_shapes(raw, options: ImportOptions):
     return assemble_dataset(raw, *stabilise_raw(raw, rigid))
 
 
+#: What ``lgi import`` reads in the shapes folder (no output may land on one of them).
+SOURCES = ("*.obj", "*.OBJ", "*.mtl", "*.json")
+
+
 def import_dataset(shapes_dir: str | Path, out: str | Path, options: ImportOptions | None = None,
                    show_progress: bool = False) -> dict[str, Any]:
     """``lgi import``: read, stabilise and save a dataset directory; returns a summary (:func:`import_report`)."""
     from lgi.dataset.shapes import ENTRIES
-    from lgi.io.atomic import check_output
+    from lgi.io.atomic import check_output, files_in
 
     options = options or ImportOptions()
-    check_output(out, "dir", inputs=[shapes_dir, options.neutral, options.identity], read_folders=[shapes_dir],
+    check_output(out, "dir", inputs=[shapes_dir, options.neutral, options.identity, *files_in(shapes_dir, SOURCES)],
                  owned=ENTRIES, what="lgi dataset")
     t0 = time.perf_counter()
     ds = stabilise_shapes(read_shapes(shapes_dir, options, show_progress), options)
@@ -119,14 +123,15 @@ def check_rebuild(shapes_dir: str | Path, out: str | Path, options: ImportOption
     """The rebuild's checks before any work (the rebuild-dataset flow and ``lgi import --flow``): ``out`` and the
     folders it publishes there (``dataset``, ``dataset_augmented``, ``index``, ``verification``) can be written
     and replace none of the inputs, and the marker file parses."""
-    from lgi.io.atomic import check_output
+    from lgi.io.atomic import check_output, files_in
     from lgi.pipeline.stages import published
 
     inputs = [shapes_dir, options.neutral, options.identity, markers, jaw_rig, cache_dir]
     check_output(out, "dir")
     for name, kind in REBUILD_OUTPUTS.items():
         owned, what = published(kind)
-        check_output(Path(out) / name, "dir", inputs=inputs, read_folders=[shapes_dir], owned=owned, what=what)
+        check_output(Path(out) / name, "dir", inputs=[*inputs, *files_in(shapes_dir, SOURCES)], owned=owned,
+                     what=what)
     if markers:
         from lgi.dataset.markers import read_layout
 
@@ -165,6 +170,7 @@ def import_report(s: dict[str, Any]) -> list[str]:
 @dataclass(frozen=True)
 class AugmentOptions:
     """Options of ``lgi augment`` (see its ``--help``); ``levels`` and ``orders`` as tuples (lists accepted).
+    As a flow parameter (a JSON object), unknown keys are refused.
 
     Attributes
     ----------
@@ -186,6 +192,8 @@ class AugmentOptions:
     iterations : int
         Solver iterations of the simulation.
     """
+
+    __pydantic_config__ = {"extra": "forbid"}  # flow parameters: a misspelt key is an error, not ignored
 
     linear: bool = False
     simulate: bool = False
@@ -283,10 +291,10 @@ def augment_dataset(dataset_dir: str | Path, out: str | Path, options: AugmentOp
     """``lgi augment``: the augmented dataset saved to ``out`` (with ``markers``, also the per-bundle
     report ``augmentation.csv`` in it); returns a summary (:func:`augment_report`)."""
     from lgi.dataset.shapes import ENTRIES, ShapeDataset
-    from lgi.io.atomic import check_output
+    from lgi.io.atomic import check_output, files_in
 
-    check_output(out, "dir", inputs=[dataset_dir, jaw_rig, markers], read_folders=[dataset_dir], owned=ENTRIES,
-                 what="lgi dataset")
+    check_output(out, "dir", inputs=[dataset_dir, jaw_rig, markers, *files_in(dataset_dir, ENTRIES)],
+                 owned=ENTRIES, what="lgi dataset")
     ds = ShapeDataset.load(dataset_dir)
     rig = None
     if jaw_rig:
@@ -351,12 +359,13 @@ def dataset_bundles(dataset_dir: str | Path, markers: str | Path, out: str | Pat
 
     from lgi.capture.bundles import Bundles, write_bundles
     from lgi.dataset.markers import read_layout
+    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
     from lgi.dataset.shapes import ShapeDataset
-    from lgi.io.atomic import atomic_file, check_output
+    from lgi.io.atomic import atomic_file, check_output, files_in
 
     out = Path(out)
     for path in (out, out.with_name(out.stem + ".shapes.csv")):
-        check_output(path, "file", inputs=[dataset_dir, markers], read_folders=[dataset_dir])
+        check_output(path, "file", inputs=[dataset_dir, markers, *files_in(dataset_dir, DATASET_ENTRIES)])
     ds = ShapeDataset.load(dataset_dir)
     if shapes:
         ds = ds.select(include=shapes)

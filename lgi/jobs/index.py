@@ -25,12 +25,13 @@ def build(dataset_dir: str | Path, markers: str | Path, out: str | Path, options
     """``lgi build``: the index of a dataset for a marker layout (options: :class:`~lgi.index.build.IndexOptions`)
     saved to ``out``; returns a summary (:func:`build_report`)."""
     from lgi.dataset.markers import read_layout
+    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
     from lgi.dataset.shapes import ShapeDataset
     from lgi.index.build import ENTRIES, build_index
-    from lgi.io.atomic import check_output
+    from lgi.io.atomic import check_output, files_in
 
-    check_output(out, "dir", inputs=[dataset_dir, markers, jaw_rig], read_folders=[dataset_dir], owned=ENTRIES,
-                 what="lgi index")
+    check_output(out, "dir", inputs=[dataset_dir, markers, jaw_rig, *files_in(dataset_dir, DATASET_ENTRIES)],
+                 owned=ENTRIES, what="lgi index")
     t0 = time.perf_counter()
     ds = ShapeDataset.load(dataset_dir)
     layout = read_layout(markers, ds.triangles)
@@ -158,11 +159,12 @@ def fit_jaw_rig(dataset_dir: str | Path, out: str | Path, options: RigOptions) -
     (:func:`rig_report`)."""
     import logging
 
+    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
     from lgi.dataset.shapes import ShapeDataset
-    from lgi.io.atomic import check_output
+    from lgi.io.atomic import check_output, files_in
     from lgi.solve.jaw import PARAM_NAMES, fit_rig
 
-    check_output(out, "file", inputs=[dataset_dir], read_folders=[dataset_dir])
+    check_output(out, "file", inputs=[dataset_dir, *files_in(dataset_dir, DATASET_ENTRIES)])
     ds = ShapeDataset.load(dataset_dir)
     jv = options.vertex_indices(ds.n_vertices)
     sel = ds.select(include=options.shapes)

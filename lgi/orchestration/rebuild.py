@@ -21,6 +21,8 @@ from prefect.cache_policies import NO_CACHE
 from lgi.index.build import IndexOptions
 from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
 from lgi.jobs.index import VerifyOptions
+from lgi.orchestration import capture_library_logs
+from lgi.orchestration.params import described
 from lgi.pipeline import stages as pipeline
 from lgi.pipeline.cache import StageCache
 
@@ -90,6 +92,17 @@ def publish(src: str, dest: str, kind: str) -> str:
 
 
 @flow(name="rebuild-dataset")
+@described(ImportOptions, shapes_dir="Folder of OBJ shapes (the neutral and one file per expression).",
+           out="Output folder: dataset/, and with markers index/ and verification/ (dataset_augmented/ with "
+               "augmentation); the stage cache in out/.cache unless cache_dir is given.",
+           markers="Marker layout CSV: also build the index and verify it (lgi build, lgi verify).",
+           index_options="Options of lgi build as a flat object (cloud and index options; unknown keys refused).",
+           jaw_rig="Jaw rig npz (lgi rig): the shapes are unskinned before indexing.",
+           tolerance="Verification: RMS error (mm) over the marked region above which a shape fails.",
+           verify_shapes="Verification: shell patterns of the shapes to check (null: all).",
+           cache_dir="Stage cache folder (default out/.cache); lgi cache ls / prune list and trim it.",
+           augmentation="In-betweens before indexing, the options of lgi augment as an object, e.g. "
+                        '{"simulate": true, "budget": 100} (unknown keys refused; null: none).')
 def rebuild_dataset(
     shapes_dir: str,
     out: str,
@@ -106,7 +119,7 @@ def rebuild_dataset(
     tolerance: float = 0.01,
     verify_shapes: str | None = None,
     cache_dir: str | None = None,
-    augmentation: dict | None = None,
+    augmentation: AugmentOptions | None = None,
 ) -> dict:
     """Build ``OUT/dataset`` and, with ``markers``, ``OUT/index`` and ``OUT/verification/``.
 
@@ -120,8 +133,10 @@ def rebuild_dataset(
     were cache hits (``stages``: name -> true if nothing was computed).
     """
     params = dict(locals())
+    capture_library_logs()
     imp = ImportOptions(**{f.name: params[f.name] for f in fields(ImportOptions)})
-    aug_opts = AugmentOptions.from_json(augmentation) if augmentation else None
+    aug_opts = (augmentation if isinstance(augmentation, AugmentOptions) or augmentation is None
+                else AugmentOptions.from_json(augmentation))
     idx_opts = pipeline.options_from(index_options).to_json() if markers else None
     ver_opts = VerifyOptions(tolerance=tolerance, shapes=verify_shapes).to_json()
     check_rebuild(shapes_dir, out, imp, markers, jaw_rig, cache_dir)

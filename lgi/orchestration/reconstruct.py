@@ -23,6 +23,8 @@ from prefect.artifacts import (
 from prefect.cache_policies import NO_CACHE
 
 from lgi.jobs import reconstruct as job
+from lgi.orchestration import capture_library_logs
+from lgi.orchestration.params import described
 
 _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
@@ -72,6 +74,15 @@ def write_shot(index_dir: str, bundles: str, options: dict, choices: list[str], 
 
 
 @flow(name="reconstruct-shot")
+@described(job.ReconstructOptions, index_dir="LGI index folder (lgi build).",
+           bundles="Bundles file (CSV or Parquet: frame, marker, x, y, z in cm, head frame); written first when "
+                   "footage is given.",
+           out="Output folder: meshes.npz, diagnostics.csv, per_frame.csv (and obj/, shot.usdc, per_frame.png "
+               "when asked).",
+           footage="Stereo frames (cam0/, cam1/): track them into bundles first (needs calib and markers).",
+           calib="Stereo calibration JSON (lgi calibrate), with footage.",
+           markers="Marker layout CSV with neutral positions, with footage.",
+           helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot, with footage.")
 def reconstruct_shot(
     index_dir: str,
     bundles: str,
@@ -102,6 +113,7 @@ def reconstruct_shot(
     ``track-footage`` task writes ``bundles`` (and its 2D tracks table) first, with ``helmet`` dots if given.
     """
     params = dict(locals())
+    capture_library_logs()
     opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
     job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet))
     tracking = None

@@ -30,12 +30,18 @@ import pandas as pd
 from lgi.dataset.importing import RawShapes
 from lgi.dataset.markers import read_layout
 from lgi.dataset.shapes import ShapeDataset
-from lgi.index.build import IndexOptions, LGIIndex, assemble_index, clouds_stage, natural_stage
+from lgi.index.build import NATURAL_FIELDS, IndexOptions, LGIIndex, assemble_index, clouds_stage, natural_stage
 from lgi.io.npz import save_npz
 from lgi.io.obj import PolyMesh
 from lgi.jobs.dataset import AugmentOptions, ImportOptions, augment, read_shapes, stabilise_shapes
 from lgi.jobs.index import VerifyOptions, verify
 from lgi.pipeline.cache import StageCache, hash_file, hash_tree
+
+# The modules whose source (with every lgi module they import) keys each stage's results, besides the stage's
+# own make function: the code that computes them, not the whole package.
+_DATASET = ("lgi.jobs.dataset",)
+_INDEX = ("lgi.index.build",)
+_VERIFY = ("lgi.jobs.index",)
 
 
 def _load_npz(path: Path) -> dict[str, np.ndarray]:
@@ -59,7 +65,7 @@ def read_stage(cache: StageCache, shapes_dir: str, options: ImportOptions) -> tu
         (out / "raw.json").write_text(json.dumps({"names": raw.names, "sources": raw.sources, "info": raw.info,
                                                   "materials": m.materials, "mtllib": m.mtllib}, indent=1))
 
-    return cache.run("read", inputs, make)
+    return cache.run("read", inputs, make, _DATASET)
 
 
 def _load_raw(path: Path) -> RawShapes:
@@ -79,7 +85,7 @@ def stabilise_stage(cache: StageCache, raw_dir: Path, options: ImportOptions) ->
     def make(out: Path) -> None:
         stabilise_shapes(_load_raw(raw_dir), options).save(out / "dataset")
 
-    return cache.run("stabilise", inputs, make)
+    return cache.run("stabilise", inputs, make, _DATASET)
 
 
 def augment_stage(cache: StageCache, dataset_dir: Path, options: AugmentOptions,
@@ -98,27 +104,26 @@ def augment_stage(cache: StageCache, dataset_dir: Path, options: AugmentOptions,
             rig = JawRig.load(jaw_rig, ds.n_vertices)
         augment(ds, options, rig).save(out / "dataset")
 
-    return cache.run("augment", inputs, make)
+    return cache.run("augment", inputs, make, _DATASET)
 
 
 def natural_stage_cached(cache: StageCache, dataset_dir: Path, markers: str,
                          opts: IndexOptions) -> tuple[Path, bool]:
     """Natural-neighbour weights and the correction basis; result: ``natural.npz``."""
     inputs = {"mesh": hash_file(dataset_dir / "mesh.npz"), "markers": hash_file(markers),
-              "region_radius": opts.region_radius, "nn_subdivisions": opts.nn_subdivisions, "ks": opts.ks,
-              "kb": opts.kb}
+              "options": {k: getattr(opts, k) for k in NATURAL_FIELDS}}
 
     def make(out: Path) -> None:
         ds = ShapeDataset.load(dataset_dir, mmap=True)
         save_npz(out / "natural.npz", **natural_stage(ds, read_layout(markers, ds.triangles), opts))
 
-    return cache.run("natural", inputs, make)
+    return cache.run("natural", inputs, make, _INDEX)
 
 
 def clouds_stage_cached(cache: StageCache, dataset_dir: Path, markers: str, natural_dir: Path, opts: IndexOptions,
                         jaw_rig: str | None = None) -> tuple[Path, bool]:
     """Point clouds, pruning, simplices, grids; result: ``clouds.npz``, ``pruning.csv``, ``bundles.csv``."""
-    opt = {k: v for k, v in opts.to_json().items() if k not in ("region_radius", "nn_subdivisions", "ks", "kb")}
+    opt = {k: v for k, v in opts.to_json().items() if k not in NATURAL_FIELDS}
     inputs = {"dataset": json.loads((dataset_dir / "manifest.json").read_text())["content_hash"],
               "markers": hash_file(markers), "natural": natural_dir.name, "options": opt,
               "jaw_rig": None if not jaw_rig else hash_file(jaw_rig)}
@@ -134,7 +139,7 @@ def clouds_stage_cached(cache: StageCache, dataset_dir: Path, markers: str, natu
         for name, df in reports.items():
             df.to_csv(out / name, index=False, float_format="%.6g")
 
-    return cache.run("clouds", inputs, make)
+    return cache.run("clouds", inputs, make, _INDEX)
 
 
 def index_stage(cache: StageCache, dataset_dir: Path, markers: str, natural_dir: Path, clouds_dir: Path,
@@ -154,7 +159,7 @@ def index_stage(cache: StageCache, dataset_dir: Path, markers: str, natural_dir:
         reports = {name: pd.read_csv(clouds_dir / name) for name in ("pruning.csv", "bundles.csv")}
         index.save(out / "index", reports)
 
-    return cache.run("index", inputs, make)
+    return cache.run("index", inputs, make, _INDEX)
 
 
 def verify_stage(cache: StageCache, index_dir: Path, options: VerifyOptions) -> tuple[Path, bool]:
@@ -167,7 +172,7 @@ def verify_stage(cache: StageCache, index_dir: Path, options: VerifyOptions) -> 
         table.to_csv(out / "verification.csv", index=False, float_format="%.6g")
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
 
-    return cache.run("verify", inputs, make)
+    return cache.run("verify", inputs, make, _VERIFY)
 
 
 def options_from(params: dict[str, Any] | None) -> IndexOptions:
@@ -201,9 +206,12 @@ def publish(src: Path, dest: str | os.PathLike[str], kind: str) -> Path:
     import shutil
 
     from lgi.io.atomic import atomic_dir
+    from lgi.pipeline.cache import locked
 
     dest = Path(dest)
-    with atomic_dir(dest, *published(kind)) as tmp:
+    # Two rebuilds into one OUT publish in turn (each replaces the folder whole; without the lock one could
+    # find the other's half-moved folder).
+    with locked(dest.parent / f".{dest.name}.lock"), atomic_dir(dest, *published(kind)) as tmp:
         shutil.copytree(src, tmp, dirs_exist_ok=True)
     return dest
 
