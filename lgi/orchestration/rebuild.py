@@ -17,7 +17,9 @@ import pandas as pd
 from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
+from prefect.states import Completed, State
 
+from lgi.errors import LgiError
 from lgi.index.build import IndexOptions
 from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
 from lgi.jobs.index import VerifyOptions
@@ -26,65 +28,97 @@ from lgi.orchestration.params import described
 from lgi.pipeline import stages as pipeline
 from lgi.pipeline.cache import StageCache
 
-_T = {"cache_policy": NO_CACHE, "persist_result": False}
+
+def _transient(task, task_run, state) -> bool:
+    """Retry a stage only for what may pass (a file system or network hiccup), never for bad input."""
+    try:
+        state.result()
+    except LgiError:
+        return False
+    except OSError:
+        return True
+    except Exception:  # noqa: BLE001 - a bug or bad data: retrying gives the same
+        return False
+    return False
 
 
-@task(name="read-shapes", **_T)
-def read_shapes(cache_dir: str, shapes_dir: str, options: dict) -> tuple[str, bool]:
+# Stage results are files in the stage cache, never Prefect results (no pickles); I/O may be retried; the
+# timeouts are generous bounds that stop a hung run from holding the deployment's concurrency slot forever.
+_T = {"cache_policy": NO_CACHE, "persist_result": False, "retries": 2, "retry_delay_seconds": 10,
+      "retry_condition_fn": _transient}
+
+
+def _hours(h: float) -> dict:
+    return {**_T, "timeout_seconds": h * 3600}
+
+
+def _done(path: Path, hit: bool) -> tuple[str, bool] | State:
+    """A stage's result; a cache hit ends in a state named Cached, as Prefect's own cache hits do in the UI."""
+    value = (str(path), hit)
+    return Completed(data=value, name="Cached", message="stage result reused from the cache") if hit else value
+
+
+def _call(stage, *args):
+    """Run a stage task and return its value (a Cached state's too); a failed stage raises its error."""
+    return stage(*args, return_state=True).result()
+
+
+@task(name="read-shapes", **_hours(1))
+def read_shapes(cache_dir: str, shapes_dir: str, options: dict) -> tuple[str, bool] | State:
     """Read a folder of OBJ shapes (see :func:`lgi.pipeline.stages.read_stage`)."""
     path, hit = pipeline.read_stage(StageCache(cache_dir), shapes_dir, ImportOptions.from_json(options))
-    return str(path), hit
+    return _done(path, hit)
 
 
-@task(name="stabilise", **_T)
-def stabilise(cache_dir: str, raw_dir: str, options: dict) -> tuple[str, bool]:
+@task(name="stabilise", **_hours(1))
+def stabilise(cache_dir: str, raw_dir: str, options: dict) -> tuple[str, bool] | State:
     """Remove head motion and save the dataset (see :func:`lgi.pipeline.stages.stabilise_stage`)."""
     path, hit = pipeline.stabilise_stage(StageCache(cache_dir), Path(raw_dir), ImportOptions.from_json(options))
-    return str(path), hit
+    return _done(path, hit)
 
 
-@task(name="augment", **_T)
-def augment(cache_dir: str, dataset_dir: str, options: dict, jaw_rig: str | None = None) -> tuple[str, bool]:
+@task(name="augment", **_hours(12))
+def augment(cache_dir: str, dataset_dir: str, options: dict, jaw_rig: str | None = None) -> tuple[str, bool] | State:
     """Linear and/or simulated in-betweens (see :func:`lgi.pipeline.stages.augment_stage`)."""
     path, hit = pipeline.augment_stage(StageCache(cache_dir), Path(dataset_dir), AugmentOptions.from_json(options),
                                        jaw_rig)
-    return str(path), hit
+    return _done(path, hit)
 
 
-@task(name="natural-neighbours", **_T)
-def natural_neighbours(cache_dir: str, dataset_dir: str, markers: str, options: dict) -> tuple[str, bool]:
+@task(name="natural-neighbours", **_hours(2))
+def natural_neighbours(cache_dir: str, dataset_dir: str, markers: str, options: dict) -> tuple[str, bool] | State:
     """Geodesic Voronoi, Sibson weights and the correction basis."""
     path, hit = pipeline.natural_stage_cached(StageCache(cache_dir), Path(dataset_dir), markers,
                                               IndexOptions.from_json(options))
-    return str(path), hit
+    return _done(path, hit)
 
 
-@task(name="point-clouds-and-simplices", **_T)
+@task(name="point-clouds-and-simplices", **_hours(12))
 def point_clouds(cache_dir: str, dataset_dir: str, markers: str, natural_dir: str, options: dict,
-                 jaw_rig: str | None = None) -> tuple[str, bool]:
+                 jaw_rig: str | None = None) -> tuple[str, bool] | State:
     """Per-bundle point clouds (pruned), overlapping simplices and grids."""
     path, hit = pipeline.clouds_stage_cached(StageCache(cache_dir), Path(dataset_dir), markers, Path(natural_dir),
                                              IndexOptions.from_json(options), jaw_rig)
-    return str(path), hit
+    return _done(path, hit)
 
 
-@task(name="assemble-index", **_T)
+@task(name="assemble-index", **_hours(2))
 def assemble(cache_dir: str, dataset_dir: str, markers: str, natural_dir: str, clouds_dir: str, options: dict,
-             jaw_rig: str | None = None) -> tuple[str, bool]:
+             jaw_rig: str | None = None) -> tuple[str, bool] | State:
     """The index directory from the stages above."""
     path, hit = pipeline.index_stage(StageCache(cache_dir), Path(dataset_dir), markers, Path(natural_dir),
                                      Path(clouds_dir), IndexOptions.from_json(options), jaw_rig)
-    return str(path), hit
+    return _done(path, hit)
 
 
-@task(name="verify", **_T)
-def verify(cache_dir: str, index_dir: str, options: dict) -> tuple[str, bool]:
+@task(name="verify", **_hours(6))
+def verify(cache_dir: str, index_dir: str, options: dict) -> tuple[str, bool] | State:
     """Every dataset shape reconstructed from its own bundles (see :func:`lgi.jobs.index.verify`)."""
     path, hit = pipeline.verify_stage(StageCache(cache_dir), Path(index_dir), VerifyOptions(**options))
-    return str(path), hit
+    return _done(path, hit)
 
 
-@task(name="publish", **_T)
+@task(name="publish", **_hours(1))
 def publish(src: str, dest: str, kind: str) -> str:
     """Copy a cached result of ``kind`` ("dataset", "index", "verification") to its user-facing place,
     atomically."""
@@ -143,8 +177,8 @@ def rebuild_dataset(
     out_dir = Path(out)
     cache = cache_dir or str(out_dir / ".cache")
     stages: dict[str, bool] = {}
-    raw, stages["read"] = read_shapes(cache, shapes_dir, imp.to_json())
-    staged, stages["stabilise"] = stabilise(cache, raw, imp.to_json())
+    raw, stages["read"] = _call(read_shapes, cache, shapes_dir, imp.to_json())
+    staged, stages["stabilise"] = _call(stabilise, cache, raw, imp.to_json())
     dataset_dir = str(Path(staged) / "dataset")
     # Published only once every stage has succeeded: a run failing at the index leaves OUT as it was.
     outputs = {"dataset": (dataset_dir, "dataset")}
@@ -153,17 +187,17 @@ def rebuild_dataset(
                "n_shapes": manifest["n_shapes"], "n_vertices": manifest["n_vertices"],
                "stabilisation": manifest["info"].get("stabilisation", {}).get("method", "none"), "stages": stages}
     if aug_opts is not None:
-        aug, stages["augment"] = augment(cache, dataset_dir, aug_opts.to_json(), jaw_rig)
+        aug, stages["augment"] = _call(augment, cache, dataset_dir, aug_opts.to_json(), jaw_rig)
         dataset_dir = str(Path(aug) / "dataset")
         outputs["dataset_augmented"] = (dataset_dir, "dataset")
         aug_manifest = json.loads((Path(dataset_dir) / "manifest.json").read_text())
         summary["augmented"] = {"path": str((out_dir / "dataset_augmented").resolve()),
                                 "n_shapes": aug_manifest["n_shapes"], **aug_manifest["info"].get("augmented", {})}
     if markers:
-        nat, stages["natural"] = natural_neighbours(cache, dataset_dir, markers, idx_opts)
-        clouds, stages["clouds"] = point_clouds(cache, dataset_dir, markers, nat, idx_opts, jaw_rig)
-        idx, stages["index"] = assemble(cache, dataset_dir, markers, nat, clouds, idx_opts, jaw_rig)
-        ver, stages["verify"] = verify(cache, idx, ver_opts)
+        nat, stages["natural"] = _call(natural_neighbours, cache, dataset_dir, markers, idx_opts)
+        clouds, stages["clouds"] = _call(point_clouds, cache, dataset_dir, markers, nat, idx_opts, jaw_rig)
+        idx, stages["index"] = _call(assemble, cache, dataset_dir, markers, nat, clouds, idx_opts, jaw_rig)
+        ver, stages["verify"] = _call(verify, cache, idx, ver_opts)
         outputs["index"] = (str(Path(idx) / "index"), "index")
         outputs["verification"] = (ver, "verification")
         summary["verification"] = json.loads((Path(ver) / "summary.json").read_text())

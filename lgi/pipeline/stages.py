@@ -197,7 +197,7 @@ def published(kind: str) -> tuple[tuple[str, ...], str]:
     from lgi.index.build import ENTRIES as INDEX
 
     return {"dataset": (DATASET, "lgi dataset"), "index": (INDEX, "lgi index"),
-            "verification": (("verification.csv", "summary.json"), "lgi verification")}[kind]
+            "verification": (("verification.csv", "summary.json", "*.png", ".complete"), "lgi verification")}[kind]
 
 
 def publish(src: Path, dest: str | os.PathLike[str], kind: str) -> Path:
@@ -212,7 +212,7 @@ def publish(src: Path, dest: str | os.PathLike[str], kind: str) -> Path:
     # Two rebuilds into one OUT publish in turn (each replaces the folder whole; without the lock one could
     # find the other's half-moved folder).
     with locked(dest.parent / f".{dest.name}.lock"), atomic_dir(dest, *published(kind)) as tmp:
-        shutil.copytree(src, tmp, dirs_exist_ok=True)
+        shutil.copytree(src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".complete", ".*.lock"))
     return dest
 
 
