@@ -10,6 +10,7 @@ runs (index loading in every chunk task, Prefect and Dask start-up included), af
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import tempfile
 import time
@@ -24,8 +25,6 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--chunk", type=int, default=60)
     args = ap.parse_args()
-    from prefect_dask import DaskTaskRunner
-
     from lgi.cli import main as lgi
     from lgi.orchestration.reconstruct import reconstruct_shot
 
@@ -36,11 +35,10 @@ def main() -> None:
              "-q"])
         common = dict(index_dir=str(t / "idx"), bundles=str(t / "s" / "bundles.csv"), chunk_size=args.chunk)
         reconstruct_shot(out=str(t / "warm"), **common)
-        runs = [("thread runner", reconstruct_shot)]
+        runs = [("thread runner", functools.partial(reconstruct_shot))]
         for n in (1, 2):
-            runs.append((f"Dask LocalCluster, {n} worker{'s' if n > 1 else ''}", reconstruct_shot.with_options(
-                task_runner=DaskTaskRunner(cluster_kwargs={"n_workers": n, "threads_per_worker": 1,
-                                                           "processes": True}))))
+            runs.append((f"Dask LocalCluster, {n} worker{'s' if n > 1 else ''}",
+                         functools.partial(reconstruct_shot, dask_address=f"local:{n}")))
         print(f"reconstruct job, {args.frames} frames of the synthetic actor, chunks of {args.chunk}:")
         from lgi.jobs.reconstruct import reconstruct
 

@@ -103,12 +103,14 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from lgi.jobs.reconstruct import check_output, preflight, reconstruct, report_lines
 
     opts = _reconstruct_options(args)
+    if args.dask and not args.flow:
+        raise InputError("--dask runs the flow's chunk tasks on Dask: it needs --flow")
     if args.flow:
         check_output(args.out, (args.index_dir, args.bundles, opts.jaw))
         preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
         from lgi.orchestration.reconstruct import reconstruct_shot
 
-        summary = reconstruct_shot(args.index_dir, args.bundles, args.out, **opts.to_json())
+        summary = reconstruct_shot(args.index_dir, args.bundles, args.out, dask_address=args.dask, **opts.to_json())
     else:
         summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
     for line in report_lines(summary):
@@ -344,6 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "artifacts): the same options and the same files as without it")
     s.add_argument("--chunk-size", type=int, default=60, metavar="N",
                    help="frames per task with --flow (60; the results do not depend on it)")
+    s.add_argument("--dask", metavar="ADDRESS",
+                   help="with --flow: run the chunk tasks on Dask, a scheduler address (tcp://host:8786) or local:N "
+                        "(a local cluster of N processes); the results do not depend on it")
     s.add_argument("--usd", action="store_true", help="also write OUT_DIR/shot.usdc (animated mesh, see --fps)")
     s.add_argument("--fps", type=float, default=30.0, help="USD time codes per second (30)")
     s.add_argument("--plot", action="store_true", help="also write OUT_DIR/per_frame.png")
@@ -531,6 +536,8 @@ def main(argv: list[str] | None = None) -> int:
             os.environ.setdefault("PREFECT_LOGGING_LEVEL", "CRITICAL")
             # The ephemeral server's own services log too (an offline machine's failed telemetry is an ERROR).
             os.environ.setdefault("PREFECT_SERVER_LOGGING_LEVEL", "CRITICAL")
+            # ... and so does docket, the server's task queue (a locked database on a first run, which it retries).
+            logging.getLogger("docket").setLevel(logging.CRITICAL)
     name = f"lgi {args.command}"
     import signal
 

@@ -54,3 +54,14 @@ class InputError(LgiError):
         if self.marker is not None:
             where.append(f"marker {self.marker!r}")
         return f"{', '.join(where)}: {self.message}" if where else self.message
+
+
+def cell_text(value: object) -> str:
+    """A table cell as the user wrote it, for messages: text quoted, numbers plain (not numpy's
+    ``np.float64(0.5)``), anything else (a list in a Parquet cell) as printed."""
+    if isinstance(value, str):
+        return repr(value)
+    item = getattr(value, "item", None)
+    if item is not None and getattr(value, "ndim", 1) == 0:
+        return str(item())
+    return str(value)

@@ -521,6 +521,14 @@ CASES = [
     Case("reconstruct-jaw-file-fractional-frame", ["reconstruct", f"{W}/idxr", "--bundles", f"{S}/bundles.csv",
                                                    "--out", f"{C}/out", "-q", "--jaw", f"{C}/j.csv"], 2,
          "not a whole number", write("j.csv", "frame,open_deg,yaw_deg,roll_deg,forward_cm\n0.5,1,0,0,0\n")),
+    # --- campaign 3 ----------------------------------------------------------------------------------------
+    Case("reconstruct-obj-folder-holds-a-user-file", [*REC, "--obj"], 2, "notes.txt",
+         write("out/obj/notes.txt", "mine"), ()),
+    Case("import-flow-marker-triangle-out-of-range", [*IMP, "--flow", "--markers", f"{C}/m.csv"], 2,
+         "triangle 999999", chain(OBJS, markers_cell(0, "triangle", "999999"))),
+    Case("bundles-parquet-list-in-y", [*RECB[:3], f"{C}/b.parquet", *RECB[4:]], 2, "(row 0), frame 0, marker",
+         lambda w, c: pd.read_csv(w / "s" / "bundles.csv").assign(y=lambda d: [[v, v] for v in d.y]).to_parquet(
+             c / "b.parquet")),
     Case("unknown-command", ["fly"], 2, "fly"),
 ]
 
@@ -658,8 +666,8 @@ def test_rerun_leaves_exactly_what_it_wrote(world: Path, tmp_path: Path, capsys)
 def test_synth_rerun_drops_the_earlier_hmc(tmp_path: Path, capsys) -> None:
     out = tmp_path / "s"
     assert run(["synth", "--out", str(out), "--vertices", "800", "--frames", "3", "-q"], capsys)[0] == 0
-    (out / "hmc").mkdir()  # as an earlier --hmc run leaves it
-    (out / "hmc" / "old.png").write_bytes(b"x")
+    (out / "hmc" / "cam0").mkdir(parents=True)  # as an earlier --hmc run leaves it
+    (out / "hmc" / "cam0" / "000000.png").write_bytes(b"x")
     (out / "mine.txt").write_text("keep")
     assert run(["synth", "--out", str(out), "--vertices", "800", "--frames", "3", "-q"], capsys)[0] == 0
     assert not (out / "hmc").exists() and (out / "mine.txt").read_text() == "keep"

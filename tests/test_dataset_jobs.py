@@ -56,9 +56,9 @@ def test_import_identity_and_augment_same_through_the_flow(prefect_harness, tmp_
 
 
 def test_flow_parameters_checked(prefect_harness, tmp_path: Path, obj_folder: Path) -> None:
-    from flows.rebuild_dataset import rebuild_dataset
-
     from prefect.exceptions import ParameterTypeError
+
+    from flows.rebuild_dataset import rebuild_dataset
 
     # Typed parameters: checked by Prefect before the flow run starts (no task runs), the field named.
     with pytest.raises(ParameterTypeError, match="linaer"):

@@ -18,8 +18,6 @@ def shot(tmp_path_factory):
 
 
 def test_shot_flow_thread_and_dask_agree(prefect_harness, shot: Path) -> None:
-    from prefect_dask import DaskTaskRunner
-
     from flows.reconstruct_shot import reconstruct_shot
 
     args = dict(index_dir=str(shot / "idx"), bundles=str(shot / "s" / "bundles.csv"), chunk_size=15, usd=True,
@@ -32,9 +30,7 @@ def test_shot_flow_thread_and_dask_agree(prefect_harness, shot: Path) -> None:
     assert (shot / "thread" / "per_frame.png").stat().st_size > 5000
     assert len(pd.read_csv(shot / "thread" / "per_frame.csv")) == 40
     assert not list(shot.glob(".thread.chunks*"))
-    dask_flow = reconstruct_shot.with_options(task_runner=DaskTaskRunner(
-        cluster_kwargs={"n_workers": 2, "threads_per_worker": 1, "processes": True}))
-    dask_flow(out=str(shot / "dask"), **args)
+    reconstruct_shot(out=str(shot / "dask"), dask_address="local:2", **args)  # a deployment's parameter
     for name in ("meshes.npz", "diagnostics.csv", "per_frame.csv", "shot.usdc"):
         assert filecmp.cmp(shot / "thread" / name, shot / "dask" / name, shallow=False), name
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from lgi.errors import InputError
+from lgi.errors import InputError, cell_text
 from lgi.io.atomic import atomic_file
 
 COLUMNS = ["frame", "marker", "x", "y", "z"]
@@ -43,11 +43,6 @@ class Bundles:
     def seen(self) -> np.ndarray:
         """(F, M) bool: marker seen in frame."""
         return np.all(np.isfinite(self.positions), axis=2)
-
-
-def _show(value: object) -> str:
-    """A cell as the user wrote it: text quoted, numbers plain (not numpy's ``np.float64(0.5)``)."""
-    return repr(value) if isinstance(value, str) else str(value.item() if hasattr(value, "item") else value)
 
 
 def _row_ref(path: Path, df: pd.DataFrame, r: int, is_csv: bool) -> dict:
@@ -138,11 +133,11 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None)
     bad = ~np.isfinite(frame_num) | (frame_num != np.round(frame_num))
     if bad.any():
         r = int(np.flatnonzero(bad)[0])
-        raise InputError(f"frame {_show(df['frame'].iloc[r])} is not an integer", **_row_ref(path, df, r, is_csv))
+        raise InputError(f"frame {cell_text(df['frame'].iloc[r])} is not an integer", **_row_ref(path, df, r, is_csv))
     big = np.abs(frame_num) > MAX_FRAME
     if big.any():
         r = int(np.flatnonzero(big)[0])
-        raise InputError(f"frame {_show(df['frame'].iloc[r])} is outside -{MAX_FRAME}..{MAX_FRAME}",
+        raise InputError(f"frame {cell_text(df['frame'].iloc[r])} is outside -{MAX_FRAME}..{MAX_FRAME}",
                          **_row_ref(path, df, r, is_csv))
     df["frame"] = frame_num.astype(np.int64)
 
@@ -156,7 +151,7 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None)
             badnum = num.isna() & ~empty
             if badnum.any():
                 r = int(np.flatnonzero(badnum.to_numpy())[0])
-                raise InputError(f"non-numeric {col} value {_show(raw.iloc[r])}", **_row_ref(path, df, r, is_csv))
+                raise InputError(f"non-numeric {col} value {cell_text(raw.iloc[r])}", **_row_ref(path, df, r, is_csv))
             xyz[:, k] = num.to_numpy(float)
         else:
             xyz[:, k] = pd.to_numeric(raw, errors="coerce").to_numpy(float)

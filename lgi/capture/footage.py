@@ -88,12 +88,12 @@ def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots
         if row.marker not in index:
             raise InputError("unknown marker", path=path, line=r, marker=str(row.marker))
         if row.camera not in (0, 1):
-            raise InputError(f"camera must be 0 or 1, not {row.camera!r}", path=path, line=r, marker=str(row.marker))
+            raise InputError(f"camera must be 0 or 1, not {row.camera:g}", path=path, line=r, marker=str(row.marker))
         xy = dots[int(row.camera)].xy
         d = np.linalg.norm(xy - [row.x, row.y], axis=1) if len(xy) else np.array([np.inf])
         if d.min() > max_px:
-            misses.append(InputError(f"no dot detected within {max_px} px of ({row.x}, {row.y}) in camera "
-                                     f"{row.camera}", path=path, line=r, marker=str(row.marker)))
+            misses.append(InputError(f"no dot detected within {max_px} px of ({row.x:g}, {row.y:g}) in camera "
+                                     f"{int(row.camera)}", path=path, line=r, marker=str(row.marker)))
             continue
         uv[index[row.marker], int(row.camera)] = xy[int(np.argmin(d))]
     # A few labels on dots the detector missed are left to the tracker; most of them missing means the
@@ -170,6 +170,8 @@ def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.
     if helmet is not None:
         try:
             rig, _ = refine_rig(rig, helmet, dots)
+        except InputError:
+            raise  # says what is wrong with the helmet markers itself
         except ValueError as e:
             raise InputError(f"helmet markers: {e}", path=folder) from e
     t1 = time.perf_counter()

@@ -72,6 +72,18 @@ def load_vertex_indices(path: str | os.PathLike[str], n_vertices: int | None = N
     return np.unique(idx.astype(np.int64))
 
 
+def neutral_mesh(folder: str | os.PathLike[str], neutral: str | None = None) -> PolyMesh:
+    """The neutral OBJ of a shapes folder (the one named ``*neutral*``, or ``neutral``), read alone: what a marker
+    layout is checked against before a rebuild reads every shape."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError("shape folder not found or not a directory", path=folder)
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".obj" and p.is_file())
+    if not files:
+        raise InputError("no OBJ files in folder", path=folder)
+    return read_obj(_find_neutral(files, folder, neutral))
+
+
 def _find_neutral(files: list[Path], folder: Path, neutral: str | None) -> Path:
     if neutral is not None:
         for f in files:

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from lgi.dataset.mesh import ClosestPointQuery
-from lgi.errors import InputError
+from lgi.errors import InputError, cell_text
 from lgi.io.atomic import atomic_file
 
 COLUMNS = ["name", "triangle", "v0", "v1", "v2", "w0", "w1", "w2"]
@@ -139,13 +139,14 @@ def read_layout(path: str | os.PathLike[str], triangles: np.ndarray | None = Non
         bad = num.isna() | ~np.isfinite(num.to_numpy(dtype=float, na_value=np.nan))
         if bad.any():
             r = int(np.flatnonzero(bad.to_numpy())[0])
-            raise InputError(f"column {col!r} has a non-numeric or missing value {df[col].iloc[r]!r}",
+            raise InputError(f"column {col!r} has a non-numeric or missing value {cell_text(df[col].iloc[r])}",
                              path=path, line=r + 2, marker=str(df["name"].iloc[r]))
         if col in ("triangle", "v0", "v1", "v2"):
             frac = (num != np.round(num)) | (num < 0)
             if frac.any():
                 r = int(np.flatnonzero(frac.to_numpy())[0])
-                raise InputError(f"column {col!r} must hold a non-negative whole number, not {df[col].iloc[r]!r}",
+                bad = cell_text(df[col].iloc[r])
+                raise InputError(f"column {col!r} must hold a non-negative whole number, not {bad}",
                                  path=path, line=r + 2, marker=str(df["name"].iloc[r]))
         df[col] = num
     names = df["name"]

@@ -205,18 +205,29 @@ def atomic_file(final: str | os.PathLike[str], suffix: str = "") -> Iterator[Pat
     os.replace(tmp, final)
 
 
+def check_contents(out: str | os.PathLike[str], contents: dict[str, tuple[str, ...]] | None) -> None:
+    """Refuse an owned directory of ``out`` (name -> the patterns of what it holds) holding anything else: the
+    job replaces it whole (see :func:`job_outputs`)."""
+    for name, patterns in (contents or {}).items():
+        check_output(Path(out) / name, "dir", owned=patterns, what=f"lgi {name}/ folder")
+
+
 @contextlib.contextmanager
-def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...]) -> Iterator[Path]:
+def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
+                contents: dict[str, tuple[str, ...]] | None = None) -> Iterator[Path]:
     """Yield a staging directory for a job whose outputs are the entries ``owned`` of directory ``out``.
 
     The one output-directory policy of every job that writes a directory of outputs: on success each staged
     entry replaces the one of the same name, and the job's entries this run did not write (an earlier run's
     ``obj/`` when ``--obj`` is not given now) are removed, so ``out`` never mixes two runs; entries that are
     not the job's are left alone. On error nothing in ``out`` changes and the staging directory is removed;
-    a killed run's staging directory is removed by the next run.
+    a killed run's staging directory is removed by the next run. ``contents``: for the owned directories, the
+    fnmatch patterns of what they hold; an existing one holding anything else is refused before the work (see
+    :func:`check_output`), as it would be replaced whole.
     """
     out = Path(out)
     check_output(out, "dir")
+    check_contents(out, contents)
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     for prefix in (".lgi-staging-", *(f".{name}.old-" for name in owned)):

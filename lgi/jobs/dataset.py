@@ -133,9 +133,12 @@ def check_rebuild(shapes_dir: str | Path, out: str | Path, options: ImportOption
         check_output(Path(out) / name, "dir", inputs=[*inputs, *files_in(shapes_dir, SOURCES)], owned=owned,
                      what=what)
     if markers:
+        from lgi.dataset.importing import neutral_mesh
         from lgi.dataset.markers import read_layout
+        from lgi.dataset.mesh import triangulate
 
-        read_layout(markers)  # the file itself; against the mesh once the dataset is read
+        mesh = neutral_mesh(shapes_dir, options.neutral)
+        read_layout(markers, triangulate(mesh.face_vertices, mesh.face_offsets)[0])
 
 
 def dataset_summary(ds, out: str | Path, seconds: float | None = None) -> dict[str, Any]:

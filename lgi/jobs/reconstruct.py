@@ -34,6 +34,8 @@ log = logging.getLogger(__name__)
 
 #: Every entry a reconstruction writes into its output directory (see :func:`lgi.io.atomic.job_outputs`).
 OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "per_frame.png", "shot.usdc", "obj")
+#: What the output folders hold (anything else there is someone else's: the run refuses to replace it).
+OUTPUT_CONTENTS = {"obj": ("frame_*.obj", "*.mtl")}
 
 
 @dataclass(frozen=True)
@@ -402,7 +404,7 @@ def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], op
     from lgi.io.csvio import write_csv
     from lgi.io.npz import save_npz
 
-    with job_outputs(out, OUTPUTS) as stage:
+    with job_outputs(out, OUTPUTS, OUTPUT_CONTENTS) as stage:
         extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
         save_npz(stage / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
         write_csv(res.diagnostics, stage / "diagnostics.csv")
@@ -487,9 +489,11 @@ def report_lines(s: dict[str, Any]) -> list[str]:
 def check_output(out: str | Path, inputs: tuple[Any, ...] = ()) -> None:
     """Refuse, before any work, an output path that cannot become the job's directory, or whose outputs would
     replace one of the run's ``inputs`` (index, bundles, jaw file)."""
+    from lgi.io.atomic import check_contents
     from lgi.io.atomic import check_output as check
 
     check(out, "dir")
+    check_contents(out, OUTPUT_CONTENTS)
     for name in OUTPUTS:
         check(Path(out) / name, "dir" if name == "obj" else "file", inputs=inputs)
 

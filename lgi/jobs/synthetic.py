@@ -18,6 +18,9 @@ from lgi.units import MM_PER_CM
 
 #: What ``lgi synth`` writes into its output directory (an earlier run's ``hmc/`` goes when --hmc is not given).
 SYNTH_OUTPUTS = ("dataset", "markers.csv", "bundles.csv", "jaw_rig.npz", "truth.npz", "hmc")
+#: What the output folders hold (anything else there is someone else's: the run refuses to replace it).
+SYNTH_CONTENTS = {"dataset": ("manifest.json", "mesh.npz", "deltas.npy"),
+                  "hmc": ("cam0", "cam1", "calib", "*.json", "*.csv", "*.npz")}
 
 
 def _physical_memory() -> int | None:
@@ -102,12 +105,13 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
     """
     from lgi.capture.bundles import Bundles, write_bundles
     from lgi.dataset.markers import write_layout
-    from lgi.io.atomic import check_output, job_outputs
+    from lgi.io.atomic import check_contents, check_output, job_outputs
     from lgi.io.npz import save_npz
     from lgi.synthetic import actor as synth
 
     o = options
     check_output(out, "dir")
+    check_contents(out, SYNTH_CONTENTS)
     hmc = o.footage()
     actor = synth.make_actor(o.vertices)
     ds = synth.make_dataset(actor)
@@ -118,7 +122,7 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
     truth = actor.evaluate_many(acts)
     bundles = Bundles(frames=np.arange(o.frames), markers=layout.names,
                       positions=layout.evaluate(truth.astype(np.float64)))
-    with job_outputs(out, SYNTH_OUTPUTS) as stage:
+    with job_outputs(out, SYNTH_OUTPUTS, SYNTH_CONTENTS) as stage:
         ds.save(stage / "dataset")
         write_layout(stage / "markers.csv", layout, neutral=actor.neutral)
         write_bundles(stage / "bundles.csv", bundles)

@@ -5,6 +5,7 @@ library's algorithms and jobs do not need Prefect. The top-level ``flows/`` and 
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 
 def capture_library_logs() -> None:
@@ -22,3 +23,23 @@ def capture_library_logs() -> None:
 
 
 capture_library_logs()
+
+
+def artifact_key(kind: str, path: str | Path) -> str:
+    """A Prefect artifact key unique to one output folder (a shot, a dataset) and stable across its re-runs, so
+    the UI keeps each shot's report history apart: ``KIND-NAME-HASH`` (lowercase letters, digits, dashes)."""
+    import hashlib
+    import re
+
+    p = Path(path).resolve()
+    name = re.sub(r"[^a-z0-9]+", "-", p.name.lower()).strip("-")[:40] or "out"
+    return f"{kind}-{name}-{hashlib.sha256(str(p).encode()).hexdigest()[:8]}"
+
+
+def embedded_png(path: Path, alt: str) -> str:
+    """Markdown for a picture carried inside the artifact (a data URI): a remote UI shows it, where a link to
+    the worker's disk would be broken."""
+    import base64
+
+    data = base64.b64encode(Path(path).read_bytes()).decode()
+    return f"![{alt}](data:image/png;base64,{data})"

@@ -8,6 +8,7 @@ same options objects as ``lgi import`` / ``lgi augment`` / ``lgi verify``.
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 from dataclasses import fields
@@ -23,7 +24,7 @@ from lgi.errors import LgiError
 from lgi.index.build import IndexOptions
 from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
 from lgi.jobs.index import VerifyOptions
-from lgi.orchestration import capture_library_logs
+from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
 from lgi.orchestration.params import described
 from lgi.pipeline import stages as pipeline
 from lgi.pipeline.cache import StageCache
@@ -222,16 +223,18 @@ def _artifacts(summary: dict, out_dir: Path) -> None:
     shapes = [{"shape": s["name"], "source": s["source"], "tags": ",".join(s["tags"]),
                "removed_translation": round(float(sum(r[3] ** 2 for r in s["rigid_transform"][:3]) ** 0.5), 6)}
               for s in manifest["shapes"]]
-    create_table_artifact(table=shapes, key="dataset-shapes", description="shapes and the head motion removed")
+    key = functools.partial(artifact_key, path=out_dir)
+    create_table_artifact(table=shapes, key=key("dataset-shapes"), description="shapes and the head motion removed")
     md, png = pipeline.rebuild_markdown(summary, out_dir)
     if "verification" in summary:
         bundles = pd.read_csv(out_dir / "index" / "bundles.csv")
-        create_table_artifact(table=bundles.to_dict(orient="records"), key="index-bundles",
+        create_table_artifact(table=bundles.to_dict(orient="records"), key=key("index-bundles"),
                               description="per bundle: points before/after pruning, simplices by kind")
         table = pd.read_csv(out_dir / "verification" / "verification.csv")
-        create_table_artifact(table=table.round(6).to_dict(orient="records"), key="verification",
+        create_table_artifact(table=table.round(6).to_dict(orient="records"), key=key("verification"),
                               description="every shape from its own bundles: error in mm")
     absolute = md.replace("`dataset/`", f"`{summary['path']}`")
     if png is not None:
-        absolute = absolute.replace("(verification/worst.png)", f"({png.as_uri()})")
-    create_markdown_artifact(markdown=absolute, key="rebuild-report")
+        absolute = absolute.replace("![worst verification error](verification/worst.png)",
+                                    embedded_png(png, "worst verification error"))
+    create_markdown_artifact(markdown=absolute, key=key("rebuild-report"))

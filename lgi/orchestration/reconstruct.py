@@ -23,7 +23,7 @@ from prefect.artifacts import (
 from prefect.cache_policies import NO_CACHE
 
 from lgi.jobs import reconstruct as job
-from lgi.orchestration import capture_library_logs
+from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
 from lgi.orchestration.params import described
 
 _T = {"cache_policy": NO_CACHE, "persist_result": False}
@@ -82,7 +82,10 @@ def write_shot(index_dir: str, bundles: str, options: dict, choices: list[str], 
            footage="Stereo frames (cam0/, cam1/): track them into bundles first (needs calib and markers).",
            calib="Stereo calibration JSON (lgi calibrate), with footage.",
            markers="Marker layout CSV with neutral positions, with footage.",
-           helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot, with footage.")
+           helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot, with footage.",
+           dask_address="Run the chunk tasks on Dask: a scheduler address (tcp://host:8786), or local:N for a "
+                        "local cluster of N worker processes (null: threads in this process). Results are the "
+                        "same bit for bit.")
 def reconstruct_shot(
     index_dir: str,
     bundles: str,
@@ -105,6 +108,7 @@ def reconstruct_shot(
     calib: str | None = None,
     markers: str | None = None,
     helmet: str | None = None,
+    dask_address: str | None = None,
 ) -> dict:
     """Reconstruct a shot into ``out``: the options of ``lgi reconstruct`` (:class:`~lgi.jobs.reconstruct.
     ReconstructOptions`), with the work in chunks of ``chunk_size`` frames.
@@ -122,8 +126,10 @@ def reconstruct_shot(
             raise ValueError("a shot from footage needs calib and markers")
         tracking = track_footage(footage, calib, markers, bundles, helmet=helmet)
         create_table_artifact(table=[{k: v for k, v in tracking.items() if not isinstance(v, (list, dict))}],
-                              key="shot-tracking", description="footage to bundles: tracking summary")
+                              key=artifact_key("shot-tracking", out),
+                              description="footage to bundles: tracking summary")
     n = job.preflight(index_dir, bundles, opts)
+    runner = task_runner(dask_address)
     bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
     # One working folder per run: two runs into the same OUT never touch each other's chunk files, and a killed
     # run's folder (its process gone) is removed by the next.
@@ -133,31 +139,9 @@ def reconstruct_shot(
     parent.mkdir(parents=True, exist_ok=True)
     sweep(parent, prefix)
     work = make_temp_dir(parent, prefix)
-    o = opts.to_json()
-    futures, parts, prev = [], [], None
+    chunks = reconstruct_chunks if runner is None else reconstruct_chunks.with_options(task_runner=runner)
     try:
-        progress = create_progress_artifact(progress=0.0, description=f"frames chosen, in chunks of {chunk_size}")
-        for lo, hi in bounds:
-            prev = choose_chunk.submit(index_dir, bundles, o, lo, hi, str(work / f"choice_{lo:06d}.npz"), prev)
-            futures.append(prev)
-        choices = []
-        for k, fut in enumerate(futures):
-            choices.append(fut.result())
-            update_progress_artifact(progress, progress=100.0 * (k + 1) / len(futures))
-        parts = finish_chunk.map(unmapped(index_dir), unmapped(bundles), unmapped(o), unmapped(choices),
-                                 [b[0] for b in bounds], [b[1] for b in bounds],
-                                 [str(work / f"part_{lo:06d}.npz") for lo, _ in bounds])
-        summary = write_shot(index_dir, bundles, o, choices, [p.result() for p in parts], out)
-    except BaseException:
-        # Interrupted (or a chunk failed): the tasks already submitted keep running on the task runner, so stop
-        # them at their next start and let the running ones end before their folder goes.
-        (work / _STOP).touch()
-        for fut in [*futures, *parts]:
-            try:
-                fut.wait(timeout=120)
-            except BaseException:  # noqa: BLE001 - a second Ctrl-C or a failed task: stop waiting, clean up
-                break
-        raise
+        summary = chunks(index_dir, bundles, opts.to_json(), bounds, str(work), out)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     _report(summary, out)
@@ -167,6 +151,55 @@ def reconstruct_shot(
     if tracking:
         summary["tracking"] = tracking
     return summary
+
+
+def task_runner(dask_address: str | None):
+    """The task runner of the chunk work: None (Prefect's threads), or Dask at ``dask_address`` (``local:N``: a
+    local cluster of N single-threaded worker processes)."""
+    if not dask_address:
+        return None
+    from prefect_dask import DaskTaskRunner
+
+    if dask_address.startswith("local"):
+        n = dask_address.partition(":")[2] or "2"
+        if not n.isdigit() or not 1 <= int(n) <= 256:
+            raise ValueError(f"dask_address {dask_address!r}: local:N takes a number of workers from 1 to 256")
+        return DaskTaskRunner(cluster_kwargs={"n_workers": int(n), "threads_per_worker": 1, "processes": True})
+    return DaskTaskRunner(address=dask_address)
+
+
+@flow(name="reconstruct-chunks")
+def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work: str,
+                       out: str) -> dict:
+    """The chunk work of :func:`reconstruct_shot` on the task runner it was given: frames chosen in chunks
+    chained one after another, then finished in chunks mapped over the runner, then written."""
+    work_dir = Path(work)
+    futures, parts = [], []
+    try:
+        progress = create_progress_artifact(progress=0.0, description=f"frames chosen, in {len(bounds)} chunks")
+        prev = None
+        for lo, hi in bounds:
+            prev = choose_chunk.submit(index_dir, bundles, options, lo, hi, str(work_dir / f"choice_{lo:06d}.npz"),
+                                       prev)
+            futures.append(prev)
+        choices = []
+        for k, fut in enumerate(futures):
+            choices.append(fut.result())
+            update_progress_artifact(progress, progress=100.0 * (k + 1) / len(futures))
+        parts = finish_chunk.map(unmapped(index_dir), unmapped(bundles), unmapped(options), unmapped(choices),
+                                 [b[0] for b in bounds], [b[1] for b in bounds],
+                                 [str(work_dir / f"part_{lo:06d}.npz") for lo, _ in bounds])
+        return write_shot(index_dir, bundles, options, choices, [p.result() for p in parts], out)
+    except BaseException:
+        # Interrupted (or a chunk failed): the tasks already submitted keep running on the task runner, so stop
+        # them at their next start and let the running ones end before their folder goes.
+        (work_dir / _STOP).touch()
+        for fut in [*futures, *parts]:
+            try:
+                fut.wait(timeout=120)
+            except BaseException:  # noqa: BLE001 - a second Ctrl-C or a failed task: stop waiting, clean up
+                break
+        raise
 
 
 def _report(summary: dict, out: str) -> None:
@@ -180,12 +213,12 @@ def _report(summary: dict, out: str) -> None:
         neighbour=("status", lambda s: int((s == "neighbour").sum())),
         missing=("status", lambda s: int(s.isin(["missing", "bridged"]).sum())),
         median_projection_mm=("projection_mm", "median")).reset_index()
-    create_table_artifact(table=per_marker.to_dict(orient="records"), key="shot-markers",
+    create_table_artifact(table=per_marker.to_dict(orient="records"), key=artifact_key("shot-markers", out),
                           description="per marker: share of frames contained in the data; frames projected, "
                                       "taking a neighbour's blend, missing")
     png = Path(out) / "per_frame.png"
-    plot = f"Per-frame plot: [per_frame.png]({png.resolve().as_uri()})  \n" if png.is_file() else ""
-    create_markdown_artifact(key="shot-report", markdown=(
+    plot = f"{embedded_png(png, 'per-frame plot')}\n\n" if png.is_file() else ""
+    create_markdown_artifact(key=artifact_key("shot-report", out), markdown=(
         f"# Shot reconstruction\n\n{summary['frames']} frames x {summary['markers']} markers -> `{summary['out']}`\n\n"
         "| contained | projected | neighbour's blend | missing or bridged | max bundle residual |\n"
         "|---|---|---|---|---|\n"
