@@ -524,7 +524,8 @@ def main(argv: list[str] | None = None) -> int:
     lgi_log = logging.getLogger("lgi")
     for h in [h for h in lgi_log.handlers if isinstance(h, _WarningHandler)]:
         lgi_log.removeHandler(h)
-    lgi_log.addHandler(_WarningHandler(args.command))
+    handler = _WarningHandler(args.command)
+    lgi_log.addHandler(handler)
     if getattr(args, "flow", False):
         import os
 
@@ -548,6 +549,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(args, name, debug)
     finally:
+        lgi_log.removeHandler(handler)  # a caller running several commands in one process gets each its own
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 

@@ -59,6 +59,17 @@ def small_index(small_actor):
     return small_actor, ds, layout, index, reports
 
 
+@pytest.fixture()
+def layout_csv(tmp_path: Path, small_actor) -> Path:
+    """The small actor's default marker layout as a CSV (with neutral positions)."""
+    from lgi.dataset.markers import write_layout
+
+    layout, _ = synth.default_layout(small_actor)
+    path = tmp_path / "markers.csv"
+    write_layout(path, layout, small_actor.neutral)
+    return path
+
+
 @pytest.fixture(scope="session")
 def prefect_harness():
     """One temporary Prefect API for the whole session (starting one takes seconds)."""
@@ -66,3 +77,12 @@ def prefect_harness():
 
     with prefect_test_harness(server_startup_timeout=180):
         yield
+
+
+@pytest.fixture(scope="session")
+def prefect_api(prefect_harness) -> str:
+    """The session's temporary Prefect API URL: flows run in subprocesses (kills, interrupts, concurrent runs)
+    connect to it through ``PREFECT_API_URL`` instead of each starting and migrating a server of their own."""
+    from prefect.settings import PREFECT_API_URL
+
+    return str(PREFECT_API_URL.value())

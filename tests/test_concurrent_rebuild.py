@@ -7,21 +7,18 @@ import subprocess
 import sys
 from pathlib import Path
 
-from lgi.dataset.markers import write_layout
-from lgi.synthetic import actor as synth
 from tests.test_resume import RUN, _env
 
 
-def test_two_rebuilds_into_one_out_at_once(tmp_path: Path, obj_folder: Path, small_actor) -> None:
+def test_two_rebuilds_into_one_out_at_once(prefect_api: str, tmp_path: Path, obj_folder: Path,
+                                          small_actor, layout_csv: Path) -> None:
     root = Path(__file__).resolve().parents[1]
-    layout, _ = synth.default_layout(small_actor)
-    markers = tmp_path / "markers.csv"
-    write_layout(markers, layout, small_actor.neutral)
+    markers = layout_csv
     out, cache = tmp_path / "shared", tmp_path / "shared" / ".cache"
     procs = []
-    for k in range(2):  # separate Prefect homes: two machines' runs, or a worker's and a laptop's
+    for k in range(2):  # two processes (a worker's run and a manual one) on one Prefect API
         (tmp_path / f"run{k}").mkdir()
-        env = _env(tmp_path / f"run{k}")
+        env = _env(tmp_path / f"run{k}", prefect_api)
         procs.append(subprocess.Popen([sys.executable, "-c", RUN, str(obj_folder), str(out), str(markers), str(cache)],
                                       cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
     results = [p.communicate(timeout=900) for p in procs]

@@ -23,21 +23,25 @@ print("STAGES", s["stages"])
 """
 
 
-def _env(tmp: Path) -> dict:
+def _env(tmp: Path, api: str | None = None) -> dict:
+    """A subprocess's environment: its own Prefect home, and the session's API when given (no server of its
+    own to start)."""
     env = dict(os.environ)
     env.update(PREFECT_HOME=str(tmp / "prefect-home"), PREFECT_LOCAL_STORAGE_PATH=str(tmp / "prefect-storage"),
                PREFECT_LOGGING_LEVEL="WARNING", PREFECT_SERVER_ANALYTICS_ENABLED="false",
                PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS="180")
+    if api:
+        env["PREFECT_API_URL"] = api
     return env
 
 
-def test_kill_and_resume(tmp_path: Path, obj_folder: Path, small_actor) -> None:
+def test_kill_and_resume(prefect_api: str, tmp_path: Path, obj_folder: Path, small_actor) -> None:
     root = Path(__file__).resolve().parents[1]
     layout, _ = synth.default_layout(small_actor)
     markers = tmp_path / "markers.csv"
     write_layout(markers, layout, small_actor.neutral)
     args = [str(obj_folder), str(tmp_path / "killed"), str(markers), str(tmp_path / "cache")]
-    proc = subprocess.Popen([sys.executable, "-c", RUN, *args], cwd=root, env=_env(tmp_path),
+    proc = subprocess.Popen([sys.executable, "-c", RUN, *args], cwd=root, env=_env(tmp_path, prefect_api),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     # Kill it as soon as the natural-neighbour stage has finished (later stages still to run).
     deadline = time.time() + 300
@@ -53,8 +57,8 @@ def test_kill_and_resume(tmp_path: Path, obj_folder: Path, small_actor) -> None:
     # killed stage's work is in a hidden temporary, removed when the stage runs again).
     for d in (tmp_path / "cache").glob("*/[!.]*"):
         assert (d / ".complete").is_file(), d
-    resumed = subprocess.run([sys.executable, "-c", RUN, *args], cwd=root, env=_env(tmp_path), capture_output=True,
-                             text=True, timeout=600)
+    resumed = subprocess.run([sys.executable, "-c", RUN, *args], cwd=root, env=_env(tmp_path, prefect_api),
+                             capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     import ast
 
@@ -62,8 +66,8 @@ def test_kill_and_resume(tmp_path: Path, obj_folder: Path, small_actor) -> None:
     assert stages["read"] and stages["stabilise"] and stages["natural"]  # finished before the kill: reused
     assert not list((tmp_path / "cache").glob("*/.*.tmp-*"))  # the killed run's temporaries are gone
     clean = subprocess.run([sys.executable, "-c", RUN, str(obj_folder), str(tmp_path / "clean"), str(markers),
-                            str(tmp_path / "cache-clean")], cwd=root, env=_env(tmp_path), capture_output=True,
-                           text=True, timeout=600)
+                            str(tmp_path / "cache-clean")], cwd=root, env=_env(tmp_path, prefect_api),
+                           capture_output=True, text=True, timeout=600)
     assert clean.returncode == 0, clean.stderr[-3000:]
     a, b = tmp_path / "killed", tmp_path / "clean"
     files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.name not in RUN_ONLY)

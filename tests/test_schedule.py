@@ -58,6 +58,12 @@ def test_nightly_rebuild_schedule_creates_runs(tmp_path: Path) -> None:
             r = subprocess.run([_prefect(), "--no-prompt", *argv], cwd=ROOT, env=env, capture_output=True, text=True,
                                timeout=300)
             assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+        deployments = {d["name"]: d for d in httpx.post(f"{api}/deployments/filter", json={}, timeout=10).json()}
+        assert sorted(deployments) == ["capture-session", "rebuild-dataset", "reconstruct-shot"]
+        rebuild = deployments["rebuild-dataset"]
+        limit = rebuild.get("concurrency_limit") or (rebuild.get("global_concurrency_limit") or {}).get("limit")
+        assert limit == 1, rebuild
+        assert (rebuild.get("concurrency_options") or {}).get("collision_strategy") == "ENQUEUE", rebuild
         runs: list[dict] = []
         deadline = time.time() + 120
         while time.time() < deadline and not runs:

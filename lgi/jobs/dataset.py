@@ -114,7 +114,7 @@ def import_dataset(shapes_dir: str | Path, out: str | Path, options: ImportOptio
 
 
 #: The folders the rebuild publishes in its OUT, and their kinds (:func:`lgi.pipeline.stages.published`).
-REBUILD_OUTPUTS = {"dataset": "dataset", "dataset_augmented": "dataset", "index": "index",
+REBUILD_OUTPUTS = {"dataset": "dataset", "rig": "rig", "dataset_augmented": "dataset", "index": "index",
                    "verification": "verification"}
 
 

@@ -130,6 +130,8 @@ class RigOptions:
     """Options of ``lgi rig``: ``jaw_vertices`` (``FIRST:LAST`` inclusive, or an index file) moving rigidly
     with the jaw, and ``shapes``, the shell pattern of the jaw shapes."""
 
+    __pydantic_config__ = {"extra": "forbid"}  # as a flow parameter: a misspelt key is an error
+
     jaw_vertices: str
     shapes: str = "jaw*"
 

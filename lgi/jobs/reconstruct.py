@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -192,7 +193,7 @@ class Shot:
     """A shot prepared for reconstruction: the solver on the index, the bundles in layout order with gaps
     bridged, the noise resolved and the trajectories denoised on the whole shot, the given jaw read.
 
-    Every stage of the job starts from one (each task of a flow prepares its own, identically).
+    Every stage of the job starts from one (a flow's tasks share one per process: :func:`prepared_shot`).
 
     Parameters
     ----------
@@ -303,11 +304,42 @@ def load_choices(path: str | Path) -> list:
 
 
 # ------------------------------------------------------------------------------------- flow stages
+_SHOTS: dict[str, Shot] = {}
+_SHOTS_LOCK = threading.Lock()
+
+
+def _fingerprint(index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> str:
+    """What a prepared shot depends on: the index's and the bundles' (and a jaw file's) paths, sizes and
+    modification times, and the options."""
+    files = [Path(index_dir) / n for n in ("manifest.json", "index.npz", "deltas.npy")] + [Path(bundles)]
+    if options.jaw not in ("auto", "none"):
+        files.append(Path(options.jaw))
+    stats = []
+    for f in files:
+        st = f.stat()
+        stats.append([str(f.resolve()), st.st_size, st.st_mtime_ns])
+    return json.dumps([stats, options.to_json()], sort_keys=True)
+
+
+def prepared_shot(index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> Shot:
+    """The shot prepared once per process and reused by every chunk task that runs there (the index loaded,
+    the bundles read, bridged and denoised, the noise estimated): a flow's tasks on Prefect's threads share one,
+    each Dask worker process prepares its own. A changed input file makes a new one. The solver is only read
+    while chunks are chosen and finished, so the tasks may share it."""
+    key = _fingerprint(index_dir, bundles, options)
+    with _SHOTS_LOCK:
+        shot = _SHOTS.get(key)
+        if shot is None:
+            _SHOTS.clear()  # one shot at a time per process: a worker moves from shot to shot
+            shot = _SHOTS[key] = Shot(index_dir, bundles, options)
+    return shot
+
+
 def choose_chunk(index_dir: str, bundles: str, options: ReconstructOptions, lo: int, hi: int, out: str,
                  previous: str | None = None) -> str:
     """Choose frames lo:hi (continuing from the last choice in the ``previous`` chunk's file); write them to
     ``out`` (npz). Chained over a shot's chunks, the choices are those a single pass makes."""
-    shot = Shot(index_dir, bundles, options)
+    shot = prepared_shot(index_dir, bundles, options)
     prev = load_choices(previous)[-1] if previous else None
     save_choices(out, shot.choose(lo, hi, prev))
     return out
@@ -320,7 +352,7 @@ def finish_chunk(index_dir: str, bundles: str, options: ReconstructOptions, choi
     from lgi.io.atomic import atomic_file
     from lgi.io.npz import save_npz
 
-    shot = Shot(index_dir, bundles, options)
+    shot = prepared_shot(index_dir, bundles, options)
     sels = [s for path in choices for s in load_choices(path)]
     res = shot.finish(sels, lo, hi)
     extra = {} if res.jaw is None else {"jaw": res.jaw}
@@ -337,7 +369,7 @@ def assemble(index_dir: str, bundles: str, options: ReconstructOptions, choices:
     from lgi.solve.solver import SequenceResult
 
     t0 = time.perf_counter()
-    shot = Shot(index_dir, bundles, options)
+    shot = prepared_shot(index_dir, bundles, options)
     sels = [s for path in choices for s in load_choices(path)]
     p = [load_npz(path) for path in parts]
     jaw = np.concatenate([x["jaw"] for x in p]) if "jaw" in p[0] else None

@@ -11,7 +11,7 @@ from __future__ import annotations
 import functools
 import json
 import shutil
-from dataclasses import fields
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import pandas as pd
@@ -20,10 +20,10 @@ from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 from prefect.states import Completed, State
 
-from lgi.errors import LgiError
+from lgi.errors import InputError, LgiError
 from lgi.index.build import IndexOptions
 from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
-from lgi.jobs.index import VerifyOptions
+from lgi.jobs.index import RigOptions, VerifyOptions
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
 from lgi.orchestration.params import described
 from lgi.pipeline import stages as pipeline
@@ -112,6 +112,13 @@ def assemble(cache_dir: str, dataset_dir: str, markers: str, natural_dir: str, c
     return _done(path, hit)
 
 
+@task(name="fit-jaw-rig", **_hours(1))
+def fit_rig(cache_dir: str, dataset_dir: str, options: dict) -> tuple[str, bool] | State:
+    """The jaw rig from the dataset's jaw shapes (see :func:`lgi.pipeline.stages.rig_stage`)."""
+    path, hit = pipeline.rig_stage(StageCache(cache_dir), Path(dataset_dir), RigOptions(**options))
+    return _done(path, hit)
+
+
 @task(name="verify", **_hours(6))
 def verify(cache_dir: str, index_dir: str, options: dict) -> tuple[str, bool] | State:
     """Every dataset shape reconstructed from its own bundles (see :func:`lgi.jobs.index.verify`)."""
@@ -133,6 +140,8 @@ def publish(src: str, dest: str, kind: str) -> str:
            markers="Marker layout CSV: also build the index and verify it (lgi build, lgi verify).",
            index_options="Options of lgi build as a flat object (cloud and index options; unknown keys refused).",
            jaw_rig="Jaw rig npz (lgi rig): the shapes are unskinned before indexing.",
+           rig="Fit the jaw rig here instead (a cached stage, published as rig/): the options of lgi rig, e.g. "
+               '{"jaw_vertices": "jaw_vertices.txt", "shapes": "jaw*"}; excludes jaw_rig.',
            tolerance="Verification: RMS error (mm) over the marked region above which a shape fails.",
            verify_shapes="Verification: shell patterns of the shapes to check (null: all).",
            cache_dir="Stage cache folder (default out/.cache); lgi cache ls / prune list and trim it.",
@@ -151,6 +160,7 @@ def rebuild_dataset(
     markers: str | None = None,
     index_options: dict | None = None,
     jaw_rig: str | None = None,
+    rig: RigOptions | None = None,
     tolerance: float = 0.01,
     verify_shapes: str | None = None,
     cache_dir: str | None = None,
@@ -174,6 +184,8 @@ def rebuild_dataset(
                 else AugmentOptions.from_json(augmentation))
     idx_opts = pipeline.options_from(index_options).to_json() if markers else None
     ver_opts = VerifyOptions(tolerance=tolerance, shapes=verify_shapes).to_json()
+    if rig is not None and jaw_rig:
+        raise InputError("give either jaw_rig (a fitted rig) or rig (fit one), not both")
     check_rebuild(shapes_dir, out, imp, markers, jaw_rig, cache_dir)
     out_dir = Path(out)
     cache = cache_dir or str(out_dir / ".cache")
@@ -181,12 +193,25 @@ def rebuild_dataset(
     raw, stages["read"] = _call(read_shapes, cache, shapes_dir, imp.to_json())
     staged, stages["stabilise"] = _call(stabilise, cache, raw, imp.to_json())
     dataset_dir = str(Path(staged) / "dataset")
+    rig_summary = rig_dir = None
+    if rig is not None:
+        rig_opts = rig if isinstance(rig, RigOptions) else RigOptions(**rig)
+        rig_dir, stages["rig"] = _call(fit_rig, cache, dataset_dir, asdict(rig_opts))
+        jaw_rig = str(Path(rig_dir) / "jaw_rig.npz")
+        rig_summary = json.loads((Path(rig_dir) / "rig.json").read_text())
+        for w in rig_summary.get("warnings", []):
+            get_run_logger().warning("jaw rig: %s", w)
     # Published only once every stage has succeeded: a run failing at the index leaves OUT as it was.
     outputs = {"dataset": (dataset_dir, "dataset")}
+    if rig_dir is not None:
+        outputs["rig"] = (rig_dir, "rig")
     manifest = json.loads((Path(dataset_dir) / "manifest.json").read_text())
     summary = {"path": str((out_dir / "dataset").resolve()), "content_hash": manifest["content_hash"],
                "n_shapes": manifest["n_shapes"], "n_vertices": manifest["n_vertices"],
                "stabilisation": manifest["info"].get("stabilisation", {}).get("method", "none"), "stages": stages}
+    if rig_summary is not None:
+        summary["rig"] = {"path": str((out_dir / "rig" / "jaw_rig.npz").resolve()),
+                          **{k: rig_summary[k] for k in ("n_shapes", "jaw_vertices", "pivot", "warnings")}}
     if aug_opts is not None:
         aug, stages["augment"] = _call(augment, cache, dataset_dir, aug_opts.to_json(), jaw_rig)
         dataset_dir = str(Path(aug) / "dataset")

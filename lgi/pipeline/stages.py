@@ -34,7 +34,7 @@ from lgi.index.build import NATURAL_FIELDS, IndexOptions, LGIIndex, assemble_ind
 from lgi.io.npz import save_npz
 from lgi.io.obj import PolyMesh
 from lgi.jobs.dataset import AugmentOptions, ImportOptions, augment, read_shapes, stabilise_shapes
-from lgi.jobs.index import VerifyOptions, verify
+from lgi.jobs.index import RigOptions, VerifyOptions, fit_jaw_rig, verify
 from lgi.pipeline.cache import StageCache, hash_file, hash_tree
 
 # The modules whose source (with every lgi module they import) keys each stage's results, besides the stage's
@@ -162,6 +162,20 @@ def index_stage(cache: StageCache, dataset_dir: Path, markers: str, natural_dir:
     return cache.run("index", inputs, make, _INDEX)
 
 
+def rig_stage(cache: StageCache, dataset_dir: Path, options: RigOptions) -> tuple[Path, bool]:
+    """The jaw rig fitted from the dataset's jaw shapes (:func:`lgi.jobs.index.fit_jaw_rig`); result:
+    ``jaw_rig.npz`` and the fit's report ``rig.json``."""
+    spec = options.jaw_vertices
+    inputs = {"dataset": json.loads((dataset_dir / "manifest.json").read_text())["content_hash"],
+              "options": asdict(options), "jaw_vertices_file": hash_file(spec) if Path(spec).is_file() else None}
+
+    def make(out: Path) -> None:
+        summary = fit_jaw_rig(dataset_dir, out / "jaw_rig.npz", options)
+        (out / "rig.json").write_text(json.dumps(summary, indent=1))
+
+    return cache.run("rig", inputs, make, _VERIFY)
+
+
 def verify_stage(cache: StageCache, index_dir: Path, options: VerifyOptions) -> tuple[Path, bool]:
     """The paper's verification (:func:`lgi.jobs.index.verify`); result: ``verification.csv`` and
     ``summary.json``."""
@@ -197,7 +211,8 @@ def published(kind: str) -> tuple[tuple[str, ...], str]:
     from lgi.index.build import ENTRIES as INDEX
 
     return {"dataset": (DATASET, "lgi dataset"), "index": (INDEX, "lgi index"),
-            "verification": (("verification.csv", "summary.json", "*.png", ".complete"), "lgi verification")}[kind]
+            "verification": (("verification.csv", "summary.json", "*.png", ".complete"), "lgi verification"),
+            "rig": (("jaw_rig.npz", "rig.json", ".complete"), "lgi jaw rig")}[kind]
 
 
 def publish(src: Path, dest: str | os.PathLike[str], kind: str) -> Path:

@@ -1,0 +1,163 @@
+"""A capture session as one flow: calibration images and each shot's stereo footage to meshes and exports.
+
+``capture-session`` calibrates the head-mounted camera pair once (a cached stage: the same images and options
+reuse the calibration), then runs one ``reconstruct-shot`` subflow per shot (track and triangulate the
+footage, reconstruct, write USD), and exports EXR displacement maps when asked. A shot that fails does not
+stop the others: the session's summary and its report artifact list every shot with its status and, for a
+failed one, the error. The jobs are the command line's (``lgi calibrate``, ``lgi track``, ``lgi reconstruct``,
+``lgi export``) with the same options.
+
+Layout of ``out``::
+
+    calibration.json            the session's stereo calibration
+    shots/<shot>/bundles.csv    tracked bundles (cm) and bundles.tracks.parquet (2D tracks)
+    shots/<shot>/recon/         lgi reconstruct's outputs (meshes.npz, diagnostics, shot.usdc, ...)
+    shots/<shot>/exr/           displacement maps (with exr_size)
+    .cache/                     the cached calibration (lgi cache ls / prune)
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from prefect import flow, get_run_logger, task
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
+from prefect.cache_policies import NO_CACHE
+from prefect.states import Completed
+
+from lgi.jobs.capture import CalibrateOptions
+from lgi.orchestration import artifact_key, capture_library_logs
+from lgi.orchestration.params import described
+from lgi.orchestration.reconstruct import reconstruct_shot
+
+
+def shot_folders(shots: str | list[str]) -> list[Path]:
+    """The shots of a session: a list of footage folders, or one folder whose subfolders are the shots (those
+    holding ``cam0/`` and ``cam1/``, or ``left*``/``right*`` images), in name order."""
+    from lgi.errors import InputError
+
+    if isinstance(shots, (list, tuple)):
+        folders = [Path(s) for s in shots]
+    else:
+        root = Path(shots)
+        if not root.is_dir():
+            raise InputError("shots folder not found", path=root)
+        folders = sorted(p for p in root.iterdir() if p.is_dir() and (
+            (p / "cam0").is_dir() or any(p.glob("left*"))))
+    if not folders:
+        raise InputError("no shots (folders with cam0/ and cam1/, or left*/right* images)", path=shots)
+    names = [f.name for f in folders]
+    if len(set(names)) != len(names):
+        raise InputError(f"two shots share a folder name: {sorted(n for n in names if names.count(n) > 1)}")
+    return folders
+
+
+@task(name="calibrate-session", cache_policy=NO_CACHE, persist_result=False, retries=1,
+      timeout_seconds=3600)
+def calibrate_session(images: str, options: dict, out: str, cache_dir: str):
+    """Calibrate the camera pair (``lgi calibrate``), cached by the images' content and the options; the result
+    is copied to ``out``. A cache hit ends in a state named Cached."""
+    from lgi.io.atomic import atomic_file
+    from lgi.jobs.capture import calibrate
+    from lgi.pipeline.cache import StageCache, hash_tree
+
+    opts = CalibrateOptions(**options)
+
+    def make(d: Path) -> None:
+        calibrate(images, d / "calibration.json", opts)
+
+    path, hit = StageCache(cache_dir).run("calibrate", {"images": hash_tree(images), "options": opts.to_json()},
+                                          make, ("lgi.jobs.capture",))
+    with atomic_file(out) as tmp:
+        shutil.copyfile(path / "calibration.json", tmp)
+    value = (out, hit)
+    return Completed(data=value, name="Cached", message="calibration reused from the cache") if hit else value
+
+
+@task(name="export-shot", cache_policy=NO_CACHE, persist_result=False, timeout_seconds=6 * 3600)
+def export_shot(recon: str, index_dir: str, exr: str, exr_size: int, fps: float) -> dict:
+    """Displacement maps of a reconstructed shot (``lgi export --exr``)."""
+    from lgi.jobs.export import ExportOptions, export
+
+    return export(recon, index_dir, ExportOptions(exr=exr, exr_size=exr_size, fps=fps))
+
+
+@flow(name="capture-session")
+@described(
+    calibration_images="Folder of stereo board images (left*/right* or cam0/ and cam1/), as lgi calibrate reads.",
+    board="Board spec for lgi calibrate, e.g. chessboard:9x6:25 or charuco:7x5:30:22:DICT_5X5_100 (mm).",
+    shots="A folder whose subfolders are the shots (each with cam0/ and cam1/ frames), or a list of shot folders.",
+    index_dir="The actor's LGI index (lgi build or the rebuild-dataset flow).",
+    markers="Marker layout CSV with neutral positions (x, y, z), as lgi track reads.",
+    out="Session output folder: calibration.json, shots/<shot>/ (bundles, recon/, exr/).",
+    fisheye="Calibrate with the fisheye lens model.",
+    rational="Calibrate with OpenCV's rational pinhole model.",
+    helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot.",
+    usd="Write each shot's shot.usdc.",
+    fps="USD time codes per second.",
+    exr_size="Also write EXR displacement maps of this many texels square per frame (null: none).",
+    smooth="Moving average of each bundle's shape weights over this many frames (1 = none).",
+    chunk_size="Frames per reconstruction task (the results do not depend on it).",
+    dask_address="Run the reconstruction chunks on Dask (see reconstruct-shot); null: threads.",
+)
+def capture_session(
+    calibration_images: str,
+    board: str,
+    shots: str | list[str],
+    index_dir: str,
+    markers: str,
+    out: str,
+    fisheye: bool = False,
+    rational: bool = False,
+    helmet: str | None = None,
+    usd: bool = True,
+    fps: float = 30.0,
+    exr_size: int | None = None,
+    smooth: int = 1,
+    chunk_size: int = 60,
+    dask_address: str | None = None,
+) -> dict:
+    """Calibrate once, then track, reconstruct and export every shot; returns the session summary (``shots``:
+    per shot its status, frames, outputs, or the error)."""
+    capture_library_logs()
+    from lgi.io.atomic import check_output
+    from lgi.jobs.export import ExportOptions
+
+    cal_opts = CalibrateOptions(board=board, rational=rational, fisheye=fisheye)
+    if exr_size is not None:
+        ExportOptions(exr="x", exr_size=exr_size, fps=fps)  # the values checked before any work
+    folders = shot_folders(shots)
+    out_dir = Path(out)
+    check_output(out_dir, "dir", inputs=[calibration_images, index_dir, markers, helmet, *folders])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    calib, cal_hit = calibrate_session(calibration_images, cal_opts.to_json(), str(out_dir / "calibration.json"),
+                                       str(out_dir / ".cache"), return_state=True).result()
+    logger = get_run_logger()
+    rows = []
+    for folder in folders:
+        shot_dir = out_dir / "shots" / folder.name
+        row: dict = {"shot": folder.name, "status": "failed", "frames": 0, "error": ""}
+        state = reconstruct_shot(index_dir, str(shot_dir / "bundles.csv"), str(shot_dir / "recon"), smooth=smooth,
+                                 usd=usd, fps=fps, chunk_size=chunk_size, footage=str(folder), calib=calib,
+                                 markers=markers, helmet=helmet, dask_address=dask_address, return_state=True)
+        try:
+            summary = state.result()
+            row.update(status="done", frames=summary["frames"], recon=summary["out"])
+            if exr_size is not None:
+                export_shot(summary["out"], index_dir, str(shot_dir / "exr"), exr_size, fps)
+                row["exr"] = str((shot_dir / "exr").resolve())
+        except Exception as exc:  # noqa: BLE001 - a failed shot is reported, the session goes on
+            row["error"] = f"{type(exc).__name__}: {exc}"
+            logger.error("shot %s failed: %s", folder.name, row["error"])
+        rows.append(row)
+    failed = [r for r in rows if r["status"] != "done"]
+    key = artifact_key("session", out_dir)
+    create_table_artifact(table=rows, key=key, description="capture session: every shot, its status and error")
+    create_markdown_artifact(key=f"{key}-report", markdown=(
+        f"# Capture session\n\ncalibration: `{calib}` ({'cached' if cal_hit else 'computed'})\n\n"
+        f"{len(rows) - len(failed)} of {len(rows)} shots reconstructed"
+        + ("".join(f"\n- **{r['shot']}** failed: {r['error']}" for r in failed) if failed else "") + "\n"))
+    logger.info("%d of %d shots reconstructed%s", len(rows) - len(failed), len(rows),
+                f"; failed: {', '.join(r['shot'] for r in failed)}" if failed else "")
+    return {"calibration": calib, "calibration_cached": cal_hit, "shots": rows, "failed": [r["shot"] for r in failed]}
