@@ -189,6 +189,15 @@ def preflight(index_dir: str | Path, bundles: str | Path, options: ReconstructOp
     return len(b.frames)
 
 
+def chunk_needs(options: ReconstructOptions, n_frames: int, lo: int, hi: int) -> tuple[int, int]:
+    """The frames whose choices finishing frames lo:hi reads: its blends span the smoothing window, each blend's
+    weights a window more, and the jaw its own window on top (the shot's edges clamp)."""
+    o = options
+    h, hj = o.smooth // 2, (o.smooth if o.jaw_smooth is None else o.jaw_smooth) // 2
+    m = 2 * h + hj
+    return max(0, lo - m), min(n_frames, hi + m)
+
+
 class Shot:
     """A shot prepared for reconstruction: the solver on the index, the bundles in layout order with gaps
     bridged, the noise resolved and the trajectories denoised on the whole shot, the given jaw read.
@@ -241,12 +250,22 @@ class Shot:
         jaw = None if self.given_jaw is None else self.given_jaw[lo:hi]
         return self.solver.select_sequence(self.fit_pos[lo:hi], self.frames[lo:hi], jaw, previous=previous)
 
-    def finish(self, sels: list, lo: int, hi: int, show_progress: bool = False):
-        """Frames lo:hi blended, skinned and corrected from the whole shot's choices ``sels``
-        (a :class:`~lgi.solve.solver.SequenceResult` of those frames)."""
+    def finish(self, sels: list, lo: int, hi: int, show_progress: bool = False, first: int = 0):
+        """Frames lo:hi blended, skinned and corrected (a :class:`~lgi.solve.solver.SequenceResult` of those
+        frames) from the choices ``sels`` of frames ``first:first + len(sels)``, which must hold frames
+        :meth:`needs` says (the whole shot's, by default)."""
         o = self.options
-        return self.solver.finish_sequence(sels, self.pos, self.frames, self.bridged, o.smooth, o.jaw_smooth,
-                                           show_progress, self.fit_pos, lo, hi)
+        a, b = first, first + len(sels)
+        if a > 0 or b < self.n_frames:
+            need = self.needs(lo, hi)
+            if a > need[0] or b < need[1]:
+                raise ValueError(f"frames {lo}:{hi} need the choices of {need[0]}:{need[1]}, given {a}:{b}")
+        return self.solver.finish_sequence(sels, self.pos[a:b], self.frames[a:b], self.bridged[a:b], o.smooth,
+                                           o.jaw_smooth, show_progress, self.fit_pos[a:b], lo - a, hi - a)
+
+    def needs(self, lo: int, hi: int) -> tuple[int, int]:
+        """The frames whose choices finishing frames lo:hi reads (:func:`chunk_needs`)."""
+        return chunk_needs(self.options, self.n_frames, lo, hi)
 
     def run(self, show_progress: bool = False):
         """The whole shot in this process (the solver's fastest schedule for it)."""
@@ -346,15 +365,16 @@ def choose_chunk(index_dir: str, bundles: str, options: ReconstructOptions, lo: 
 
 
 def finish_chunk(index_dir: str, bundles: str, options: ReconstructOptions, choices: list[str], lo: int, hi: int,
-                 out: str) -> str:
-    """Blend, skin and correct frames lo:hi from the whole shot's choice files; write the vertices (float32,
-    cm), the bundles' distances before and after the correction (cm) and the jaw used to ``out`` (npz)."""
+                 out: str, first: int = 0) -> str:
+    """Blend, skin and correct frames lo:hi from the choice files ``choices`` (consecutive chunks from frame
+    ``first``, covering :meth:`Shot.needs`; by default the whole shot's); write the vertices (float32, cm), the
+    bundles' distances before and after the correction (cm) and the jaw used to ``out`` (npz)."""
     from lgi.io.atomic import atomic_file
     from lgi.io.npz import save_npz
 
     shot = prepared_shot(index_dir, bundles, options)
     sels = [s for path in choices for s in load_choices(path)]
-    res = shot.finish(sels, lo, hi)
+    res = shot.finish(sels, lo, hi, first=first)
     extra = {} if res.jaw is None else {"jaw": res.jaw}
     with atomic_file(out, suffix=".npz") as tmp:
         save_npz(tmp, vertices=res.vertices, before=res.before, after=res.after, **extra)

@@ -17,9 +17,22 @@ def capture_library_logs() -> None:
     lib = logging.getLogger("lgi")
     if lib.level == logging.NOTSET:
         lib.setLevel(logging.INFO)
-    for handler in logging.getLogger("prefect.extra").handlers:
-        if handler not in lib.handlers:
-            lib.addHandler(handler)
+    if not any(isinstance(h, _RunLogHandler) for h in lib.handlers):
+        lib.addHandler(_RunLogHandler())
+
+
+class _RunLogHandler(logging.Handler):
+    """Forwards a record to Prefect's API handlers when it happens inside a flow or task run; outside one (the
+    library used directly in the same process) it does nothing, where the API handler would warn."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from prefect.context import FlowRunContext, TaskRunContext
+
+        if FlowRunContext.get() is None and TaskRunContext.get() is None:
+            return
+        for handler in logging.getLogger("prefect.extra").handlers:
+            if record.levelno >= handler.level:
+                handler.handle(record)
 
 
 capture_library_logs()

@@ -13,7 +13,7 @@ import shutil
 from dataclasses import fields
 from pathlib import Path
 
-from prefect import flow, get_run_logger, task, unmapped
+from prefect import flow, get_run_logger, task
 from prefect.artifacts import (
     create_markdown_artifact,
     create_progress_artifact,
@@ -60,11 +60,12 @@ def choose_chunk(index_dir: str, bundles: str, options: dict, lo: int, hi: int, 
 
 @task(name="finish-chunk", **_T)
 def finish_chunk(index_dir: str, bundles: str, options: dict, choices: list[str], lo: int, hi: int,
-                 out: str) -> str:
+                 out: str, first: int = 0) -> str:
     """Blend, skin and correct frames lo:hi (see :func:`lgi.jobs.reconstruct.finish_chunk`)."""
     if _stopped(out):
         return ""
-    return job.finish_chunk(index_dir, bundles, job.ReconstructOptions.from_json(options), choices, lo, hi, out)
+    return job.finish_chunk(index_dir, bundles, job.ReconstructOptions.from_json(options), choices, lo, hi, out,
+                            first)
 
 
 @task(name="write-shot", **_T)
@@ -182,13 +183,18 @@ def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list
             prev = choose_chunk.submit(index_dir, bundles, options, lo, hi, str(work_dir / f"choice_{lo:06d}.npz"),
                                        prev)
             futures.append(prev)
+        # Each chunk is finished as soon as the choices its windows read are made (Shot.needs), while the chain
+        # goes on choosing: the two overlap as in lgi reconstruct's two-thread schedule.
+        opts = job.ReconstructOptions.from_json(options)
+        for lo, hi in bounds:
+            a, b = job.chunk_needs(opts, bounds[-1][1], lo, hi)
+            needed = [k for k, (c0, c1) in enumerate(bounds) if c1 > a and c0 < b]
+            parts.append(finish_chunk.submit(index_dir, bundles, options, [futures[k] for k in needed], lo, hi,
+                                             str(work_dir / f"part_{lo:06d}.npz"), bounds[needed[0]][0]))
         choices = []
         for k, fut in enumerate(futures):
             choices.append(fut.result())
             update_progress_artifact(progress, progress=100.0 * (k + 1) / len(futures))
-        parts = finish_chunk.map(unmapped(index_dir), unmapped(bundles), unmapped(options), unmapped(choices),
-                                 [b[0] for b in bounds], [b[1] for b in bounds],
-                                 [str(work_dir / f"part_{lo:06d}.npz") for lo, _ in bounds])
         return write_shot(index_dir, bundles, options, choices, [p.result() for p in parts], out)
     except BaseException:
         # Interrupted (or a chunk failed): the tasks already submitted keep running on the task runner, so stop
