@@ -173,20 +173,15 @@ def read_jaw_file(path: str | Path, frames: np.ndarray) -> np.ndarray:
 
 def preflight(index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> int:
     """Check the inputs of a reconstruction before any work is scheduled (the index loads, the bundles name its
-    markers, the jaw option suits the index, a jaw file covers every frame); returns the number of frames."""
-    from lgi.capture.bundles import read_bundles
-    from lgi.index.build import LGIIndex
+    markers, the jaw option suits the index, a jaw file covers every frame); returns the number of frames.
 
-    index = LGIIndex.load(index_dir)
-    b = read_bundles(bundles, index.marker_names)
-    if index.jaw_rig() is not None and options.jaw == "none":
+    The checks are those of preparing the shot, which is kept (:func:`prepared_shot`): the flow's chunk tasks in
+    this process then start from it instead of preparing it again."""
+    shot = prepared_shot(index_dir, bundles, options)
+    if shot.index.jaw_rig() is not None and options.jaw == "none":
         raise InputError("the index was built with a jaw rig (its shapes are unskinned): use --jaw auto or a jaw "
                          "file, or rebuild the index without a rig", path=index_dir)
-    if options.jaw not in ("auto", "none"):
-        if index.jaw_rig() is None:
-            raise InputError("--jaw FILE needs an index built with --jaw-rig", path=index_dir)
-        read_jaw_file(options.jaw, b.frames)
-    return len(b.frames)
+    return shot.n_frames
 
 
 def chunk_needs(options: ReconstructOptions, n_frames: int, lo: int, hi: int) -> tuple[int, int]:
