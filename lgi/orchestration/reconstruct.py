@@ -174,8 +174,14 @@ def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list
                        out: str) -> dict:
     """The chunk work of :func:`reconstruct_shot` on the task runner it was given: frames chosen in chunks
     chained one after another, then finished in chunks mapped over the runner, then written."""
+    from threadpoolctl import threadpool_limits
+
     work_dir = Path(work)
     futures, parts = [], []
+    # BLAS limits are process-wide: a chunk task leaving its one-thread limit would give the tasks still running
+    # on the other threads a multithreaded BLAS that fights numba for the cores (lgi.threads). One limit for the
+    # whole chunk work keeps every task at one BLAS thread.
+    blas = threadpool_limits(limits=1, user_api="blas")
     try:
         progress = create_progress_artifact(progress=0.0, description=f"frames chosen, in {len(bounds)} chunks")
         prev = None
@@ -206,6 +212,8 @@ def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list
             except BaseException:  # noqa: BLE001 - a second Ctrl-C or a failed task: stop waiting, clean up
                 break
         raise
+    finally:
+        blas.restore_original_limits()
 
 
 def _report(summary: dict, out: str) -> None:
