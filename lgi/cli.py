@@ -546,15 +546,34 @@ def main(argv: list[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     except ValueError:  # not the main thread (a caller embedding lgi): leave SIGTERM alone
         previous = None
+    interrupted = None
+    if getattr(args, "flow", False) and previous is not None:
+        from lgi.orchestration import INTERRUPTED
+
+        interrupted = INTERRUPTED
+        interrupted.clear()
+
+        def on_sigint(signum: int, frame: object) -> None:
+            interrupted.set()
+            raise KeyboardInterrupt
+
+        signal.signal(signal.SIGINT, on_sigint)
     try:
-        return _run(args, name, debug)
+        code = _run(args, name, debug, interrupted)
+        if interrupted is not None and interrupted.is_set() and code == 0:
+            # Prefect swallowed the KeyboardInterrupt where it landed, and the run still completed.
+            print(f"{name}: interrupted after the outputs of this run were written", file=sys.stderr)
+            return 130
+        return code
     finally:
+        if interrupted is not None:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
         lgi_log.removeHandler(handler)  # a caller running several commands in one process gets each its own
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 
 
-def _run(args: argparse.Namespace, name: str, debug: bool) -> int:
+def _run(args: argparse.Namespace, name: str, debug: bool, interrupted=None) -> int:
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:
@@ -568,6 +587,8 @@ def _run(args: argparse.Namespace, name: str, debug: bool) -> int:
 
             traceback.print_exc()
         stop = _in_chain(exc, KeyboardInterrupt)
+        if stop is None and interrupted is not None and interrupted.is_set():
+            stop = KeyboardInterrupt()  # swallowed by Prefect where it landed: what failed after it is its effect
         if stop is not None:
             how = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
             print(f"{name}: {how}; the outputs of this run were not written", file=sys.stderr)

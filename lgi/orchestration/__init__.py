@@ -5,7 +5,13 @@ library's algorithms and jobs do not need Prefect. The top-level ``flows/`` and 
 from __future__ import annotations
 
 import logging
+import threading
 from pathlib import Path
+
+#: Set by the command line's Ctrl-C handler during a flow run. Prefect may swallow the KeyboardInterrupt where
+#: it lands (inside its engine's own exception handling); the chunk tasks also check this and stop, and the
+#: command reports the interrupt even so.
+INTERRUPTED = threading.Event()
 
 
 def capture_library_logs() -> None:

@@ -46,7 +46,9 @@ _STOP = ".stopped"
 def _stopped(out: str) -> bool:
     """True once the flow has been interrupted: its chunk tasks still queued then return at once instead of
     running (or failing on the working folder the flow is about to remove)."""
-    return (Path(out).parent / _STOP).exists()
+    from lgi.orchestration import INTERRUPTED
+
+    return INTERRUPTED.is_set() or (Path(out).parent / _STOP).exists()
 
 
 @task(name="choose-chunk", **_T)
