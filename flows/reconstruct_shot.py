@@ -10,7 +10,12 @@ from lgi.orchestration.reconstruct import reconstruct_shot
 
 __all__ = ["reconstruct_shot"]
 
+USAGE = "usage: python -m flows.reconstruct_shot INDEX_DIR BUNDLES OUT  (or: lgi reconstruct ... --flow)"
+
 if __name__ == "__main__":
+    if sys.argv[1:] in (["-h"], ["--help"]):
+        print(USAGE)
+        sys.exit(0)
     if len(sys.argv) != 4:
-        sys.exit("usage: python -m flows.reconstruct_shot INDEX_DIR BUNDLES OUT  (or: lgi reconstruct ... --flow)")
+        sys.exit(USAGE)
     reconstruct_shot(*sys.argv[1:])
