@@ -62,3 +62,19 @@ def embedded_png(path: Path, alt: str) -> str:
 
     data = base64.b64encode(Path(path).read_bytes()).decode()
     return f"![{alt}](data:image/png;base64,{data})"
+
+
+def transient_only(task, task_run, state) -> bool:
+    """A task's retry condition: retry for what may pass (a file system or network hiccup), never for bad
+    input or a bug, which would fail the same way again."""
+    from lgi.errors import LgiError
+
+    try:
+        state.result()
+    except LgiError:
+        return False
+    except OSError:
+        return True
+    except Exception:  # noqa: BLE001 - a bug or bad data: retrying gives the same
+        return False
+    return False

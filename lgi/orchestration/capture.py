@@ -27,7 +27,7 @@ from prefect.cache_policies import NO_CACHE
 from prefect.states import Completed
 
 from lgi.jobs.capture import CalibrateOptions
-from lgi.orchestration import artifact_key, capture_library_logs
+from lgi.orchestration import artifact_key, capture_library_logs, transient_only
 from lgi.orchestration.params import described
 from lgi.orchestration.reconstruct import reconstruct_shot
 
@@ -54,7 +54,7 @@ def shot_folders(shots: str | list[str]) -> list[Path]:
 
 
 @task(name="calibrate-session", cache_policy=NO_CACHE, persist_result=False, retries=1,
-      timeout_seconds=3600)
+      retry_condition_fn=transient_only, timeout_seconds=3600)
 def calibrate_session(images: str, options: dict, out: str, cache_dir: str):
     """Calibrate the camera pair (``lgi calibrate``), cached by the images' content and the options; the result
     is copied to ``out``. A cache hit ends in a state named Cached."""

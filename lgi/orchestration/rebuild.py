@@ -20,33 +20,19 @@ from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 from prefect.states import Completed, State
 
-from lgi.errors import InputError, LgiError
+from lgi.errors import InputError
 from lgi.index.build import IndexOptions
 from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
 from lgi.jobs.index import RigOptions, VerifyOptions
-from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
+from lgi.orchestration import artifact_key, capture_library_logs, embedded_png, transient_only
 from lgi.orchestration.params import described
 from lgi.pipeline import stages as pipeline
 from lgi.pipeline.cache import StageCache
 
-
-def _transient(task, task_run, state) -> bool:
-    """Retry a stage only for what may pass (a file system or network hiccup), never for bad input."""
-    try:
-        state.result()
-    except LgiError:
-        return False
-    except OSError:
-        return True
-    except Exception:  # noqa: BLE001 - a bug or bad data: retrying gives the same
-        return False
-    return False
-
-
 # Stage results are files in the stage cache, never Prefect results (no pickles); I/O may be retried; the
 # timeouts are generous bounds that stop a hung run from holding the deployment's concurrency slot forever.
 _T = {"cache_policy": NO_CACHE, "persist_result": False, "retries": 2, "retry_delay_seconds": 10,
-      "retry_condition_fn": _transient}
+      "retry_condition_fn": transient_only}
 
 
 def _hours(h: float) -> dict:
