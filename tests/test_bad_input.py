@@ -776,6 +776,7 @@ def test_sigterm_cleans_up_like_ctrl_c(world: Path, long_shot: Path, tmp_path: P
     assert not out.exists() or not [q for q in out.iterdir()]
 
 
+@pytest.mark.slow  # 44 s (a flow run in a fresh process); the fast suite keeps the plain-run interrupts
 def test_sigint_inside_a_flow_task_stops_the_local_server(world: Path, long_shot: Path, tmp_path: Path) -> None:
     """Ctrl-C while the reconstruct-shot flow's tasks run: status 130, no traceback, the chunk folder removed and
     the local Prefect server the command started stopped (left running it would keep the pipes open, and

@@ -7,10 +7,12 @@ import filecmp
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lgi.cli import main
 
 
+@pytest.mark.slow  # 42 s: two rebuilds
 def test_rebuild_fits_the_jaw_rig_as_a_cached_stage(prefect_harness, tmp_path: Path, obj_folder: Path,
                                                      small_actor, layout_csv: Path) -> None:
     from flows.rebuild_dataset import rebuild_dataset
