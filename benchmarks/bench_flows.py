@@ -3,14 +3,17 @@ with Dask (1 and 2 workers); all give the same files.
 
     python benchmarks/bench_flows.py [--frames 300] [--chunk 60] [--dask 1 2] [--repeat 1]
 
-The synthetic actor (20k vertices, jaw-free index), its performance as the shot. Times are whole flow
-runs (the shot prepared once per process, Prefect and Dask start-up included), after one warm-up run;
-the overhead is the flow run's time beyond the plain run's, as a share of it.
+The synthetic actor (20k vertices, jaw-free index), its performance as the shot (exact bundles). Times are
+whole runs after one warm-up run of each: every run prepares the shot again (the flow's tasks share one
+prepared shot per process, which is dropped before each run), Prefect and Dask start-up included; the
+overhead is the flow run's time beyond the plain run's, as a share of it. The runs alternate, plain then
+each flow, so slow spells of the machine fall on all of them.
 """
 
 from __future__ import annotations
 
 import argparse
+import filecmp
 import functools
 import os
 import tempfile
@@ -40,29 +43,33 @@ def main() -> None:
         lgi(["build", str(t / "s" / "dataset"), "--markers", str(t / "s" / "markers.csv"), "--out", str(t / "idx"),
              "-q"])
         common = dict(index_dir=str(t / "idx"), bundles=str(t / "s" / "bundles.csv"), chunk_size=args.chunk)
-        reconstruct_shot(out=str(t / "warm"), **common)
-        runs = [("thread runner", functools.partial(reconstruct_shot))]
+        from lgi.jobs.reconstruct import forget_shots, reconstruct
+
+        runs = [("plain (lgi reconstruct, in-process)",
+                 lambda out: reconstruct(common["index_dir"], common["bundles"], out)),
+                ("flow, thread runner", functools.partial(reconstruct_shot, **common))]
         for n in args.dask:
-            runs.append((f"Dask LocalCluster, {n} worker{'s' if n > 1 else ''}",
-                         functools.partial(reconstruct_shot, dask_address=f"local:{n}")))
-        print(f"reconstruct job, {args.frames} frames of the synthetic actor, chunks of {args.chunk}:")
-        from lgi.jobs.reconstruct import reconstruct
-
-        def timed(fn) -> float:
-            times = []
-            for _ in range(args.repeat):
+            runs.append((f"flow, Dask LocalCluster, {n} worker{'s' if n > 1 else ''}",
+                         functools.partial(reconstruct_shot, dask_address=f"local:{n}", **common)))
+        for k, (_, fn) in enumerate(runs):  # warm-up: imports, numba caches, Dask's first start
+            fn(out=str(t / f"warm{k}"))
+        times: list[list[float]] = [[] for _ in runs]
+        for _ in range(args.repeat):
+            for k, (_, fn) in enumerate(runs):
+                forget_shots()
                 t0 = time.perf_counter()
-                fn()
-                times.append(time.perf_counter() - t0)
-            return float(np.median(times))
-
-        plain = timed(lambda: reconstruct(common["index_dir"], common["bundles"], str(t / "plain")))
-        print(f"  {'plain (lgi reconstruct, in-process)':<36} {plain:6.1f} s  {args.frames / plain:6.1f} frames/s")
-        for label, fl in runs:
-            dt = timed(lambda fl=fl, label=label: fl(out=str(t / label.replace(" ", "_").replace(",", "")),
-                                                      **common))
-            print(f"  {'flow, ' + label:<36} {dt:6.1f} s  {args.frames / dt:6.1f} frames/s  "
-                  f"overhead {100 * (dt - plain) / plain:+.0f} % of the plain run")
+                fn(out=str(t / f"run{k}"))
+                times[k].append(time.perf_counter() - t0)
+        same = all(filecmp.cmp(t / "run0" / f, t / f"run{k}" / f, shallow=False)
+                   for k in range(1, len(runs)) for f in ("meshes.npz", "diagnostics.csv", "per_frame.csv"))
+        print(f"reconstruct job, {args.frames} frames of the synthetic actor, chunks of {args.chunk}, "
+              f"medians of {args.repeat} (runs alternating); outputs identical: {same}")
+        plain = float(np.median(times[0]))
+        for (label, _), ts in zip(runs, times, strict=True):
+            dt = float(np.median(ts))
+            extra = f"  overhead {100 * (dt - plain) / plain:+.0f} % of the plain run" if ts is not times[0] else ""
+            print(f"  {label:<40} {dt:6.1f} s  {args.frames / dt:6.1f} frames/s  "
+                  f"(runs {', '.join(f'{x:.1f}' for x in ts)}){extra}")
 
 
 if __name__ == "__main__":

@@ -110,3 +110,24 @@ def test_bad_options_refused_before_any_work(shot: Path, flag: str, value: str, 
     assert code == 2
     assert flag in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_slot_labels_match_python_formatting() -> None:
+    """The diagnostics' shape and weight texts, built array-wise, are Python's own: unused slots anywhere in a
+    row, weights at 4-decimal ties (decided on the exact binary value), above 1, and rows with nothing."""
+    from lgi.solve.solver import slot_labels
+
+    rng = np.random.default_rng(3)
+    names = [f"shape_{i}" for i in range(40)]
+    shapes = rng.integers(0, 40, (3000, 7))
+    weights = rng.random((3000, 7))
+    weights[rng.random(weights.shape) < 0.4] = 0.0
+    weights[:500] = np.round(weights[:500] * 2e4) / 2e4  # x.xxxx5: ties
+    weights[500:520] *= 40.0
+    weights[520:530] = 0.0
+    shape_text, weight_text = slot_labels(shapes, weights, names)
+    for r in range(len(shapes)):
+        used = weights[r] > 0
+        assert shape_text[r] == ";".join(names[k] for k in shapes[r][used])
+        assert weight_text[r] == " ".join(f"{w:.4f}" for w in weights[r][used])
+    assert slot_labels(shapes[:0], weights[:0], names)[0].shape == (0,)

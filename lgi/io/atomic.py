@@ -181,11 +181,12 @@ def atomic_dir(final: str | os.PathLike[str], owned: tuple[str, ...] | None = No
 
 
 @contextlib.contextmanager
-def atomic_file(final: str | os.PathLike[str], suffix: str = "") -> Iterator[Path]:
+def atomic_file(final: str | os.PathLike[str], suffix: str = "", durable: bool = True) -> Iterator[Path]:
     """Yield a temporary path in ``final``'s directory that is renamed to ``final`` on success.
 
     ``suffix`` is kept on the temporary name so that writers which choose a format from the
-    extension (pandas, numpy) still see it.
+    extension (pandas, numpy) still see it. ``durable=False`` skips the flush to disk before the rename, for
+    a run's working files that a crash throws away anyway.
     """
     final = Path(final)
     check_output(final, "file")
@@ -198,7 +199,8 @@ def atomic_file(final: str | os.PathLike[str], suffix: str = "") -> Iterator[Pat
     tmp.chmod(0o666 & ~_umask())
     try:
         yield tmp
-        _fsync_tree(tmp)
+        if durable:
+            _fsync_tree(tmp)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

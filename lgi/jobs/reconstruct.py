@@ -18,8 +18,11 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import threading
 import time
+from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -270,8 +273,9 @@ class Shot:
 
 
 # ------------------------------------------------------------------------------------------------ choices
-def save_choices(path: str | Path, sels: list) -> None:
-    """Write frames' choices to an npz, exactly (every field a later frame or the finish reads)."""
+def save_choices(path: str | Path, sels: list, durable: bool = True) -> None:
+    """Write frames' choices to an npz, exactly (every field a later frame or the finish reads); ``durable``:
+    flushed to disk before it appears (see :func:`lgi.io.atomic.atomic_file`)."""
     from lgi.io.atomic import atomic_file
     from lgi.io.npz import save_npz
     from lgi.solve.solver import _stack_slots
@@ -293,7 +297,7 @@ def save_choices(path: str | Path, sels: list) -> None:
     if sels[0].fit.jaw is not None:
         a["fit_jaw"] = np.stack([r.fit.jaw for r in sels])
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    with atomic_file(path, suffix=".npz") as tmp:
+    with atomic_file(path, suffix=".npz", durable=durable) as tmp:
         save_npz(tmp, **a)
 
 
@@ -349,49 +353,118 @@ def prepared_shot(index_dir: str | Path, bundles: str | Path, options: Reconstru
     return shot
 
 
+def forget_shots() -> None:
+    """Drop this process's prepared shot and remembered chunk files (the next task prepares the shot again)."""
+    with _SHOTS_LOCK:
+        _SHOTS.clear()
+        _MEMO.clear()
+        _PARTS.clear()
+
+
 def choose_chunk(index_dir: str, bundles: str, options: ReconstructOptions, lo: int, hi: int, out: str,
                  previous: str | None = None) -> str:
     """Choose frames lo:hi (continuing from the last choice in the ``previous`` chunk's file); write them to
     ``out`` (npz). Chained over a shot's chunks, the choices are those a single pass makes."""
     shot = prepared_shot(index_dir, bundles, options)
-    prev = load_choices(previous)[-1] if previous else None
-    save_choices(out, shot.choose(lo, hi, prev))
+    prev = _recall(previous, load_choices)[-1] if previous else None
+    sels = shot.choose(lo, hi, prev)
+    save_choices(out, sels, durable=False)
+    _remember(out, sels)
     return out
+
+
+# The chunk files a process wrote, kept in memory for its own tasks that read them next (the flow's tasks on
+# Prefect's threads): the files hold the same values exactly, so a task in another process (Dask) reads the
+# same. Keyed by path, size and modification time, so a file written again is read again.
+_MEMO: OrderedDict[str, tuple[tuple[int, int], Any]] = OrderedDict()
+_MEMO_KEPT = 64
+
+
+def _file_key(path: str | Path) -> tuple[int, int]:
+    st = Path(path).stat()
+    return st.st_size, st.st_mtime_ns
+
+
+def _remember(path: str | Path, value: Any) -> None:
+    with _SHOTS_LOCK:
+        _MEMO[str(path)] = (_file_key(path), value)
+        while len(_MEMO) > _MEMO_KEPT:
+            _MEMO.popitem(last=False)
+
+
+def _recall(path: str | Path, load: Callable[[str | Path], Any]) -> Any:
+    """What ``path`` holds: from memory when this process wrote that very file, else ``load(path)``."""
+    with _SHOTS_LOCK:
+        hit = _MEMO.get(str(path))
+    if hit is not None and hit[0] == _file_key(path):
+        return hit[1]
+    return load(path)
 
 
 def finish_chunk(index_dir: str, bundles: str, options: ReconstructOptions, choices: list[str], lo: int, hi: int,
-                 out: str, first: int = 0) -> str:
+                 out: str, first: int = 0, keep: bool = False) -> str:
     """Blend, skin and correct frames lo:hi from the choice files ``choices`` (consecutive chunks from frame
-    ``first``, covering :meth:`Shot.needs`; by default the whole shot's); write the vertices (float32, cm), the
-    bundles' distances before and after the correction (cm) and the jaw used to ``out`` (npz)."""
-    from lgi.io.atomic import atomic_file
-    from lgi.io.npz import save_npz
-
+    ``first``, covering :meth:`Shot.needs`; by default the whole shot's); write the part to ``out``
+    (:func:`save_part`), or with ``keep`` hold it in this process's memory under that name for
+    :func:`assemble` in the same process (a flow on threads: the same values, without the disk)."""
     shot = prepared_shot(index_dir, bundles, options)
-    sels = [s for path in choices for s in load_choices(path)]
+    sels = [s for path in choices for s in _recall(path, load_choices)]
     res = shot.finish(sels, lo, hi, first=first)
-    extra = {} if res.jaw is None else {"jaw": res.jaw}
-    with atomic_file(out, suffix=".npz") as tmp:
-        save_npz(tmp, vertices=res.vertices, before=res.before, after=res.after, **extra)
+    part = (res.vertices, res.jaw, res.diagnostics)
+    if keep:
+        with _SHOTS_LOCK:
+            _PARTS[str(out)] = part
+    else:
+        save_part(out, *part)
     return out
 
 
-def assemble(index_dir: str, bundles: str, options: ReconstructOptions, choices: list[str], parts: list[str],
-             out: str) -> dict[str, Any]:
-    """Join the finished chunks into the shot's result and write it (:func:`write_reconstruction`); returns
-    the summary."""
+# Finished chunks kept in memory (finish_chunk's ``keep``) until assemble takes them, or forget_parts.
+_PARTS: dict[str, tuple[np.ndarray, np.ndarray | None, pd.DataFrame]] = {}
+
+
+def forget_parts(folder: str | Path) -> None:
+    """Drop the finished chunks kept in memory under ``folder`` (a failed or interrupted run's)."""
+    prefix = str(Path(folder)) + os.sep
+    with _SHOTS_LOCK:
+        for k in [k for k in _PARTS if k.startswith(prefix)]:
+            del _PARTS[k]
+
+
+def save_part(path: str | Path, vertices: np.ndarray, jaw: np.ndarray | None, diagnostics: pd.DataFrame) -> None:
+    """Write a finished chunk: its vertices ((F, V, 3) float32, cm) and the jaw used ((F, 6), if any) to
+    ``path`` (npz), its rows of ``diagnostics.csv`` beside it (the same name, .parquet)."""
+    from lgi.io.atomic import atomic_file
+    from lgi.io.npz import save_npz
+
+    with atomic_file(Path(path).with_suffix(".parquet"), durable=False) as tmp:
+        diagnostics.to_parquet(tmp, index=False)
+    with atomic_file(path, suffix=".npz", durable=False) as tmp:
+        save_npz(tmp, vertices=vertices, **({} if jaw is None else {"jaw": jaw}))
+
+
+def load_part(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, pd.DataFrame]:
+    """The finished chunk :func:`save_part` wrote: vertices, jaw (or None) and diagnostics."""
     from lgi.io.npz import load_npz
+
+    a = load_npz(path)
+    return a["vertices"], a.get("jaw"), pd.read_parquet(Path(path).with_suffix(".parquet"))
+
+
+def assemble(index_dir: str, bundles: str, options: ReconstructOptions, parts: list[str],
+             out: str) -> dict[str, Any]:
+    """Join the finished chunks (in frame order) into the shot's result and write it
+    (:func:`write_reconstruction`); returns the summary."""
     from lgi.solve.solver import SequenceResult
 
     t0 = time.perf_counter()
     shot = prepared_shot(index_dir, bundles, options)
-    sels = [s for path in choices for s in load_choices(path)]
-    p = [load_npz(path) for path in parts]
-    jaw = np.concatenate([x["jaw"] for x in p]) if "jaw" in p[0] else None
-    before = np.concatenate([x["before"] for x in p])
-    after = np.concatenate([x["after"] for x in p])
-    diag = shot.solver._diagnostics(sels, shot.frames, shot.bridged, before, after, jaw)
-    res = SequenceResult(np.asarray(shot.frames), np.concatenate([x["vertices"] for x in p]), diag, jaw,
+    with _SHOTS_LOCK:
+        kept = [_PARTS.pop(str(path), None) for path in parts]
+    p = [load_part(path) if k is None else k for path, k in zip(parts, kept, strict=True)]
+    jaw = np.concatenate([x[1] for x in p]) if p[0][1] is not None else None
+    diag = pd.concat([x[2] for x in p], ignore_index=True)
+    res = SequenceResult(np.asarray(shot.frames), np.concatenate([x[0] for x in p]), diag, jaw,
                          shot.solver.noise, options.smooth)
     write_reconstruction(out, res, shot.index.arrays, options)
     return summarise(res, shot, out, {"finish": time.perf_counter() - t0})

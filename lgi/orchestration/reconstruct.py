@@ -62,18 +62,18 @@ def choose_chunk(index_dir: str, bundles: str, options: dict, lo: int, hi: int, 
 
 @task(name="finish-chunk", **_T)
 def finish_chunk(index_dir: str, bundles: str, options: dict, choices: list[str], lo: int, hi: int,
-                 out: str, first: int = 0) -> str:
+                 out: str, first: int = 0, keep: bool = False) -> str:
     """Blend, skin and correct frames lo:hi (see :func:`lgi.jobs.reconstruct.finish_chunk`)."""
     if _stopped(out):
         return ""
     return job.finish_chunk(index_dir, bundles, job.ReconstructOptions.from_json(options), choices, lo, hi, out,
-                            first)
+                            first, keep)
 
 
 @task(name="write-shot", **_T)
-def write_shot(index_dir: str, bundles: str, options: dict, choices: list[str], parts: list[str], out: str) -> dict:
-    """Join the chunks and write the outputs (see :func:`lgi.jobs.reconstruct.assemble`)."""
-    return job.assemble(index_dir, bundles, job.ReconstructOptions.from_json(options), choices, parts, out)
+def write_shot(index_dir: str, bundles: str, options: dict, parts: list[str], out: str) -> dict:
+    """Join the finished chunks and write the outputs (see :func:`lgi.jobs.reconstruct.assemble`)."""
+    return job.assemble(index_dir, bundles, job.ReconstructOptions.from_json(options), parts, out)
 
 
 @flow(name="reconstruct-shot")
@@ -142,10 +142,16 @@ def reconstruct_shot(
     parent.mkdir(parents=True, exist_ok=True)
     sweep(parent, prefix)
     work = make_temp_dir(parent, prefix)
-    chunks = reconstruct_chunks if runner is None else reconstruct_chunks.with_options(task_runner=runner)
     try:
-        summary = chunks(index_dir, bundles, opts.to_json(), bounds, str(work), out)
+        if runner is None:
+            # Prefect's threads in this process: the flow's own task runner, and the finished chunks handed to
+            # the writer in memory.
+            summary = chunk_work(index_dir, bundles, opts.to_json(), bounds, str(work), out, keep=True)
+        else:
+            summary = reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles, opts.to_json(),
+                                                                          bounds, str(work), out)
     finally:
+        job.forget_parts(work)
         shutil.rmtree(work, ignore_errors=True)
     _report(summary, out)
     logger = get_run_logger()
@@ -174,8 +180,15 @@ def task_runner(dask_address: str | None):
 @flow(name="reconstruct-chunks")
 def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work: str,
                        out: str) -> dict:
-    """The chunk work of :func:`reconstruct_shot` on the task runner it was given: frames chosen in chunks
-    chained one after another, then finished in chunks mapped over the runner, then written."""
+    """:func:`chunk_work` on the task runner this subflow was given (Dask), the chunks passed as files."""
+    return chunk_work(index_dir, bundles, options, bounds, work, out)
+
+
+def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work: str, out: str,
+               keep: bool = False) -> dict:
+    """The chunk work of :func:`reconstruct_shot`, on the task runner of the flow that calls it: frames chosen
+    in chunks chained one after another, then finished in chunks mapped over the runner, then written.
+    ``keep``: the finished chunks stay in memory for the writer (every task in this process)."""
     from threadpoolctl import threadpool_limits
 
     work_dir = Path(work)
@@ -198,12 +211,11 @@ def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list
             a, b = job.chunk_needs(opts, bounds[-1][1], lo, hi)
             needed = [k for k, (c0, c1) in enumerate(bounds) if c1 > a and c0 < b]
             parts.append(finish_chunk.submit(index_dir, bundles, options, [futures[k] for k in needed], lo, hi,
-                                             str(work_dir / f"part_{lo:06d}.npz"), bounds[needed[0]][0]))
-        choices = []
+                                             str(work_dir / f"part_{lo:06d}.npz"), bounds[needed[0]][0], keep))
         for k, fut in enumerate(futures):
-            choices.append(fut.result())
+            fut.result()
             update_progress_artifact(progress, progress=100.0 * (k + 1) / len(futures))
-        return write_shot(index_dir, bundles, options, choices, [p.result() for p in parts], out)
+        return write_shot(index_dir, bundles, options, [p.result() for p in parts], out)
     except BaseException:
         # Interrupted (or a chunk failed): the tasks already submitted keep running on the task runner, so stop
         # them at their next start and let the running ones end before their folder goes.

@@ -757,30 +757,14 @@ class LGISolver:
         """One row per frame and bundle (the columns of ``diagnostics.csv``), built column by column."""
         n_f, n_m = len(sels), self.index.n_markers
         names = np.asarray(self.index.marker_names, object)
-        shape_names = self.index.shape_names
-        labels: dict[tuple[bytes, bytes], tuple[str, str]] = {}
-
-        def label(shapes: np.ndarray, weights: np.ndarray) -> tuple[str, str]:
-            nz = weights > 0
-            key = (shapes[nz].tobytes(), weights[nz].tobytes())
-            if key not in labels:
-                labels[key] = (";".join(shape_names[k] for k in shapes[nz]),
-                               " ".join(f"{w:.4f}" for w in weights[nz]))
-            return labels[key]
-
-        shape_col = np.empty((n_f, n_m), object)
-        weight_col = np.empty((n_f, n_m), object)
+        all_shapes, all_weights = _stack_slots([s.shapes for s in sels], [s.weights for s in sels])
+        shape_col, weight_col = slot_labels(all_shapes.reshape(n_f * n_m, -1), all_weights.reshape(n_f * n_m, -1),
+                                            self.index.shape_names)
         status = np.empty((n_f, n_m), object)
         note = np.empty((n_f, n_m), object)
         source = np.empty((n_f, n_m), object)
         status_names = np.array([STATUS.get(k, "?") for k in range(max(STATUS) + 1)], object)
         for f, sel in enumerate(sels):
-            if (sel.shapes == sel.shapes[0]).all() and (sel.weights == sel.weights[0]).all():
-                # Noisy bundles share the global weights: one label per frame.
-                shape_col[f], weight_col[f] = label(sel.shapes[0], sel.weights[0])
-            else:
-                for i in range(n_m):
-                    shape_col[f, i], weight_col[f, i] = label(sel.shapes[i], sel.weights[i])
             note[f] = sel.fallback
             status[f] = np.where(np.asarray(sel.fallback, object) != "", "missing", status_names[sel.status])
             source[f] = "simplex" if sel.source is None else sel.source
@@ -795,8 +779,8 @@ class LGISolver:
             "marker": np.tile(names, n_f),
             "status": status.ravel(),
             "n_containing": np.stack([s.n_containing for s in sels]).astype(np.int64).ravel(),
-            "shapes": shape_col.ravel(),
-            "weights": weight_col.ravel(),
+            "shapes": shape_col,
+            "weights": weight_col,
             "projection_mm": stack(lambda s: s.projection) * MM_PER_CM,
             "score_mm": stack(lambda s: s.score) * MM_PER_CM,
             "residual_before_mm": before.ravel() * MM_PER_CM,
@@ -858,6 +842,56 @@ class _Finisher:
         x, resid = self.blend(f, shapes, lam, jaw)
         self.before[f] = np.linalg.norm(resid, axis=1)
         self.finish(f, x, resid)
+
+
+def slot_labels(shapes: np.ndarray, weights: np.ndarray, shape_names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The diagnostics' ``shapes`` and ``weights`` texts of rows of slots: the names of the slots with a
+    positive weight joined by ";" and their weights as "%.4f" joined by " ", in slot order.
+
+    Parameters
+    ----------
+    shapes : (N, K) int
+        Shape indices per row and slot.
+    weights : (N, K) float
+        Their weights; slots at 0 (or padding) are left out.
+    shape_names : list of str
+
+    Returns
+    -------
+    (N,) object, (N,) object
+        The two texts per row, equal to Python's formatting of each weight (ties decided as it does).
+    """
+    n, k = weights.shape
+    nz = weights > 0
+    # The used slots first (keeping their order): the texts are then prefixes of fixed-width rows.
+    order = np.argsort(~nz, axis=1, kind="stable")
+    k = int(nz.sum(axis=1).max()) if n else 0  # padding slots beyond the widest row hold nothing
+    shapes, weights, nz = (np.take_along_axis(a, order[:, :k], 1) for a in (shapes, weights, nz))
+    # Names: a shot repeats few combinations of shapes (each marker's simplices), so each is joined once.
+    key = np.ascontiguousarray(np.where(nz, shapes, -1).astype(np.int64))
+    codes, uniq = pd.factorize(key.view(f"V{8 * k}").ravel() if k else np.zeros(n, np.int64))
+    rows = key[np.unique(codes, return_index=True)[1]] if n else key
+    joined = np.array([";".join(shape_names[s] for s in row if s >= 0) for row in rows], object)
+    name_text = joined[codes] if n else np.empty(0, object)
+    # Weights: "d.dddd" written as bytes, slot after slot, with NULs (which bytes strings drop at the end) for
+    # unused slots. rint(w * 1e4) is Python's 4-decimal rounding except within rounding error of a tie, or
+    # outside [0, 1]: those rows are formatted by Python itself.
+    x = np.asarray(weights, np.float64) * 1e4
+    q = np.rint(x).astype(np.int64)
+    python = (nz & ((np.abs(x - np.floor(x) - 0.5) <= 1e-6) | (q > 10000))).any(axis=1)
+    q = np.clip(q, 0, 10000)
+    chars = np.empty((n, k, 7), np.uint8)
+    chars[..., 0] = ord(" ")
+    chars[..., 1] = ord("0") + q // 10000
+    chars[..., 2] = ord(".")
+    for d, p in enumerate((1000, 100, 10, 1)):
+        chars[..., 3 + d] = ord("0") + (q // p) % 10
+    chars[~nz] = 0
+    flat = np.ascontiguousarray(chars.reshape(n, 7 * k)[:, 1:]) if k else np.zeros((n, 1), np.uint8)
+    weight_text = flat.view(f"S{flat.shape[1]}").ravel().astype(str).astype(object)
+    for r in np.flatnonzero(python):
+        weight_text[r] = " ".join(f"{w:.4f}" for w in weights[r][nz[r]])
+    return name_text, weight_text
 
 
 def _stack_slots(shapes: list[np.ndarray], weights: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
