@@ -96,7 +96,8 @@ def _reconstruct_options(args: argparse.Namespace):
     return ReconstructOptions(temporal_weight=args.temporal_weight, spatial_weight=args.spatial_weight,
                               smooth=args.smooth, jaw_smooth=args.jaw_smooth, noise=args.noise, method=args.method,
                               jaw=args.jaw, max_gap=args.max_gap, bilateral=args.bilateral, obj=args.obj,
-                              usd=args.usd, plot=args.plot, fps=args.fps, chunk_size=args.chunk_size)
+                              usd=args.usd, plot=args.plot, fps=args.fps, chunk_size=args.chunk_size,
+                              observations=args.observations, calib=args.calib)
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -106,7 +107,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.dask and not args.flow:
         raise InputError("--dask runs the flow's chunk tasks on Dask: it needs --flow")
     if args.flow:
-        check_output(args.out, (args.index_dir, args.bundles, opts.jaw))
+        check_output(args.out, (args.index_dir, args.bundles, opts.jaw, opts.observations, opts.calib))
         preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
         from lgi.orchestration.reconstruct import reconstruct_shot
 
@@ -352,6 +353,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--usd", action="store_true", help="also write OUT_DIR/shot.usdc (animated mesh, see --fps)")
     s.add_argument("--fps", type=float, default=30.0, help="USD time codes per second (30)")
     s.add_argument("--plot", action="store_true", help="also write OUT_DIR/per_frame.png")
+    s.add_argument("--observations", metavar="TRACKS.parquet",
+                   help="the 2D tracks table of lgi track: a marker seen by one camera where the bundles lack it is "
+                        "put on its viewing ray, at the depth a first reconstruction without it gives, and the shot "
+                        "is reconstructed again through it (twice the solve time); writes "
+                        "OUT_DIR/bundles_constrained.parquet and a constraint column in the diagnostics")
+    s.add_argument("--calib", metavar="CALIB.json",
+                   help="with --observations: the stereo calibration (default: the rig lgi track stored in the "
+                        "table, refined by helmet dots if it was)")
     s.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]",
                    help="bilateral filter of the bundles before solving: in time, and with the third value also "
                         "over the nearest markers (e.g. 1.5:0.5:10)")

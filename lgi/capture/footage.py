@@ -36,6 +36,7 @@ class ShotTracks:
     stable_weights: np.ndarray
     n_detections: np.ndarray  # (F, 2)
     seconds: dict[str, float]
+    rig: StereoRig | None = None  # the rig the tracks were triangulated with (refined by helmet dots, if any)
 
 
 def _detect(path: Path, frame: int, size: tuple[int, int] | None, options: DotOptions) -> tuple[Dots, np.ndarray]:
@@ -188,21 +189,51 @@ def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.
     t3 = time.perf_counter()
     n_det = np.array([[len(d0), len(d1)] for d0, d1 in dots])
     return ShotTracks(names, frames, tracks, head, R, t, w, n_det,
-                      {"detect": t1 - t0, "track": t2 - t1, "stabilise": t3 - t2})
+                      {"detect": t1 - t0, "track": t2 - t1, "stabilise": t3 - t2}, rig)
+
+
+#: Parquet schema metadata key of the tracks table: the rig the tracks were triangulated with (JSON).
+RIG_METADATA = b"lgi.rig"
+HEAD_POSE_COLUMNS = ["head_qx", "head_qy", "head_qz", "head_qw", "head_tx", "head_ty", "head_tz"]
 
 
 def tracks_table(shot: ShotTracks) -> pd.DataFrame:
     """Long table of every 2D observation: frame, marker, camera, x, y, reprojection error (px),
-    source (forward/backward/anchor), triangulated (False: seen by this camera only, kept for later use)."""
+    source (forward/backward/anchor), triangulated (False: seen by this camera only), and the frame's head
+    pose that stabilised the bundles: ``head_qx..qw`` (unit quaternion) and ``head_tx..tz`` (mm), mapping the
+    head frame (the bundles') to the rig's frame (NaN where the frame had too few markers to fit it)."""
+    from scipy.spatial.transform import Rotation
+
     tr = shot.tracks
-    F, M = tr.uv.shape[:2]
     f, m, c = np.nonzero(np.isfinite(tr.uv[..., 0]))
     src = np.array(["none", "forward", "backward", "anchor"])
+    ok = np.all(np.isfinite(shot.head_R), axis=(1, 2))
+    quat = np.full((len(shot.head_R), 4), np.nan)
+    if ok.any():
+        quat[ok] = Rotation.from_matrix(shot.head_R[ok]).as_quat()
+    pose = np.column_stack([quat, shot.head_t])[f]
     return pd.DataFrame({
         "frame": f.astype(np.int64), "marker": np.asarray(shot.names)[m], "camera": c.astype(np.int8),
         "x": tr.uv[f, m, c, 0], "y": tr.uv[f, m, c, 1], "reprojection_px": tr.error[f, m, c],
         "source": src[tr.source[f, m, c]], "triangulated": np.isfinite(tr.X[f, m, 0]),
+        **{name: pose[:, k] for k, name in enumerate(HEAD_POSE_COLUMNS)},
     })
+
+
+def write_tracks_table(path: str | os.PathLike[str], shot: ShotTracks) -> None:
+    """Write :func:`tracks_table` as Parquet, with the rig it was triangulated with in the schema metadata
+    (:data:`RIG_METADATA`), so the observations can be turned into rays later without the calibration file."""
+    import json
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pa.Table.from_pandas(tracks_table(shot), preserve_index=False)
+    if shot.rig is not None:
+        meta = dict(table.schema.metadata or {})
+        meta[RIG_METADATA] = json.dumps(shot.rig.to_json()).encode()
+        table = table.replace_schema_metadata(meta)
+    pq.write_table(table, str(path))
 
 
 def neutral_layout(markers: str | os.PathLike[str], dataset: str | os.PathLike[str] | None = None,
@@ -254,7 +285,7 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
     tracks_out = Path(tracks) if tracks else out.with_name(out.stem + ".tracks.parquet")
     F, M = shot.head.shape[:2]
     with atomic_file(tracks_out) as tmp:
-        tracks_table(shot).to_parquet(tmp, index=False)
+        write_tracks_table(tmp, shot)
     try:
         write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / MM_PER_CM))
     except BaseException:

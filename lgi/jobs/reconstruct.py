@@ -19,6 +19,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import threading
 import time
 from collections import OrderedDict
@@ -37,7 +38,8 @@ from lgi.units import MM_PER_CM
 log = logging.getLogger(__name__)
 
 #: Every entry a reconstruction writes into its output directory (see :func:`lgi.io.atomic.job_outputs`).
-OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "per_frame.png", "shot.usdc", "obj")
+OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "per_frame.png", "shot.usdc", "obj",
+           "bundles_constrained.parquet")
 #: What the output folders hold (anything else there is someone else's: the run refuses to replace it).
 OUTPUT_CONTENTS = {"obj": ("frame_*.obj", "*.mtl")}
 
@@ -72,6 +74,12 @@ class ReconstructOptions:
         USD time codes per second.
     chunk_size : int
         Frames per task when the job runs as a flow (scheduling only: results do not depend on it).
+    observations : str or None
+        The tracks table of ``lgi track`` (Parquet): a marker seen by one camera where the shot has no bundle
+        is put on its viewing ray, at the depth a first reconstruction without it gives, and the shot is
+        reconstructed again through it (:mod:`lgi.capture.observations`).
+    calib : str or None
+        Stereo calibration for ``observations`` (default: the rig stored in the tracks table).
     """
 
     temporal_weight: float = 0.02
@@ -88,6 +96,8 @@ class ReconstructOptions:
     plot: bool = False
     fps: float = 30.0
     chunk_size: int = 60
+    observations: str | None = None
+    calib: str | None = None
 
     def __post_init__(self) -> None:
         def bad(flag: str, why: str) -> InputError:
@@ -116,6 +126,8 @@ class ReconstructOptions:
             raise bad("method", f"takes 'local' or 'simplex', not {self.method!r}")
         if not isinstance(self.fps, (int, float)) or not math.isfinite(self.fps) or self.fps <= 0:
             raise bad("fps", f"must be a positive number, not {self.fps!r}")
+        if self.calib and not self.observations:
+            raise bad("calib", "turns the observations of --observations into rays: give the tracks table too")
         self.bilateral_sigmas()
 
     def bilateral_sigmas(self) -> tuple[float, float, float | None] | None:
@@ -184,6 +196,11 @@ def preflight(index_dir: str | Path, bundles: str | Path, options: ReconstructOp
     if shot.index.jaw_rig() is not None and options.jaw == "none":
         raise InputError("the index was built with a jaw rig (its shapes are unskinned): use --jaw auto or a jaw "
                          "file, or rebuild the index without a rig", path=index_dir)
+    if options.observations:
+        from lgi.capture.observations import read_rays
+
+        read_rays(options.observations, shot.index.marker_names, shot.frames,
+                  np.all(np.isfinite(shot.given), axis=2), options.calib)
     return shot.n_frames
 
 
@@ -219,6 +236,12 @@ class Shot:
         self.options = o = options
         self.index = index = LGIIndex.load(index_dir)
         b = read_bundles(bundles, index.marker_names)
+        #: (F, M) the bundles as given (NaN: none), before any filter or bridging
+        self.given = b.positions.copy()
+        # Bundles that stand for a marker seen by one camera (:func:`constrain_to_rays`): their rays.
+        constraints, self.constrained_file = read_constraints(bundles, b.frames, index.marker_names)
+        #: (F, M) bool where a ray stands for the marker, or None; (F, M, 3) ray origins and directions, cm
+        self.rays, self.ray_origin, self.ray_direction = constraints or (None, None, None)
         if o.jaw not in ("auto", "none") and index.jaw_rig() is None:
             raise InputError("--jaw FILE needs an index built with --jaw-rig", path=index_dir)
         self.given_jaw = None if o.jaw in ("auto", "none") else read_jaw_file(o.jaw, b.frames)
@@ -232,6 +255,21 @@ class Shot:
                                     jaw="none" if o.jaw == "none" else "auto", method=o.method)
         self.pos, self.frames, self.bridged = s.prepare_shot(b, None, o.max_gap, o.noise)
         self.fit_pos = s.denoise(self.pos)
+        if self.rays is not None:
+            # A ray's point is where the surface must meet the ray: smoothed with the marker's noisy track, it
+            # would leave the ray.
+            self.fit_pos = np.where(self.rays[..., None], self.pos, self.fit_pos)
+
+    def constraints(self, lo: int = 0, hi: int | None = None) -> np.ndarray:
+        """(F * M,) the ``constraint`` column of the diagnostics for frames lo:hi: "bundle" (a bundle was
+        given), "ray" (a marker seen by one camera, on its ray) or "none" (missing; bridged if the status says
+        so)."""
+        hi = self.n_frames if hi is None else hi
+        seen = np.all(np.isfinite(self.given[lo:hi]), axis=2)
+        out = np.where(seen, "bundle", "none").astype(object)
+        if self.rays is not None:
+            out[self.rays[lo:hi]] = "ray"
+        return out.ravel()
 
     @property
     def n_frames(self) -> int:
@@ -258,8 +296,10 @@ class Shot:
             need = self.needs(lo, hi)
             if a > need[0] or b < need[1]:
                 raise ValueError(f"frames {lo}:{hi} need the choices of {need[0]}:{need[1]}, given {a}:{b}")
-        return self.solver.finish_sequence(sels, self.pos[a:b], self.frames[a:b], self.bridged[a:b], o.smooth,
-                                           o.jaw_smooth, show_progress, self.fit_pos[a:b], lo - a, hi - a)
+        res = self.solver.finish_sequence(sels, self.pos[a:b], self.frames[a:b], self.bridged[a:b], o.smooth,
+                                          o.jaw_smooth, show_progress, self.fit_pos[a:b], lo - a, hi - a)
+        self.meet_rays(res, lo, hi)
+        return res
 
     def needs(self, lo: int, hi: int) -> tuple[int, int]:
         """The frames whose choices finishing frames lo:hi reads (:func:`chunk_needs`)."""
@@ -268,8 +308,122 @@ class Shot:
     def run(self, show_progress: bool = False):
         """The whole shot in this process (the solver's fastest schedule for it)."""
         o = self.options
-        return self.solver.solve_prepared(self.pos, self.frames, self.bridged, self.fit_pos, o.smooth,
-                                          o.jaw_smooth, self.given_jaw, show_progress)
+        res = self.solver.solve_prepared(self.pos, self.frames, self.bridged, self.fit_pos, o.smooth,
+                                         o.jaw_smooth, self.given_jaw, show_progress)
+        self.meet_rays(res)
+        return res
+
+    def meet_rays(self, res, lo: int = 0, hi: int | None = None) -> None:
+        """Correct the surfaces of frames lo:hi (``res``, in place) so that each marker that stands for a ray
+        meets it: moved across the ray to its closest point, by the index's correction fields (the same that
+        take a surface through its bundles: 1 at the marker, 0 at every other marker, which keep their points).
+        Exact bundles already meet their rays (the ray's point is a bundle) up to the correction's truncation,
+        which this removes. Noisy bundles are fitted, not interpolated, and so is a ray's point: the surface is
+        moved ``noise_gain`` (0) of the way, and ``ray_distance_mm`` says how far it stays. Adds the
+        diagnostics' ``constraint`` and ``ray_distance_mm`` (the surface's distance from the ray after it)
+        columns."""
+        hi = self.n_frames if hi is None else hi
+        d = res.diagnostics
+        d["constraint"] = self.constraints(lo, hi)
+        dist = np.full((hi - lo, self.index.n_markers), np.nan)
+        if self.rays is not None:
+            solver = self.solver
+            for f in np.flatnonzero(self.rays[lo:hi].any(axis=1)):
+                g = lo + f
+                x = res.vertices[f].astype(np.float64)
+                pts = solver.layout.evaluate(x)
+                on = self.rays[g]
+                o, u = self.ray_origin[g, on], self.ray_direction[g, on]
+                target = pts.copy()
+                # Noisy bundles are fitted, not interpolated (noise_gain 0): a ray's point, from the same noisy
+                # observations, is then fitted like them, and the surface is moved the same share of the way.
+                closest = o + np.einsum("ij,ij->i", pts[on] - o, u)[:, None] * u
+                target[on] = pts[on] + solver.noise_gain * (closest - pts[on])
+                solver.correct(x, target, np.ones(len(pts), bool))
+                res.vertices[f] = x
+                p = solver.layout.evaluate(x)[on] - o
+                dist[f, on] = np.linalg.norm(p - np.einsum("ij,ij->i", p, u)[:, None] * u, axis=1) * MM_PER_CM
+        d["ray_distance_mm"] = dist.ravel()
+
+
+CONSTRAINED = "bundles_constrained.parquet"
+RAY_COLUMNS = ("ray_ox", "ray_oy", "ray_oz", "ray_dx", "ray_dy", "ray_dz")
+
+
+def replace_outputs(options: ReconstructOptions) -> ReconstructOptions:
+    """``options`` for a first pass whose files are not the job's outputs: no OBJ, USD or plot."""
+    from dataclasses import replace
+
+    return replace(options, obj=False, usd=False, plot=False)
+
+
+def read_constraints(bundles: str | Path, frames: np.ndarray, names: list[str]) -> tuple[
+        tuple[np.ndarray, np.ndarray, np.ndarray] | None, Path | None]:
+    """The rays of a bundles file written by :func:`constrain_to_rays` (its ``constraint`` and ``ray_*``
+    columns): mask (F, M) bool, origins and unit directions (F, M, 3) cm, head frame (NaN off the rays); and
+    the file. (None, None) for any other bundles file."""
+    path = Path(bundles)
+    if path.suffix.lower() != ".parquet":
+        return None, None
+    import pyarrow.parquet as pq
+
+    if "constraint" not in pq.read_schema(str(path)).names:
+        return None, None
+    df = pd.read_parquet(path, columns=["frame", "marker", "constraint", *RAY_COLUMNS])
+    ray = (df["constraint"] == "ray").to_numpy()
+    row = {int(f): k for k, f in enumerate(frames)}
+    col = {n: k for k, n in enumerate(names)}
+    f = df["frame"][ray].map(row).to_numpy(np.int64)
+    m = df["marker"][ray].map(col).to_numpy(np.int64)
+    mask = np.zeros((len(frames), len(names)), bool)
+    mask[f, m] = True
+    geo = np.full((2, len(frames), len(names), 3), np.nan)
+    geo[0, f, m] = df.loc[ray, list(RAY_COLUMNS[:3])].to_numpy(np.float64)
+    geo[1, f, m] = df.loc[ray, list(RAY_COLUMNS[3:])].to_numpy(np.float64)
+    return (mask, geo[0], geo[1]), path
+
+
+def constrain_to_rays(shot: Shot, vertices: np.ndarray, out: str | Path) -> dict[str, Any]:
+    """Put each marker seen by one camera (``shot.options.observations``) on its viewing ray, at the ray's point
+    closest to where ``vertices`` (a reconstruction of the shot without it, (F, V, 3) float32, cm) put the
+    marker; write the shot's bundles as given plus those points to ``out`` (Parquet, with a ``constraint``
+    column: "bundle" or "ray"), the bundles file a second reconstruction reads. Returns counts."""
+    from lgi.capture.bundles import COLUMNS
+    from lgi.capture.observations import points_on_rays, read_rays
+    from lgi.io.atomic import atomic_file
+
+    o = shot.options
+    seen = np.all(np.isfinite(shot.given), axis=2)
+    rays = read_rays(o.observations, shot.index.marker_names, shot.frames, seen, o.calib)
+    pos = shot.given.copy()
+    layout = shot.index.layout()
+    before = np.zeros(len(rays))
+    if len(rays):
+        rows = np.unique(rays.frame)
+        at = np.searchsorted(rows, rays.frame)
+        surface = layout.evaluate(np.asarray(vertices[rows], np.float64))[at, rays.marker]
+        before = rays.distance(surface)
+        pos[rays.frame, rays.marker] = points_on_rays(rays, surface)
+    geo = np.full((2, *pos.shape), np.nan)
+    geo[0, rays.frame, rays.marker] = rays.origin
+    geo[1, rays.frame, rays.marker] = rays.direction
+    f, m = np.nonzero(np.all(np.isfinite(pos), axis=2))
+    kind = np.where(seen[f, m], "bundle", "ray")
+    names = np.asarray(shot.index.marker_names, object)
+    table = pd.DataFrame({"frame": np.asarray(shot.frames, np.int64)[f], "marker": names[m],
+                          "x": pos[f, m, 0], "y": pos[f, m, 1], "z": pos[f, m, 2], "constraint": kind,
+                          **{c: geo[k // 3, f, m, k % 3] for k, c in enumerate(RAY_COLUMNS)}})
+    with atomic_file(out, suffix=".parquet", durable=False) as tmp:
+        table[[*COLUMNS, "constraint", *RAY_COLUMNS]].to_parquet(tmp, index=False)
+    if len(rays):
+        log.info("%d markers seen by one camera put on their rays (%d frames); the first reconstruction was "
+                 "%.3f mm from them (median, max %.3f mm)", len(rays), len(np.unique(rays.frame)),
+                 float(np.median(before)) * MM_PER_CM, float(before.max()) * MM_PER_CM)
+    else:
+        log.warning("%s: no marker is seen by one camera alone where the shot lacks its bundle: no ray constraint",
+                    o.observations)
+    return {"rays": len(rays), "ray_frames": int(len(np.unique(rays.frame))),
+            "ray_offset_before_mm": float(np.median(before) * MM_PER_CM) if len(rays) else 0.0}
 
 
 # ------------------------------------------------------------------------------------------------ choices
@@ -466,7 +620,7 @@ def assemble(index_dir: str, bundles: str, options: ReconstructOptions, parts: l
     diag = pd.concat([x[2] for x in p], ignore_index=True)
     res = SequenceResult(np.asarray(shot.frames), np.concatenate([x[0] for x in p]), diag, jaw,
                          shot.solver.noise, options.smooth)
-    write_reconstruction(out, res, shot.index.arrays, options)
+    write_reconstruction(out, res, shot.index.arrays, options, shot.constrained_file)
     return summarise(res, shot, out, {"finish": time.perf_counter() - t0})
 
 
@@ -515,10 +669,12 @@ def plot_per_frame(per_frame: pd.DataFrame, path: Path) -> None:
     plt.close(fig)
 
 
-def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], options: ReconstructOptions) -> None:
+def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], options: ReconstructOptions,
+                         constrained: Path | None = None) -> None:
     """The one writer of a reconstruction: ``meshes.npz`` (vertices (F, V, 3) float32 cm, frames, jaw (F, 4)
-    with a rig), ``diagnostics.csv``, ``per_frame.csv`` and, as asked, ``obj/``, ``shot.usdc`` and
-    ``per_frame.png``; through :func:`lgi.io.atomic.job_outputs` (an earlier run's outputs not written now are
+    with a rig), ``diagnostics.csv``, ``per_frame.csv`` and, as asked, ``obj/``, ``shot.usdc``,
+    ``per_frame.png`` and ``bundles_constrained.parquet`` (the bundles with the rays' points: ``constrained``);
+    through :func:`lgi.io.atomic.job_outputs` (an earlier run's outputs not written now are
     removed)."""
     from lgi.io.atomic import job_outputs
     from lgi.io.csvio import write_csv
@@ -539,6 +695,8 @@ def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], op
             for f, frame in enumerate(res.frames):
                 write_obj(stage / "obj" / f"frame_{int(frame):05d}.obj", res.vertices[f], arrays["face_vertices"],
                           arrays["face_offsets"], arrays.get("uvs"), arrays.get("face_uvs"))
+        if constrained is not None:
+            shutil.copyfile(constrained, stage / CONSTRAINED)
         if options.usd:
             from lgi.export.formats import write_usd
 
@@ -566,6 +724,10 @@ def summarise(res, shot: Shot, out: str | Path, seconds: dict[str, float]) -> di
         "noise_coherence": None if est is None else float(est.coherence),
         "seconds": seconds, "outputs": [n for n in OUTPUTS if (Path(out) / n).exists()],
     }
+    if "constraint" in d and (d.constraint == "ray").any():
+        r = d.ray_distance_mm.to_numpy()[(d.constraint == "ray").to_numpy()]
+        s["rays_used"] = int(r.size)
+        s["ray_residual_max_mm"] = float(np.nanmax(r)) if np.isfinite(r).any() else float("nan")
     if res.jaw is not None:
         s["jaw_open_deg"] = [float(res.jaw[:, 0].min()), float(res.jaw[:, 0].max())]
         s["fit_rms_mm"] = {"median": float(d.fit_rms_mm.median()), "max": float(d.fit_rms_mm.max())}
@@ -598,6 +760,9 @@ def report_lines(s: dict[str, Any]) -> list[str]:
             else "exact (the surface passes through every seen bundle)")
     lines.append(f"bundles treated as {mode} ({how}); local fits for {s['local_fit_share'] * 100:.1f} % of "
                  "bundle-frames")
+    if "rays_used" in s:
+        lines.append(f"markers seen by one camera: {s['rays_used']} put on their viewing rays (the surface meets them "
+                     f"within {s['ray_residual_max_mm']:.2e} mm)")
     if "jaw_open_deg" in s:
         lo, hi = s["jaw_open_deg"]
         lines.append(f"jaw: opening {lo:.1f} to {hi:.1f} deg; global fit residual median "
@@ -621,13 +786,35 @@ def check_output(out: str | Path, inputs: tuple[Any, ...] = ()) -> None:
 def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
                 options: ReconstructOptions | None = None, show_progress: bool = False) -> dict[str, Any]:
     """Reconstruct a shot in this process and write its outputs into ``out``; returns the summary
-    (:func:`summarise`; :func:`report_lines` formats it)."""
+    (:func:`summarise`; :func:`report_lines` formats it).
+
+    With ``options.observations``, twice: without the markers seen by one camera, then through their points on
+    their rays (:func:`constrain_to_rays`)."""
     options = options or ReconstructOptions()
-    check_output(out, (index_dir, bundles, options.jaw))
+    check_output(out, (index_dir, bundles, options.jaw, options.observations, options.calib))
     t0 = time.perf_counter()
     shot = Shot(index_dir, bundles, options)
     t1 = time.perf_counter()
     res = shot.run(show_progress)
     t2 = time.perf_counter()
-    write_reconstruction(out, res, shot.index.arrays, options)
-    return summarise(res, shot, out, {"load": t1 - t0, "solve": t2 - t1, "write": time.perf_counter() - t2})
+    if not options.observations:
+        write_reconstruction(out, res, shot.index.arrays, options)
+        return summarise(res, shot, out, {"load": t1 - t0, "solve": t2 - t1, "write": time.perf_counter() - t2})
+    from lgi.io.atomic import make_temp_dir, sweep
+
+    parent, prefix = Path(out).absolute().parent, f".{Path(out).name}.rays-"
+    parent.mkdir(parents=True, exist_ok=True)
+    sweep(parent, prefix)
+    work = make_temp_dir(parent, prefix)
+    try:
+        counts = constrain_to_rays(shot, res.vertices, work / CONSTRAINED)
+        t3 = time.perf_counter()
+        shot = Shot(index_dir, work / CONSTRAINED, options)
+        res = shot.run(show_progress)
+        t4 = time.perf_counter()
+        write_reconstruction(out, res, shot.index.arrays, options, shot.constrained_file)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    s = summarise(res, shot, out, {"load": t1 - t0, "solve": (t2 - t1) + (t4 - t3), "rays": t3 - t2,
+                                   "write": time.perf_counter() - t4})
+    return {**s, **counts}

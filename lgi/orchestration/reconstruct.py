@@ -70,6 +70,16 @@ def finish_chunk(index_dir: str, bundles: str, options: dict, choices: list[str]
                             first, keep)
 
 
+@task(name="rays", **_T)
+def rays_task(index_dir: str, bundles: str, options: dict, first: str, out: str) -> dict:
+    """Markers seen by one camera onto their rays, from the first pass's meshes (see
+    :func:`lgi.jobs.reconstruct.constrain_to_rays`)."""
+    from lgi.io.npz import load_npz
+
+    shot = job.prepared_shot(index_dir, bundles, job.ReconstructOptions.from_json(options))
+    return job.constrain_to_rays(shot, load_npz(Path(first) / "meshes.npz", ("vertices",))["vertices"], out)
+
+
 @task(name="write-shot", **_T)
 def write_shot(index_dir: str, bundles: str, options: dict, parts: list[str], out: str) -> dict:
     """Join the finished chunks and write the outputs (see :func:`lgi.jobs.reconstruct.assemble`)."""
@@ -83,7 +93,11 @@ def write_shot(index_dir: str, bundles: str, options: dict, parts: list[str], ou
            out="Output folder: meshes.npz, diagnostics.csv, per_frame.csv (and obj/, shot.usdc, per_frame.png "
                "when asked).",
            footage="Stereo frames (cam0/, cam1/): track them into bundles first (needs calib and markers).",
-           calib="Stereo calibration JSON (lgi calibrate), with footage.",
+           calib="Stereo calibration JSON (lgi calibrate): tracks the footage, and turns the observations into rays "
+                 "(for rays, default: the rig stored in the tracks table).",
+           observations="The tracks table of lgi track (Parquet): markers seen by one camera are put on their "
+                        "viewing rays and the shot reconstructed through them. With footage, the table its "
+                        "tracking writes (default).",
            markers="Marker layout CSV with neutral positions, with footage.",
            helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot, with footage.",
            dask_address="Run the chunk tasks on Dask: a scheduler address (tcp://host:8786), or local:N for a "
@@ -107,8 +121,9 @@ def reconstruct_shot(
     plot: bool = False,
     fps: float = 30.0,
     chunk_size: int = 60,
-    footage: str | None = None,
+    observations: str | None = None,
     calib: str | None = None,
+    footage: str | None = None,
     markers: str | None = None,
     helmet: str | None = None,
     dask_address: str | None = None,
@@ -121,12 +136,16 @@ def reconstruct_shot(
     """
     params = dict(locals())
     capture_library_logs()
-    opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
-    job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet))
-    tracking = None
     if footage:
         if not (calib and markers):
             raise ValueError("a shot from footage needs calib and markers")
+        # The tracking writes the tracks table beside the bundles: its one-camera observations become rays.
+        params["observations"] = observations or str(Path(bundles).with_name(Path(bundles).stem +
+                                                                              ".tracks.parquet"))
+    opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
+    job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations))
+    tracking = None
+    if footage:
         tracking = track_footage(footage, calib, markers, bundles, helmet=helmet)
         create_table_artifact(table=[{k: v for k, v in tracking.items() if not isinstance(v, (list, dict))}],
                               key=artifact_key("shot-tracking", out),
@@ -142,14 +161,26 @@ def reconstruct_shot(
     parent.mkdir(parents=True, exist_ok=True)
     sweep(parent, prefix)
     work = make_temp_dir(parent, prefix)
-    try:
+    def chunks(bundles_file: str, options: dict, into: str, folder: Path) -> dict:
+        folder.mkdir(exist_ok=True)
         if runner is None:
             # Prefect's threads in this process: the flow's own task runner, and the finished chunks handed to
             # the writer in memory.
-            summary = chunk_work(index_dir, bundles, opts.to_json(), bounds, str(work), out, keep=True)
+            return chunk_work(index_dir, bundles_file, options, bounds, str(folder), into, keep=True)
+        return reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles_file, options, bounds,
+                                                                   str(folder), into)
+
+    try:
+        if opts.observations:
+            # As lgi reconstruct does: the shot without the markers seen by one camera, then through their points
+            # on their rays.
+            first = job.replace_outputs(opts)
+            chunks(bundles, first.to_json(), str(work / "first"), work / "pass1")
+            constrained = str(work / job.CONSTRAINED)
+            counts = rays_task(index_dir, bundles, opts.to_json(), str(work / "first"), constrained)
+            summary = {**chunks(constrained, opts.to_json(), out, work / "pass2"), **counts}
         else:
-            summary = reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles, opts.to_json(),
-                                                                          bounds, str(work), out)
+            summary = chunks(bundles, opts.to_json(), out, work)
     finally:
         job.forget_parts(work)
         shutil.rmtree(work, ignore_errors=True)
