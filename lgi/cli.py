@@ -45,7 +45,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
     opts = SynthOptions(vertices=args.vertices, frames=args.frames, seed=args.seed, hmc=args.hmc, lens=args.lens,
                         image_size=args.image_size, dot_noise=args.dot_noise, board_views=args.board_views,
-                        rig_flex=args.rig_flex)
+                        rig_flex=args.rig_flex, contour_noise=args.contour_noise)
     for line in synth_report(write_synthetic(args.out, opts, show_progress=not args.quiet), opts):
         print(line)
     return 0
@@ -243,6 +243,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--board-views", type=int, default=15, metavar="N", help="calibration board views (15)")
     s.add_argument("--rig-flex", type=float, default=0.0, metavar="DEG",
                    help="turn camera 1 by this angle during the shot, after calibration (0; see lgi track --helmet)")
+    s.add_argument("--contour-noise", type=float, default=0.0, metavar="PX",
+                   help="Gaussian noise of the true lip contours in DIR/hmc/lip_contours.csv, px (0)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_synth)
 

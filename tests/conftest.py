@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import tempfile
 from pathlib import Path
@@ -86,3 +87,15 @@ def prefect_api(prefect_harness) -> str:
     from prefect.settings import PREFECT_API_URL
 
     return str(PREFECT_API_URL.value())
+
+
+@pytest.fixture(autouse=True)
+def _no_stale_prefect_console():
+    """Prefect's logging setup (a flow run in this process) gives the root logger a console handler bound to the
+    stderr of that moment: in pytest a capture stream, closed by the time a later test logs, which then finds
+    "--- Logging error ---" tracebacks in its own stderr. The handler goes after each test."""
+    yield
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        if type(h).__name__ == "PrefectConsoleHandler":
+            root.removeHandler(h)

@@ -141,3 +141,34 @@ def test_tracks_without_rig_need_calib(shot, tmp_path: Path, capsys) -> None:
     assert main(["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(tmp_path / "r2"),
                  "--calib", str(calib)]) == 2
     assert "--observations" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("noise", [0.0, 1.0])
+def test_synthetic_lip_contours_are_the_true_lip_edges(tmp_path: Path, noise: float) -> None:
+    """hmc/lip_contours.csv: the lips' inner edges of the true mesh, through the true head motion and cameras,
+    where the camera sees them; with --contour-noise, that much pixel noise and no more."""
+    from lgi.capture.camera import StereoRig
+    from lgi.synthetic.actor import make_actor
+
+    out = tmp_path / "s"
+    assert main(["synth", "--out", str(out), "--vertices", "3000", "--frames", "6", "--hmc", "--image-size",
+                 "640x512", "--board-views", "3", "--contour-noise", str(noise), "-q"]) == 0
+    table = pd.read_csv(out / "hmc" / "lip_contours.csv")
+    assert list(table.columns) == ["frame", "camera", "curve", "point", "x", "y"]
+    assert set(table.curve) == {"upper_inner", "lower_inner"} and set(table.camera) == {0, 1}
+    lips = make_actor(3000).lip_contours()
+    truth = np.load(out / "truth.npz")["vertices"]
+    head = np.load(out / "hmc" / "truth.npz")
+    rig = StereoRig.from_calibration(json.loads((out / "hmc" / "cameras_true.json").read_text())["shot_head_frame"])
+    err = []
+    for (f, c, curve), rows in table.groupby(["frame", "camera", "curve"]):
+        ids = lips[curve][rows.point.to_numpy()]
+        world = truth[f, ids] * 10.0 @ head["head_rotation"][f].T + head["head_translation"][f]
+        err.append(rows[["x", "y"]].to_numpy() - rig.cameras[c].project(world))
+    err = np.concatenate(err)
+    seen = len(table) / (2 * 6 * sum(len(v) for v in lips.values()))
+    assert seen > 0.8, seen  # the inner edges are in view of both cameras most of the time
+    if noise == 0:
+        assert np.abs(err).max() < 1e-3
+    else:
+        assert 0.8 < err.std() < 1.2

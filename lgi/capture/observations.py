@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from lgi.errors import InputError
+from lgi.errors import InputError, cell_text
 from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
@@ -154,7 +154,7 @@ def read_rays(path: str | os.PathLike[str], marker_names: list[str], frames: np.
         text = pd.isna(v) & df[col].notna().to_numpy()
         if text.any():
             r = int(np.flatnonzero(text)[0])
-            raise bad(r, f"{col} is not a number ({df[col].iloc[r]!r})")
+            raise bad(r, f"{col} is not a number ({cell_text(df[col].iloc[r])})")
         if col in ("frame", "camera", "x", "y"):
             wrong = ~np.isfinite(v) | ((v != np.round(v)) if col in ("frame", "camera") else False)
             if col == "camera":
@@ -163,7 +163,7 @@ def read_rays(path: str | os.PathLike[str], marker_names: list[str], frames: np.
                 r = int(np.flatnonzero(wrong)[0])
                 what = {"frame": "a whole number", "camera": "0 or 1", "x": "a finite pixel coordinate",
                         "y": "a finite pixel coordinate"}[col]
-                raise bad(r, f"{col} must be {what}, not {df[col].iloc[r]!r}")
+                raise bad(r, f"{col} must be {what}, not {cell_text(df[col].iloc[r])}")
     name_of = {n: i for i, n in enumerate(marker_names)}
     marker = df["marker"].map(name_of)
     if marker.isna().any():

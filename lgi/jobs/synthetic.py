@@ -39,13 +39,14 @@ def parse_size(text: str) -> tuple[int, int]:
     return int(m[1]), int(m[2])
 
 
-_HMC_ONLY = ("lens", "image_size", "dot_noise", "board_views", "rig_flex")
+_HMC_ONLY = ("lens", "image_size", "dot_noise", "board_views", "rig_flex", "contour_noise")
 
 
 @dataclass(frozen=True)
 class SynthOptions:
     """Options of ``lgi synth`` (see its ``--help``): mesh size, performance length and seed, and with ``hmc``
-    the head-mounted camera footage's lens, image size, dot noise (px), board views and rig flex (deg)."""
+    the head-mounted camera footage's lens, image size, dot noise (px), board views, rig flex (deg) and the pixel
+    noise of the lip contours it traces (px)."""
 
     vertices: int = 20000
     frames: int = 240
@@ -56,6 +57,7 @@ class SynthOptions:
     dot_noise: float = 0.3
     board_views: int = 15
     rig_flex: float = 0.0
+    contour_noise: float = 0.0
 
     def __post_init__(self) -> None:
         for name, least, most in (("vertices", 1, 2_000_000), ("frames", 1, 1_000_000), ("seed", 0, 2**32 - 1),
@@ -72,9 +74,9 @@ class SynthOptions:
                              f"{have / 2**30:.1f} GiB; use fewer vertices or frames")
         if self.lens not in ("fisheye", "pinhole"):
             raise InputError(f"--lens takes fisheye or pinhole, not {self.lens!r}")
-        for name in ("dot_noise", "rig_flex"):
+        for name in ("dot_noise", "rig_flex", "contour_noise"):
             v = getattr(self, name)
-            if not isinstance(v, (int, float)) or not math.isfinite(v) or (name == "dot_noise" and v < 0):
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or (name != "rig_flex" and v < 0):
                 raise InputError(f"--{name.replace('_', '-')}: {v!r} is not a valid value")
         parse_size(self.image_size)
         if not self.hmc:
@@ -89,7 +91,7 @@ class SynthOptions:
         if not self.hmc:
             return None
         return {"model": self.lens, "size": parse_size(self.image_size), "dot_noise_px": self.dot_noise,
-                "board_views": self.board_views, "flex_deg": self.rig_flex}
+                "board_views": self.board_views, "flex_deg": self.rig_flex, "contour_noise_px": self.contour_noise}
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -133,18 +135,24 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
         if hmc is not None:
             from lgi.synthetic.hmc import write_footage
 
-            write_footage(stage / "hmc", actor, layout, acts, seed=o.seed, show_progress=show_progress, **hmc)
+            footage = write_footage(stage / "hmc", actor, layout, acts, seed=o.seed, show_progress=show_progress,
+                                    **hmc)
     names = ["dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz"]
     if hmc:
-        names += ["hmc/cam0", "hmc/cam1", "hmc/calib", "hmc/cameras_true.json", "hmc/helmet.csv", "hmc/truth.npz"]
+        names += ["hmc/cam0", "hmc/cam1", "hmc/calib", "hmc/cameras_true.json", "hmc/helmet.csv", "hmc/truth.npz",
+                  "hmc/lip_contours.csv"]
     return {"actor": actor, "dataset": ds, "layout": layout, "activations": acts, "truth": truth,
-            "marker_snap_cm": float(dist.max()), "outputs": [str(Path(out) / n) for n in names]}
+            "marker_snap_cm": float(dist.max()), "outputs": [str(Path(out) / n) for n in names],
+            "lip_contour_visible": footage["lip_contour_visible"] if hmc else None}
 
 
 def synth_report(r: dict[str, Any], options: SynthOptions) -> list[str]:
     return [f"synthetic actor: {r['actor'].n_vertices} vertices, {r['dataset'].n_shapes} shapes, "
             f"{len(r['layout'])} markers, {options.frames} frames (seed {options.seed})",
-            *(f"  {p}" for p in r["outputs"])]
+            *(f"  {p}" for p in r["outputs"]),
+            *([] if not r.get("lip_contour_visible") else [
+                "lip contours (hmc/lip_contours.csv): share of the inner edges' points each camera sees, "
+                + ", ".join(f"{k} {100 * v:.1f} %" for k, v in r["lip_contour_visible"].items())])]
 
 
 @dataclass(frozen=True)

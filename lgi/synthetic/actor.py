@@ -96,6 +96,18 @@ class SyntheticActor:
     grid_shape: tuple[int, int]
     _fields: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
+    def lip_contours(self) -> dict[str, np.ndarray]:
+        """The vertices of the lips' inner edges, left to right: ``upper_inner`` (the slit row) and
+        ``lower_inner`` (its lower-lip copies), both ending at the mouth corners they share. Where the mouth
+        opens these edges are the lips' inner contours; closed, the line where the lips meet."""
+        nv, nu = self.grid_shape
+        dup = np.arange(nv * nu, self.n_vertices)
+        rows_y = self.neutral[np.arange(nv) * nu, 1]
+        row = int(np.argmin(np.abs(rows_y - MOUTH_Y))) * nu + np.arange(nu)
+        cols = np.searchsorted(self.neutral[row, 0], self.neutral[dup, 0] - 1e-9)
+        c0, c1 = int(cols.min()) - 1, int(cols.max()) + 1
+        return {"upper_inner": row[c0:c1 + 1], "lower_inner": np.concatenate([[row[c0]], dup, [row[c1]]])}
+
     @property
     def n_vertices(self) -> int:
         return int(self.neutral.shape[0])

@@ -152,7 +152,9 @@ class Renderer:
 
     def render(self, camera: Camera, vertices_mm: np.ndarray, rng: np.random.Generator,
                dot_jitter_px: float = 0.0, helmet_mm: np.ndarray | None = None,
-               plate_towards: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               plate_towards: np.ndarray | None = None, points_mm: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                      np.ndarray]:
         """Render one image.
 
         Parameters
@@ -161,12 +163,14 @@ class Renderer:
         dot_jitter_px : random displacement of each painted dot (pixels, per axis, Gaussian): how far the
             paint's centre is from the marker's true point, as seen by this camera
         helmet_mm : (H, 3), optional: helmet dots (world frame), drawn on light plates facing ``plate_towards``
+        points_mm : (P, 3), optional: surface points (world frame) whose visibility is returned too
 
         Returns
         -------
         image : (H, W) uint8
         centers : (D, 2) float64 true projections of the dot centres, px
         visible : (D,) bool: centre and rim unoccluded and the dot facing the camera
+        points_visible : (P,) bool, with ``points_mm``: in the image and not behind the surface (0.5 mm)
         """
         import cv2
 
@@ -204,7 +208,9 @@ class Renderer:
         img = img * 255.0 + rng.normal(0, self.noise, img.shape)
         image = np.clip(np.rint(img), 0, 255).astype(np.uint8)
         visible = self._visible(camera, dots_mm, n, zbuf)
-        return image, centers, visible
+        if points_mm is None:
+            return image, centers, visible
+        return image, centers, visible, _unoccluded(camera, points_mm, zbuf)
 
     def _paint_helmet(self, img: np.ndarray, camera: Camera, helmet_mm: np.ndarray, towards: np.ndarray) -> None:
         h, w = img.shape
@@ -251,6 +257,17 @@ class Renderer:
             ix = np.clip(np.rint(np.nan_to_num(uv)).astype(int), 0, [w - 1, h - 1])
             ok &= inside & (z <= zbuf[ix[:, 1], ix[:, 0]] + 0.5)
         return ok
+
+
+def _unoccluded(camera: Camera, points_mm: np.ndarray, zbuf: np.ndarray, tol_mm: float = 0.5) -> np.ndarray:
+    """(P,) bool: points inside the image and not behind the rendered surface (depth buffer ``zbuf``)."""
+    w, h = camera.size
+    uv = camera.project(points_mm)
+    z = camera.to_camera(points_mm)[:, 2]
+    inside = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (
+        uv[:, 1] <= h - 1)
+    ix = np.clip(np.rint(np.nan_to_num(uv)).astype(int), 0, [w - 1, h - 1])
+    return inside & (z <= zbuf[ix[:, 1], ix[:, 0]] + tol_mm)
 
 
 def board_poses(rig: StereoRig, board, n: int, seed: int = 0, margin_px: float = 30.0) -> list[np.ndarray]:
@@ -357,12 +374,13 @@ def write_json(path: str | os.PathLike[str], doc: dict) -> None:
 def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.ndarray, model: str = "fisheye",
                   size: tuple[int, int] = (1280, 1024), seed: int = 0, dot_noise_px: float = 0.3,
                   board_views: int = 15, slip_deg: float = 1.0, slip_mm: float = 1.5, flex_deg: float = 0.0,
-                  show_progress: bool = True) -> dict:
+                  contour_noise_px: float = 0.0, show_progress: bool = True) -> dict:
     """Render the performance (activations (F, C)) and board views into ``out`` (see the module docstring).
 
     ``flex_deg``: the rig flexed since its calibration: during the shot camera 1 is turned by this angle
     (the board views are rendered with the calibrated rig). ``helmet.csv`` gives the helmet dots in the
-    calibration's frame, for ``lgi track --helmet``.
+    calibration's frame, for ``lgi track --helmet``. ``lip_contours.csv`` gives the lips' inner contours as
+    each camera sees them (:func:`contour_rows`), with ``contour_noise_px`` Gaussian pixel noise per point.
 
     Returns a summary: the rig, the head motion and per-camera visibility counts.
     """
@@ -390,12 +408,17 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     centers = np.full((F, 2, D, 2), np.nan)
     visible = np.zeros((F, 2, D), bool)
     png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+    lips = actor.lip_contours()
+    lip_ids = np.concatenate(list(lips.values()))
+    contours = []
+    contour_rng = np.random.default_rng(seed + 23)
     for f in progress(range(F), total=F, desc="HMC frames", disable=not show_progress):
         v = actor.evaluate(activations[f]) * MM_PER_CM @ R[f].T + t[f]
         for c, cam in enumerate(shot_rig.cameras):
-            img, ctr, vis = renderer.render(cam, v, rng, dot_noise_px, HELMET_MM, towards)
+            img, ctr, vis, seen = renderer.render(cam, v, rng, dot_noise_px, HELMET_MM, towards, v[lip_ids])
             centers[f, c], visible[f, c] = ctr, vis
             cv2.imwrite(str(out / f"cam{c}" / f"{f:06d}.png"), img, png)
+            contours.append(contour_rows(f, c, cam, v, lips, seen, contour_noise_px, contour_rng))
     board = Board.parse("chessboard:9x6:12")
     br = BoardRenderer(board)
     for k, pose in enumerate(board_poses(rig, board, board_views, seed)):
@@ -412,8 +435,31 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     hc = rig.cameras[0].to_camera(HELMET_MM)
     pd.DataFrame({"name": [f"helmet_{k + 1}" for k in range(len(hc))], "x": hc[:, 0], "y": hc[:, 1],
                   "z": hc[:, 2]}).to_csv(out / "helmet.csv", index=False)
+    table = pd.concat(contours, ignore_index=True)
+    table.to_csv(out / "lip_contours.csv", index=False, float_format="%.4f")
     from lgi.io.npz import save_npz
 
     save_npz(out / "truth.npz", head_rotation=R, head_translation=t, centers=centers.astype(np.float32),
              visible=visible, markers=np.asarray(layout.names), units=np.asarray("mm"))
-    return {"rig": rig, "shot_rig": shot_rig, "visible": visible, "frames": F, "board": board.spec()}
+    seen = {k: float(table[table.curve == k].shape[0] / (2 * F * len(ids))) for k, ids in lips.items()}
+    return {"rig": rig, "shot_rig": shot_rig, "visible": visible, "frames": F, "board": board.spec(),
+            "lip_contour_visible": seen}
+
+
+def contour_rows(frame: int, camera: int, cam: Camera, vertices_mm: np.ndarray, lips: dict[str, np.ndarray],
+                 seen: np.ndarray, noise_px: float, rng: np.random.Generator):
+    """The rows of ``lip_contours.csv`` for one frame and camera: ``frame, camera, curve, point, x, y`` (px),
+    the visible vertices of each lip edge (``lips``: curve name -> vertex ids in order; ``seen``: their
+    visibility, concatenated) projected, numbered along the edge (a gap in ``point`` is a hidden stretch)."""
+    import pandas as pd
+
+    parts, k = [], 0
+    for name, ids in lips.items():
+        vis = seen[k:k + len(ids)]
+        k += len(ids)
+        uv = cam.project(vertices_mm[ids[vis]])
+        if noise_px > 0:
+            uv = uv + rng.normal(0.0, noise_px, uv.shape)
+        parts.append(pd.DataFrame({"frame": frame, "camera": camera, "curve": name, "point": np.flatnonzero(vis),
+                                   "x": uv[:, 0], "y": uv[:, 1]}))
+    return pd.concat(parts, ignore_index=True)
