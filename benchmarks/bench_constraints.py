@@ -9,7 +9,8 @@ with the bundle noise estimated (the default) and with `--noise 0` (exact bundle
 Vertex error against the true meshes (mm): the whole face, the lip region (|y - mouth| < 1 cm, |x| < 2.9 cm on
 the neutral) and the frames where some marker is seen by one camera only.
 
-Lip occlusion contours (the issue's second half) are not built yet: no rows for them.
+Lip contours: `hmc/lip_contours.csv` (the true inner lip edges each camera sees, `lgi synth --hmc`), exact
+and with 1 px Gaussian noise added here (as `lgi synth --contour-noise 1` would), given with `--contours`.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ def main() -> None:
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="lgi-bench-constraints-"))
     shot = work / "shot"
-    if not (shot / "hmc" / "truth.npz").exists():
+    if not (shot / "hmc" / "lip_contours.csv").exists():
         lgi("synth", "--out", str(shot), "--frames", str(args.frames), "--hmc", "-q")
     calib, tracked = shot / "calib.json", shot / "tracked.csv"
     if not calib.exists():
@@ -69,25 +70,38 @@ def main() -> None:
     print(f"{len(tb.frames)} frames, {len(rays)} one-camera marker observations in {len(ray_frames)} frames; the true "
           f"marker points are {np.median(off):.3f} mm (median, max {off.max():.3f}) from their rays\n")
     print("vertex error against the true meshes, mm: RMS / p95 / max\n")
-    print("| bundles | noise | whole face | lip region | frames with one-camera markers | surface to ray, max mm |")
-    print("|---|---|---|---|---|---|")
-    runs = [("tracked", "auto", []), ("tracked + rays", "auto", ["--observations", "tracked.tracks.parquet"]),
-            ("tracked", "0", []), ("tracked + rays", "0", ["--observations", "tracked.tracks.parquet"]),
-            ("true", "auto", [])]
+    print("| bundles | noise | whole face | lip region | frames with one-camera markers | surface to ray, max mm "
+          "| lip edges to contours, px (median frame RMS, before -> after) |")
+    print("|---|---|---|---|---|---|---|")
     import pandas as pd
 
+    exact = pd.read_csv(shot / "hmc" / "lip_contours.csv")
+    noisy = exact.copy()
+    rng = np.random.default_rng(1)
+    noisy[["x", "y"]] += rng.normal(0.0, 1.0, (len(noisy), 2))
+    noisy.to_csv(shot / "lip_contours_1px.csv", index=False)
+    obs = ["--observations", "tracked.tracks.parquet"]
+    runs = [("tracked", "auto", []), ("tracked + rays", "auto", obs),
+            ("tracked + rays + contours", "auto", [*obs, "--contours", "hmc/lip_contours.csv"]),
+            ("tracked + rays + contours 1 px", "auto", [*obs, "--contours", "lip_contours_1px.csv"]),
+            ("tracked", "0", []), ("tracked + rays", "0", obs),
+            ("tracked + rays + contours", "0", [*obs, "--contours", "hmc/lip_contours.csv"]),
+            ("true", "auto", [])]
     for label, noise, extra in runs:
-        out = work / f"rec_{label.replace(' + ', '_')}_{noise}"
+        out = work / f"rec_{label.replace(' + ', '_').replace(' ', '_')}_{noise}"
         bundles = shot / ("bundles.csv" if label == "true" else "tracked.csv")
         lgi("reconstruct", str(shot / "index"), "--bundles", str(bundles), "--out", str(out), "--noise", noise,
-            "-q", *[str(shot / e) if e.endswith(".parquet") else e for e in extra])
+            "-q", *[str(shot / e) if e.endswith((".parquet", ".csv")) else e for e in extra])
         v = np.load(out / "meshes.npz")["vertices"]
         e = 10 * np.linalg.norm(v - truth, axis=2)
         d = pd.read_csv(out / "diagnostics.csv")
         ray_d = d.loc[d.constraint == "ray", "ray_distance_mm"]
-        print(f"| {label} | {noise} | {stats(e)} | {stats(e[:, lips])} | {stats(e[ray_frames])} | "
-              f"{ray_d.max():.2e} |" if len(ray_d) else
-              f"| {label} | {noise} | {stats(e)} | {stats(e[:, lips])} | {stats(e[ray_frames])} | - |")
+        to_ray = f"{ray_d.max():.2e}" if len(ray_d) else "-"
+        px = "-"
+        if "contour_px_before" in d:
+            per = d.groupby("frame")[["contour_px_before", "contour_px_after"]].first()
+            px = f"{per.contour_px_before.median():.3f} -> {per.contour_px_after.median():.3f}"
+        print(f"| {label} | {noise} | {stats(e)} | {stats(e[:, lips])} | {stats(e[ray_frames])} | {to_ray} | {px} |")
 
 
 if __name__ == "__main__":

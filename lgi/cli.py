@@ -97,7 +97,7 @@ def _reconstruct_options(args: argparse.Namespace):
                               smooth=args.smooth, jaw_smooth=args.jaw_smooth, noise=args.noise, method=args.method,
                               jaw=args.jaw, max_gap=args.max_gap, bilateral=args.bilateral, obj=args.obj,
                               usd=args.usd, plot=args.plot, fps=args.fps, chunk_size=args.chunk_size,
-                              observations=args.observations, calib=args.calib)
+                              observations=args.observations, calib=args.calib, contours=args.contours)
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -107,7 +107,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.dask and not args.flow:
         raise InputError("--dask runs the flow's chunk tasks on Dask: it needs --flow")
     if args.flow:
-        check_output(args.out, (args.index_dir, args.bundles, opts.jaw, opts.observations, opts.calib))
+        check_output(args.out, (args.index_dir, args.bundles, opts.jaw, opts.observations, opts.calib,
+                                opts.contours))
         preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
         from lgi.orchestration.reconstruct import reconstruct_shot
 
@@ -363,6 +364,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--calib", metavar="CALIB.json",
                    help="with --observations: the stereo calibration (default: the rig lgi track stored in the "
                         "table, refined by helmet dots if it was)")
+    s.add_argument("--contours", metavar="CONTOURS.csv",
+                   help="lip contours traced per frame and camera (frame, camera, curve, point, x, y; curve "
+                        "upper_inner or lower_inner; px): the lip region is deformed so that the mesh's inner lip "
+                        "edges meet them, keeping the bundles (needs --observations for the head pose and rig); "
+                        "adds contour_px_before/after to the diagnostics")
     s.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]",
                    help="bilateral filter of the bundles before solving: in time, and with the third value also "
                         "over the nearest markers (e.g. 1.5:0.5:10)")

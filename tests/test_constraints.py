@@ -172,3 +172,60 @@ def test_synthetic_lip_contours_are_the_true_lip_edges(tmp_path: Path, noise: fl
         assert np.abs(err).max() < 1e-3
     else:
         assert 0.8 < err.std() < 1.2
+
+
+def test_lip_edges_pulled_onto_a_traced_curve(shot) -> None:
+    """A curve traced 3 px below where camera 0 sees the upper lip's edge: after the fit the edge's vertices
+    project onto it (RMS < 0.3 px from 3), the markers' surface points have not moved, and the vertices far from
+    the lips are untouched."""
+    from lgi.dataset.mesh import triangulate
+    from lgi.index.build import LGIIndex
+    from lgi.solve.contours import ContourView, LipContours
+
+    t = shot["dir"]
+    index = LGIIndex.load(t / "idx")
+    a = index.arrays
+    lc = LipContours(a["neutral"], triangulate(a["face_vertices"], a["face_offsets"])[0], a["marker_vertices"],
+                     a["marker_weights"])
+    x = np.load(t / "s" / "truth.npz")["vertices"][5].astype(np.float64)
+    cam, R, tr = shot["rig"].cameras[0], shot["rot"][5].as_matrix(), shot["trans"][5]
+    chain = lc.chains["upper_inner"]
+    seen = cam.project(x[chain] * 10.0 @ R.T + tr)
+    curve = seen[1:-1] + [0.0, 3.0]  # the corners left out: the traced stretch ends before them
+    y, before, after = lc.fit(x, [ContourView(cam, R, tr, "upper_inner", curve)])
+    assert 2.5 < before < 3.5 and after < 0.3, (before, after)
+    moved = cam.project(y[chain[1:-1]] * 10.0 @ R.T + tr)
+    step = np.linspace(0, 1, 500)[:, None]
+    dense = np.concatenate([p + step * (q - p) for p, q in zip(curve[:-1], curve[1:], strict=True)])
+    gap = np.min(np.linalg.norm(moved[:, None] - dense[None], axis=2), axis=1)  # px, to the curve drawn densely
+    assert np.median(gap) < 0.2 and gap.max() < 1.0, gap
+    layout = index.layout()
+    assert np.abs(layout.evaluate(y[None]) - layout.evaluate(x[None])).max() < 1e-9  # cm
+    far = np.linalg.norm(a["neutral"] - a["neutral"][chain].mean(axis=0), axis=1) > 4.0
+    assert np.array_equal(y[far], x[far])
+
+
+CONTOUR_BAD = {
+    "unknown curve": ("0,0,upper_outer,0,1,2\n0,0,upper_outer,1,2,2\n", "unknown curve 'upper_outer'"),
+    "camera 2": ("0,2,upper_inner,0,1,2\n0,2,upper_inner,1,2,2\n", "camera must be 0 or 1"),
+    "text": ("0,0,upper_inner,0,abc,2\n0,0,upper_inner,1,2,2\n", "contours.csv:2: non-numeric"),
+    "duplicate point": ("0,0,upper_inner,0,1,2\n0,0,upper_inner,0,2,2\n", "a second row"),
+    "outside the shot": ("900,0,upper_inner,0,1,2\n900,0,upper_inner,1,2,2\n", "no traced curve"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CONTOUR_BAD))
+def test_bad_contour_files_refused(shot, case: str, tmp_path: Path, capsys) -> None:
+    t = shot["dir"]
+    rows, words = CONTOUR_BAD[case]
+    path = tmp_path / "contours.csv"
+    path.write_text("frame,camera,curve,point,x,y\n" + rows)
+    out = tmp_path / "rec"
+    assert main(["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(out),
+                 "--observations", str(t / "tracks.parquet"), "--contours", str(path), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert words in err and "contours.csv" in err and "Traceback" not in err
+    assert not out.exists()
+    assert main(["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(out),
+                 "--contours", str(path), "-q"]) == 2
+    assert "--observations" in capsys.readouterr().err

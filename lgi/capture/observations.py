@@ -228,3 +228,74 @@ def _int_or_none(v) -> int | None:
         return int(v)
     except (TypeError, ValueError):
         return None
+
+
+def read_head_poses(path: str | os.PathLike[str], frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each shot frame's head pose from a tracks table: R (F, 3, 3) head -> rig frame and t (F, 3) mm (NaN for
+    frames the table does not cover or could not stabilise)."""
+    from scipy.spatial.transform import Rotation
+
+    from lgi.capture.footage import HEAD_POSE_COLUMNS
+
+    df = pd.read_parquet(path, columns=["frame", *HEAD_POSE_COLUMNS]).drop_duplicates("frame")
+    R = np.full((len(frames), 3, 3), np.nan)
+    t = np.full((len(frames), 3), np.nan)
+    row = {int(f): k for k, f in enumerate(np.asarray(frames))}
+    for fr, *pose in df.itertuples(index=False):
+        k = row.get(int(fr))
+        if k is not None and np.all(np.isfinite(pose)):
+            R[k] = Rotation.from_quat(pose[:4]).as_matrix()
+            t[k] = pose[4:]
+    return R, t
+
+
+CONTOUR_COLUMNS = ("frame", "camera", "curve", "point", "x", "y")
+
+
+def read_contours(path: str | os.PathLike[str], frames: np.ndarray) -> dict[int, list[tuple[int, str, np.ndarray]]]:
+    """A lip contours table (CSV: ``frame, camera, curve, point, x, y``, pixels; ``curve`` one of
+    :data:`lgi.solve.contours.CURVES`): per shot row, its (camera, curve, (P, 2) points in ``point`` order).
+
+    Refused, naming the line: text or non-finite numbers, a camera other than 0 or 1, an unknown curve, a
+    repeated point. Frames outside the shot are left out with a warning; a curve of one point is left out."""
+    from lgi.io.csvio import read_table
+    from lgi.solve.contours import CURVES
+
+    df = read_table(path, "lip contours file", CONTOUR_COLUMNS, numeric=("frame", "camera", "point", "x", "y"))
+
+    def bad(r: int, why: str) -> InputError:
+        return InputError(why, path=path, line=r + 2, frame=_int_or_none(df["frame"].iloc[r]))
+
+    for col in ("frame", "camera", "point"):
+        v = df[col].to_numpy()
+        wrong = v != np.round(v)
+        if col == "camera":
+            wrong |= ~np.isin(v, (0, 1))
+        if wrong.any():
+            r = int(np.flatnonzero(wrong)[0])
+            raise bad(r, f"{col} must be {'0 or 1' if col == 'camera' else 'a whole number'}, not "
+                         f"{cell_text(df[col].iloc[r])}")
+    unknown = ~df["curve"].isin(CURVES).to_numpy()
+    if unknown.any():
+        r = int(np.flatnonzero(unknown)[0])
+        raise bad(r, f"unknown curve {df['curve'].iloc[r]!r} (expected one of {', '.join(CURVES)})")
+    dup = df.duplicated(["frame", "camera", "curve", "point"]).to_numpy()
+    if dup.any():
+        r = int(np.flatnonzero(dup)[0])
+        raise bad(r, "a second row for this frame, camera, curve and point")
+    row = {int(f): k for k, f in enumerate(np.asarray(frames))}
+    out: dict[int, list[tuple[int, str, np.ndarray]]] = {}
+    outside = 0
+    for (fr, cam, curve), g in df.groupby(["frame", "camera", "curve"], sort=True):
+        k = row.get(int(fr))
+        if k is None:
+            outside += 1
+            continue
+        g = g.sort_values("point")
+        if len(g) >= 2:
+            out.setdefault(k, []).append((int(cam), str(curve), g[["x", "y"]].to_numpy(np.float64)))
+    if outside:
+        log.warning("%s: %d traced curves are in frames outside the shot: left out", path, outside)
+    if not out:
+        raise InputError("no traced curve of two points or more falls in the shot's frames", path=path)
+    return out

@@ -80,6 +80,10 @@ class ReconstructOptions:
         reconstructed again through it (:mod:`lgi.capture.observations`).
     calib : str or None
         Stereo calibration for ``observations`` (default: the rig stored in the tracks table).
+    contours : str or None
+        Lip contours traced per frame and camera (CSV ``frame, camera, curve, point, x, y``, px): the lip
+        region is deformed so that the mesh's inner lip edges meet them (:mod:`lgi.solve.contours`); needs
+        ``observations`` (its head poses and rig).
     """
 
     temporal_weight: float = 0.02
@@ -98,6 +102,7 @@ class ReconstructOptions:
     chunk_size: int = 60
     observations: str | None = None
     calib: str | None = None
+    contours: str | None = None
 
     def __post_init__(self) -> None:
         def bad(flag: str, why: str) -> InputError:
@@ -128,6 +133,9 @@ class ReconstructOptions:
             raise bad("fps", f"must be a positive number, not {self.fps!r}")
         if self.calib and not self.observations:
             raise bad("calib", "turns the observations of --observations into rays: give the tracks table too")
+        if self.contours and not self.observations:
+            raise bad("contours", "are seen through the head pose and cameras of the tracks table: give "
+                                  "--observations too")
         self.bilateral_sigmas()
 
     def bilateral_sigmas(self) -> tuple[float, float, float | None] | None:
@@ -201,7 +209,7 @@ def preflight(index_dir: str | Path, bundles: str | Path, options: ReconstructOp
 
         read_rays(options.observations, shot.index.marker_names, shot.frames,
                   np.all(np.isfinite(shot.given), axis=2), options.calib)
-    return shot.n_frames
+    return shot.n_frames  # contours: read and checked when the shot is prepared
 
 
 def chunk_needs(options: ReconstructOptions, n_frames: int, lo: int, hi: int) -> tuple[int, int]:
@@ -259,6 +267,18 @@ class Shot:
             # A ray's point is where the surface must meet the ray: smoothed with the marker's noisy track, it
             # would leave the ray.
             self.fit_pos = np.where(self.rays[..., None], self.pos, self.fit_pos)
+        self.contours = None
+        if o.contours:
+            from lgi.capture.observations import read_contours, read_head_poses, read_rig
+            from lgi.dataset.mesh import triangulate
+            from lgi.solve.contours import LipContours
+
+            self.contour_curves = read_contours(o.contours, self.frames)
+            self.head_R, self.head_t = read_head_poses(o.observations, self.frames)
+            self.rig = read_rig(o.observations, o.calib)
+            a = index.arrays
+            self.contours = LipContours(a["neutral"], triangulate(a["face_vertices"], a["face_offsets"])[0],
+                                        a["marker_vertices"], a["marker_weights"])
 
     def constraints(self, lo: int = 0, hi: int | None = None) -> np.ndarray:
         """(F * M,) the ``constraint`` column of the diagnostics for frames lo:hi: "bundle" (a bundle was
@@ -344,6 +364,28 @@ class Shot:
                 p = solver.layout.evaluate(x)[on] - o
                 dist[f, on] = np.linalg.norm(p - np.einsum("ij,ij->i", p, u)[:, None] * u, axis=1) * MM_PER_CM
         d["ray_distance_mm"] = dist.ravel()
+        if self.contours is not None:
+            self.meet_contours(res, lo, hi)
+
+    def meet_contours(self, res, lo: int, hi: int) -> None:
+        """Deform the lip region of frames lo:hi (``res``, in place) onto the traced lip contours
+        (:meth:`lgi.solve.contours.LipContours.fit`); the diagnostics get each frame's RMS pixel distance of
+        the lip edges from the curves before and after (``contour_px_before``, ``contour_px_after``), repeated
+        on the frame's rows as the jaw's columns are; NaN where nothing was traced or the pose is unknown."""
+        from lgi.solve.contours import ContourView
+
+        n_m = self.index.n_markers
+        px = np.full((2, hi - lo), np.nan)
+        for f in range(lo, hi):
+            curves = self.contour_curves.get(f)
+            if not curves or not np.all(np.isfinite(self.head_R[f])):
+                continue
+            views = [ContourView(self.rig.cameras[c], self.head_R[f], self.head_t[f], name, pts)
+                     for c, name, pts in curves]
+            x, px[0, f - lo], px[1, f - lo] = self.contours.fit(res.vertices[f - lo], views)
+            res.vertices[f - lo] = x
+        res.diagnostics["contour_px_before"] = np.repeat(px[0], n_m)
+        res.diagnostics["contour_px_after"] = np.repeat(px[1], n_m)
 
 
 CONSTRAINED = "bundles_constrained.parquet"
@@ -791,7 +833,7 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
     With ``options.observations``, twice: without the markers seen by one camera, then through their points on
     their rays (:func:`constrain_to_rays`)."""
     options = options or ReconstructOptions()
-    check_output(out, (index_dir, bundles, options.jaw, options.observations, options.calib))
+    check_output(out, (index_dir, bundles, options.jaw, options.observations, options.calib, options.contours))
     t0 = time.perf_counter()
     shot = Shot(index_dir, bundles, options)
     t1 = time.perf_counter()

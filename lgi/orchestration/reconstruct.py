@@ -98,6 +98,9 @@ def write_shot(index_dir: str, bundles: str, options: dict, parts: list[str], ou
            observations="The tracks table of lgi track (Parquet): markers seen by one camera are put on their "
                         "viewing rays and the shot reconstructed through them. With footage, the table its "
                         "tracking writes (default).",
+           contours="Lip contours traced per frame and camera (CSV frame, camera, curve, point, x, y in px): the "
+                    "lip region is deformed onto them; needs observations. With footage, its lip_contours.csv "
+                    "if there is one (default).",
            markers="Marker layout CSV with neutral positions, with footage.",
            helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot, with footage.",
            dask_address="Run the chunk tasks on Dask: a scheduler address (tcp://host:8786), or local:N for a "
@@ -123,6 +126,7 @@ def reconstruct_shot(
     chunk_size: int = 60,
     observations: str | None = None,
     calib: str | None = None,
+    contours: str | None = None,
     footage: str | None = None,
     markers: str | None = None,
     helmet: str | None = None,
@@ -142,8 +146,13 @@ def reconstruct_shot(
         # The tracking writes the tracks table beside the bundles: its one-camera observations become rays.
         params["observations"] = observations or str(Path(bundles).with_name(Path(bundles).stem +
                                                                               ".tracks.parquet"))
+        # Lip contours traced on the footage travel with it.
+        traced = Path(footage) / "lip_contours.csv"
+        if contours is None and traced.is_file():
+            params["contours"] = str(traced)
     opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
-    job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations))
+    job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
+                           contours))
     tracking = None
     if footage:
         tracking = track_footage(footage, calib, markers, bundles, helmet=helmet)
