@@ -30,6 +30,7 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
         for cam in ("cam0", "cam1"):
             shutil.copytree(h / "hmc" / cam, shots / name / cam)
     (shots / "b_broken" / "cam1" / "000002.png").unlink()  # a frame missing from one camera
+    shutil.copyfile(h / "hmc" / "lip_contours.csv", shots / "a_good" / "lip_contours.csv")  # traced lips
     t0 = datetime.now(UTC)
     s = capture_session(str(h / "hmc" / "calib"), "chessboard:9x6:12", str(shots), str(tmp_path / "idx"),
                         str(h / "markers.csv"), str(tmp_path / "session"), fisheye=True, exr_size=16)
@@ -58,9 +59,11 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
     cli = tmp_path / "cli"
     assert main(["track", str(shots / "a_good"), "--calib", str(out / "calibration.json"), "--markers",
                  str(h / "markers.csv"), "--out", str(cli / "bundles.csv")]) == 0
-    # The session passes the tracking's table: its one-camera observations become rays.
+    # The session passes the tracking's table (its one-camera observations become rays) and the footage's lip
+    # contours (the synthetic footage traces them).
     assert main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(cli / "bundles.csv"), "--out",
-                 str(cli / "recon"), "--observations", str(cli / "bundles.tracks.parquet"), "-q"]) == 0
+                 str(cli / "recon"), "--observations", str(cli / "bundles.tracks.parquet"), "--contours",
+                 str(shots / "a_good" / "lip_contours.csv"), "-q"]) == 0
     np.testing.assert_array_equal(np.load(cli / "recon" / "meshes.npz")["vertices"], m["vertices"])
     assert (out / "shots" / "a_good" / "recon" / "shot.usdc").is_file()
     assert len(list((out / "shots" / "a_good" / "exr").glob("frame_*.exr"))) == 4
