@@ -229,3 +229,19 @@ def test_bad_contour_files_refused(shot, case: str, tmp_path: Path, capsys) -> N
     assert main(["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(out),
                  "--contours", str(path), "-q"]) == 2
     assert "--observations" in capsys.readouterr().err
+
+
+def test_contours_that_cannot_be_used_are_reported(shot, tmp_path: Path, capsys) -> None:
+    """A curve nowhere near the lips (frame 0) and one in a frame the tracks table has no head pose for (frame 1):
+    both are reported on stderr and leave the frame's contour columns empty, not silently dropped."""
+    t = shot["dir"]
+    path = tmp_path / "contours.csv"
+    path.write_text("frame,camera,curve,point,x,y\n0,0,upper_inner,0,5,5\n0,0,upper_inner,1,9,5\n"
+                    "1,0,upper_inner,0,5,5\n1,0,upper_inner,1,9,5\n")
+    capsys.readouterr()
+    assert main(["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(tmp_path / "r"),
+                 "--observations", str(t / "tracks.parquet"), "--contours", str(path), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "no lip edge vertex projects within" in err and "no head pose" in err
+    d = pd.read_csv(tmp_path / "r" / "diagnostics.csv")
+    assert d.contour_px_before.isna().all()

@@ -376,14 +376,27 @@ class Shot:
 
         n_m = self.index.n_markers
         px = np.full((2, hi - lo), np.nan)
+        no_pose, unmatched = [], []
         for f in range(lo, hi):
             curves = self.contour_curves.get(f)
-            if not curves or not np.all(np.isfinite(self.head_R[f])):
+            if not curves:
+                continue
+            if not np.all(np.isfinite(self.head_R[f])):
+                no_pose.append(int(self.frames[f]))
                 continue
             views = [ContourView(self.rig.cameras[c], self.head_R[f], self.head_t[f], name, pts)
                      for c, name, pts in curves]
             x, px[0, f - lo], px[1, f - lo] = self.contours.fit(res.vertices[f - lo], views)
+            if not np.isfinite(px[0, f - lo]):
+                unmatched.append(int(self.frames[f]))
             res.vertices[f - lo] = x
+        # A traced curve the method could not use is said, not dropped in silence (the columns stay NaN).
+        if no_pose:
+            log.warning("lip contours of %d frames not used: the tracks table has no head pose for them (first: "
+                        "frame %d)", len(no_pose), no_pose[0])
+        if unmatched:
+            log.warning("lip contours of %d frames not used: no lip edge vertex projects within %.0f px of the "
+                        "traced curves (first: frame %d)", len(unmatched), self.contours.gate_px, unmatched[0])
         res.diagnostics["contour_px_before"] = np.repeat(px[0], n_m)
         res.diagnostics["contour_px_after"] = np.repeat(px[1], n_m)
 
