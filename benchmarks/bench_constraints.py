@@ -9,6 +9,11 @@ with the bundle noise estimated (the default) and with `--noise 0` (exact bundle
 Vertex error against the true meshes (mm): the whole face, the lip region (|y - mouth| < 1 cm, |x| < 2.9 cm on
 the neutral) and the frames where some marker is seen by one camera only.
 
+Two oracle rows bound what any constraint could give (they use the truth, so no method can reach them): the
+tracked bundles with the lip markers replaced by their true positions (carried into the tracked head frame, so the
+head-pose error stays), and the tracked bundles rigidly aligned to the true ones per frame (the head-pose error
+removed, the markers' own noise kept).
+
 Lip contours: `hmc/lip_contours.csv` (the true inner lip edges each camera sees, `lgi synth --hmc`), exact
 and with 1 px Gaussian noise added here (as `lgi synth --contour-noise 1` would), given with `--contours`.
 """
@@ -33,6 +38,35 @@ def lgi(*args: str) -> str:
 
 def stats(e: np.ndarray) -> str:
     return f"{np.sqrt(np.mean(e**2)):.3f} / {np.percentile(e, 95):.3f} / {e.max():.3f}"
+
+
+def kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation and translation that best map points a onto b, (N, 3) each, least squares."""
+    ca, cb = a.mean(0), b.mean(0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return r, cb - r @ ca
+
+
+def write_oracles(shot: Path) -> None:
+    """Write `oracle_lips.csv` (lip markers true, tracked head frame) and `oracle_pose.csv` (posed by truth)."""
+    import pandas as pd
+
+    from lgi.synthetic.actor import MOUTH_HALF_WIDTH, MOUTH_Y
+
+    m = pd.read_csv(shot / "tracked.csv").merge(pd.read_csv(shot / "bundles.csv"), on=["frame", "marker"],
+                                                  suffixes=("", "_t"))
+    lip = ((np.abs(m.y_t - MOUTH_Y) < 1.2) & (np.abs(m.x_t) < MOUTH_HALF_WIDTH + 0.6)).to_numpy()
+    lips, pose = m.copy(), m.copy()
+    for _, g in m.groupby("frame"):
+        p, t = g[["x", "y", "z"]].to_numpy(), g[["x_t", "y_t", "z_t"]].to_numpy()
+        r, tr = kabsch(p, t)
+        k = lip[g.index]
+        lips.loc[g.index[k], ["x", "y", "z"]] = ((t - tr) @ r)[k]
+        pose.loc[g.index, ["x", "y", "z"]] = p @ r.T + tr
+    for name, d in (("lips", lips), ("pose", pose)):
+        d[["frame", "marker", "x", "y", "z"]].to_csv(shot / f"oracle_{name}.csv", index=False)
 
 
 def main() -> None:
@@ -86,10 +120,14 @@ def main() -> None:
             ("tracked + rays + contours 1 px", "auto", [*obs, "--contours", "lip_contours_1px.csv"]),
             ("tracked", "0", []), ("tracked + rays", "0", obs),
             ("tracked + rays + contours", "0", [*obs, "--contours", "hmc/lip_contours.csv"]),
-            ("true", "auto", [])]
+            ("true", "auto", []),
+            ("oracle: lip markers exact", "auto", []), ("oracle: head pose exact", "auto", [])]
+    write_oracles(shot)
+    sources = {"true": "bundles.csv", "oracle: lip markers exact": "oracle_lips.csv",
+               "oracle: head pose exact": "oracle_pose.csv"}
     for label, noise, extra in runs:
-        out = work / f"rec_{label.replace(' + ', '_').replace(' ', '_')}_{noise}"
-        bundles = shot / ("bundles.csv" if label == "true" else "tracked.csv")
+        out = work / f"rec_{label.replace(' + ', '_').replace(': ', '_').replace(' ', '_')}_{noise}"
+        bundles = shot / sources.get(label, "tracked.csv")
         lgi("reconstruct", str(shot / "index"), "--bundles", str(bundles), "--out", str(out), "--noise", noise,
             "-q", *[str(shot / e) if e.endswith((".parquet", ".csv")) else e for e in extra])
         v = np.load(out / "meshes.npz")["vertices"]
