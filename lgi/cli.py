@@ -45,7 +45,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
     opts = SynthOptions(vertices=args.vertices, frames=args.frames, seed=args.seed, hmc=args.hmc, lens=args.lens,
                         image_size=args.image_size, dot_noise=args.dot_noise, board_views=args.board_views,
-                        rig_flex=args.rig_flex, contour_noise=args.contour_noise)
+                        rig_flex=args.rig_flex, contour_noise=args.contour_noise, actor=args.actor)
     for line in synth_report(write_synthetic(args.out, opts, show_progress=not args.quiet), opts):
         print(line)
     return 0
@@ -171,6 +171,16 @@ def cmd_rig(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_rig_generate(args: argparse.Namespace) -> int:
+    from lgi.jobs.rig import RigGenerateOptions, generate_rig, rig_generate_report
+
+    opts = RigGenerateOptions(correctives=args.correctives, transfer=args.transfer, controls=args.controls)
+    for line in rig_generate_report(generate_rig(args.template, args.index, args.out, opts, usd=args.usd,
+                                                 show_progress=not args.quiet)):
+        print(line)
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from lgi.jobs.bench import BenchOptions, bench
 
@@ -235,6 +245,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="at least this many vertices (default 20000)")
     s.add_argument("--frames", type=int, default=240, metavar="F", help="performance length (default 240)")
     s.add_argument("--seed", type=int, default=0, metavar="S", help="performance seed (default 0)")
+    s.add_argument("--actor", type=int, default=0, metavar="SEED",
+                   help="another actor: proportions and expression details drawn from SEED (default 0: the default "
+                        "actor), same mesh topology")
     s.add_argument("--hmc", action="store_true",
                    help="also render head-mounted camera footage into DIR/hmc (frames, board views, true cameras)")
     s.add_argument("--lens", choices=["fisheye", "pinhole"], default="fisheye", help="HMC lens model (fisheye)")
@@ -396,6 +409,27 @@ def build_parser() -> argparse.ArgumentParser:
                         "vertices rotate about the lateral x axis), the others only get their jaw parameters")
     s.add_argument("--out", required=True, metavar="RIG_NPZ")
     s.set_defaults(func=cmd_rig)
+
+    s = sub.add_parser("rig-generate", help="an actor-specific blendshape rig from a template rig (paper 7.7)",
+                       description="Reconstruct each template control (and combinations, for correctives) on the "
+                                   "actor with LGI: the template's displacements at the markers (the jaw by its "
+                                   "parameters when the index has a jaw rig) are added to the actor's neutral "
+                                   "bundles. Writes a shape dataset (shapes tagged control / corrective) and, with "
+                                   "--usd, a UsdSkel rig (correctives as blend shapes carrying lgi:combination).")
+    s.add_argument("--template", required=True, metavar="TEMPLATE_DATASET",
+                   help="the template rig: a shape dataset on the actor's mesh topology")
+    s.add_argument("--index", required=True, metavar="INDEX_DIR", help="the actor's LGI index")
+    s.add_argument("--out", required=True, metavar="RIG_DIR", help="the actor's rig, as a shape dataset")
+    s.add_argument("--correctives", default=None, metavar="PAIRS|auto",
+                   help="combinations a+b[+c] (comma-separated) or 'auto' (pairs moving the same markers, at most "
+                        "24); the template's shape of that name is used when it has one, else the sum of the parts")
+    s.add_argument("--transfer", choices=["scale", "add"], default="scale",
+                   help="template displacements scaled by the affine map between the neutrals (default) or added")
+    s.add_argument("--controls", default=None, metavar="PATTERN",
+                   help="template shapes to use as controls (shell patterns; default: every name without '+')")
+    s.add_argument("--usd", default=None, metavar="RIG.usda", help="also write the rig as UsdSkel blend shapes")
+    s.add_argument("-q", "--quiet", action="store_true")
+    s.set_defaults(func=cmd_rig_generate)
 
     s = sub.add_parser("augment", help="add in-between shapes to a dataset",
                        description="Add in-betweens: combinations of 2-3 compatible shapes at fixed weights, "

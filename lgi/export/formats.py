@@ -160,3 +160,94 @@ def read_exr(path: str | os.PathLike[str]) -> np.ndarray:
     if "RGB" in ch:
         return np.asarray(ch["RGB"].pixels)
     return np.stack([np.asarray(ch[c].pixels) for c in "RGB"], axis=-1)
+
+
+def usd_name(name: str) -> str:
+    """A valid USD prim name for a shape name (``jaw_open+smile_L`` -> ``jaw_open__smile_L``)."""
+    out = "".join(c if c.isalnum() or c == "_" else "_" for c in name.replace("+", "__"))
+    return out if out and not out[0].isdigit() else "_" + out
+
+
+def write_usd_rig(
+    path: str | os.PathLike[str],
+    neutral: np.ndarray,
+    face_vertices: np.ndarray,
+    face_offsets: np.ndarray,
+    names: list[str],
+    deltas: np.ndarray,
+    combinations: list[tuple[str, ...] | None],
+    uvs: np.ndarray | None = None,
+    face_uvs: np.ndarray | None = None,
+    units_per_meter: float = 100.0,
+) -> Path:
+    """Write a blendshape rig as UsdSkel: the neutral mesh with one BlendShape target per shape.
+
+    Layout: ``/Rig`` (SkelRoot) holds ``Skel`` (a one-joint Skeleton whose ``Anim`` (SkelAnimation) lists
+    the blend shapes with weights 0) and ``Face`` (the Mesh, bound to the skeleton, with ``skel:blendShapes``
+    and ``skel:blendShapeTargets`` pointing at ``Face/<name>`` BlendShape prims holding the offsets).
+    UsdSkel has no combination driver, so a corrective is a target like any other, carrying
+    ``lgi:combination`` (its controls' names, for a DCC to drive its weight by the product of theirs) and
+    ``lgi:kind`` ("control" or "corrective"); every target keeps its original name in ``lgi:name``.
+
+    Parameters
+    ----------
+    neutral : (V, 3) float, cm
+    names : list of str, K shape names
+    deltas : (K, V, 3) float, cm: each target's offsets
+    combinations : K entries: None for a control, its controls' names for a corrective
+    """
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+
+    neutral = np.asarray(neutral, np.float32)
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0 / units_per_meter)
+    root = UsdSkel.Root.Define(stage, "/Rig")
+    stage.SetDefaultPrim(root.GetPrim())
+    skel = UsdSkel.Skeleton.Define(stage, "/Rig/Skel")
+    skel.CreateJointsAttr(Vt.TokenArray(["root"]))
+    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
+    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
+    tokens = [usd_name(n) for n in names]
+    if len(set(tokens)) != len(tokens):
+        raise ValueError("shape names collide once made valid USD names")
+    anim = UsdSkel.Animation.Define(stage, "/Rig/Skel/Anim")
+    anim.CreateJointsAttr(Vt.TokenArray(["root"]))
+    anim.CreateBlendShapesAttr(Vt.TokenArray(tokens))
+    anim.CreateBlendShapeWeightsAttr(Vt.FloatArray([0.0] * len(tokens)))
+    UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+
+    mesh = UsdGeom.Mesh.Define(stage, "/Rig/Face")
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.diff(np.asarray(face_offsets)).astype(np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(face_vertices, np.int32)))
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(neutral)))
+    mesh.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(np.stack([neutral.min(0), neutral.max(0)])))
+    if uvs is not None and face_uvs is not None:
+        st = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                     UsdGeom.Tokens.faceVarying)
+        st.Set(Vt.Vec2fArray.FromNumpy(np.asarray(uvs, np.float32)))
+        st.SetIndices(Vt.IntArray.FromNumpy(np.asarray(face_uvs, np.int32)))
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+    # Rigidly bound to the one joint (identity): the mesh moves only by its blend shapes.
+    binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
+    binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+    binding.CreateBlendShapesAttr(Vt.TokenArray(tokens))
+    targets = []
+    for name, token, delta, combo in zip(names, tokens, np.asarray(deltas, np.float32), combinations, strict=True):
+        bs = UsdSkel.BlendShape.Define(stage, f"/Rig/Face/{token}")
+        bs.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta)))
+        prim = bs.GetPrim()
+        prim.CreateAttribute("lgi:name", Sdf.ValueTypeNames.String).Set(name)
+        prim.CreateAttribute("lgi:kind", Sdf.ValueTypeNames.Token).Set("control" if combo is None else "corrective")
+        if combo is not None:
+            prim.CreateAttribute("lgi:combination", Sdf.ValueTypeNames.TokenArray).Set(
+                Vt.TokenArray([usd_name(c) for c in combo]))
+        targets.append(bs.GetPath())
+    binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+    path = Path(path)
+    with atomic_file(path, suffix=path.suffix or ".usda") as tmp:
+        stage.GetRootLayer().Export(str(tmp))
+    return path

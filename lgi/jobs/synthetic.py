@@ -58,10 +58,11 @@ class SynthOptions:
     board_views: int = 15
     rig_flex: float = 0.0
     contour_noise: float = 0.0
+    actor: int = 0
 
     def __post_init__(self) -> None:
         for name, least, most in (("vertices", 1, 2_000_000), ("frames", 1, 1_000_000), ("seed", 0, 2**32 - 1),
-                                  ("board_views", 3, 500)):
+                                  ("board_views", 3, 500), ("actor", 0, 2**31 - 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not least <= v <= most:
                 raise InputError(f"--{name.replace('_', '-')} must be a whole number in [{least}, {most}], not {v!r}")
@@ -115,7 +116,7 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
     check_output(out, "dir")
     check_contents(out, SYNTH_CONTENTS)
     hmc = o.footage()
-    actor = synth.make_actor(o.vertices)
+    actor = synth.make_actor(o.vertices, synth.ActorVariant.draw(o.actor))
     ds = synth.make_dataset(actor)
     layout, dist = synth.default_layout(actor)
     acts = synth.random_performance(o.frames, seed=o.seed)
@@ -147,7 +148,8 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
 
 
 def synth_report(r: dict[str, Any], options: SynthOptions) -> list[str]:
-    return [f"synthetic actor: {r['actor'].n_vertices} vertices, {r['dataset'].n_shapes} shapes, "
+    who = f"synthetic actor {options.actor}" if options.actor else "synthetic actor"
+    return [f"{who}: {r['actor'].n_vertices} vertices, {r['dataset'].n_shapes} shapes, "
             f"{len(r['layout'])} markers, {options.frames} frames (seed {options.seed})",
             *(f"  {p}" for p in r["outputs"]),
             *([] if not r.get("lip_contour_visible") else [

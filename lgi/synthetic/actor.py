@@ -18,6 +18,13 @@ An expression is a vector of activations in [0, 1] for :data:`CONTROLS`. The tru
 
 So the linear blend of the extreme shapes is not the truth: :func:`nonlinearity` measures by how much.
 Nothing here is random except :func:`random_performance`, which is seeded.
+
+Other actors: :class:`ActorVariant` (``make_actor(variant=ActorVariant.draw(seed))``, ``lgi synth --actor
+SEED``) gives a face with other proportions (a scale per axis and a larger or smaller nose and cheekbones,
+applied as a smooth warp of space after the expression) and its own expression details (where the
+nasolabial fold sits and how deep it gets, the spacing of forehead and lip lines, the smile's path and how
+much the open jaw damps it), on the same mesh topology. Its jaw hinge is the warped hinge. It is what
+template-to-actor transfer (``lgi rig-generate``) is measured on: the template's deltas are not this actor's.
 """
 
 from __future__ import annotations
@@ -68,6 +75,72 @@ def face_depth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return z
 
 
+@dataclass(frozen=True)
+class ActorVariant:
+    """How an actor differs from the default one (seed 0 is the default actor, unchanged).
+
+    Attributes
+    ----------
+    seed : int
+    scale : (3,) float
+        Scale of x (width), y (height), z (depth) about the origin.
+    nose, cheekbones : float, cm
+        Extra height of the nose and cheekbone bumps (along z, after the scale).
+    fold_shift, fold_depth : float
+        How far the nasolabial crease slides per unit pull (cm) and its depth coefficient.
+    forehead_period, lip_line_period : float, cm
+        Spacing of the forehead creases and of the lip lines.
+    smile_path : (3,) float
+        The smile's first-order path (x outward, y up, z), cm per unit activation.
+    smile_jaw_damping : float
+        How much of the smile's lift an open jaw takes away.
+    """
+
+    seed: int = 0
+    scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    nose: float = 0.0
+    cheekbones: float = 0.0
+    fold_shift: float = 0.45
+    fold_depth: float = 0.3
+    forehead_period: float = 1.3
+    lip_line_period: float = 0.35
+    smile_path: tuple[float, float, float] = (0.55, 0.45, -0.25)
+    smile_jaw_damping: float = 0.4
+
+    @classmethod
+    def draw(cls, seed: int) -> ActorVariant:
+        """A variant drawn from ``seed`` (0: the default actor): proportions within about 10 %, expression
+        details within about 30 % of the default's."""
+        if seed == 0:
+            return cls()
+        rng = np.random.default_rng(seed + 7919)
+        d = cls()
+
+        def u(lo: float, hi: float) -> float:
+            return float(rng.uniform(lo, hi))
+
+        return cls(seed=seed, scale=(u(0.9, 1.1), u(0.9, 1.1), u(0.9, 1.15)), nose=u(-0.3, 0.4),
+                   cheekbones=u(-0.25, 0.3), fold_shift=d.fold_shift * u(0.7, 1.3),
+                   fold_depth=d.fold_depth * u(0.7, 1.4), forehead_period=d.forehead_period * u(0.8, 1.25),
+                   lip_line_period=d.lip_line_period * u(0.8, 1.25),
+                   smile_path=(d.smile_path[0] * u(0.8, 1.2), d.smile_path[1] * u(0.8, 1.2),
+                               d.smile_path[2] * u(0.8, 1.2)),
+                   smile_jaw_damping=d.smile_jaw_damping * u(0.6, 1.4))
+
+    @property
+    def is_default(self) -> bool:
+        return self == ActorVariant()
+
+    def warp(self, p: np.ndarray) -> np.ndarray:
+        """(N, 3) positions in the default actor's space to this actor's, cm."""
+        if self.is_default:
+            return p
+        q = p * np.asarray(self.scale)
+        x, y = p[..., 0], p[..., 1]
+        q[..., 2] += self.nose * _g(x, y, 0, -1.0, 0.8, 1.1) + self.cheekbones * _g(np.abs(x), y, 4.2, -0.5, 1.5)
+        return q
+
+
 @dataclass
 class SyntheticActor:
     """The synthetic face and its expression model.
@@ -84,6 +157,10 @@ class SyntheticActor:
         Vertices on the lower side of the mouth slit (duplicated slit vertices included).
     jaw_weights : (V,) float64
         Linear-blend-skinning weight of the jaw bone, in [0, 1].
+    variant : ActorVariant
+        Proportions and expression details (default: the default actor).
+    base : (V, 3) float64 or None
+        The neutral in the default actor's space, where the expression model is defined (None: ``neutral``).
     """
 
     neutral: np.ndarray
@@ -94,7 +171,19 @@ class SyntheticActor:
     lower_lip: np.ndarray
     jaw_weights: np.ndarray
     grid_shape: tuple[int, int]
+    variant: ActorVariant = field(default_factory=ActorVariant)
+    base: np.ndarray | None = None
     _fields: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    @property
+    def x0(self) -> np.ndarray:
+        """(V, 3) float64: the neutral in the expression model's space (the default actor's)."""
+        return self.neutral if self.base is None else self.base
+
+    @property
+    def pivot(self) -> np.ndarray:
+        """(3,) float64, cm: the jaw hinge of this actor."""
+        return self.variant.warp(JAW_PIVOT[None].copy())[0]
 
     def lip_contours(self) -> dict[str, np.ndarray]:
         """The vertices of the lips' inner edges, left to right: ``upper_inner`` (the slit row) and
@@ -102,9 +191,9 @@ class SyntheticActor:
         opens these edges are the lips' inner contours; closed, the line where the lips meet."""
         nv, nu = self.grid_shape
         dup = np.arange(nv * nu, self.n_vertices)
-        rows_y = self.neutral[np.arange(nv) * nu, 1]
+        rows_y = self.x0[np.arange(nv) * nu, 1]
         row = int(np.argmin(np.abs(rows_y - MOUTH_Y))) * nu + np.arange(nu)
-        cols = np.searchsorted(self.neutral[row, 0], self.neutral[dup, 0] - 1e-9)
+        cols = np.searchsorted(self.x0[row, 0], self.x0[dup, 0] - 1e-9)
         c0, c1 = int(cols.min()) - 1, int(cols.max()) + 1
         return {"upper_inner": row[c0:c1 + 1], "lower_inner": np.concatenate([[row[c0]], dup, [row[c1]]])}
 
@@ -132,13 +221,16 @@ class SyntheticActor:
         """(V, 3) float64: the face before the jaw is applied (muscles, wrinkles, folds)."""
         a = np.asarray(a, np.float64)
         f = self._fields
-        x = self.neutral.copy()
+        va = self.variant
+        x0 = self.x0
+        x = x0.copy()
         n = f["normal"]
         for side, sgn in (("L", 1.0), ("R", -1.0)):
             s = a[C[f"smile_{side}"]]
             # The corner's lift weakens as the jaw opens and stretches the cheek (a product term).
-            lift = 1 - 0.4 * a[C["jaw_open"]]
-            path = s * np.array([0.55 * sgn, 0.45 * lift, -0.25]) + s**2 * np.array([0.15 * sgn, 0.35 * lift, 0.1])
+            lift = 1 - va.smile_jaw_damping * a[C["jaw_open"]]
+            sp = va.smile_path
+            path = s * np.array([sp[0] * sgn, sp[1] * lift, sp[2]]) + s**2 * np.array([0.15 * sgn, 0.35 * lift, 0.1])
             x += f[f"smile_{side}"][:, None] * path
             b = a[C[f"brow_raise_{side}"]]
             x += f[f"brow_{side}"][:, None] * np.array([0.0, 0.8, 0.05]) * (1 - np.exp(-2.5 * b)) / (1 - np.exp(-2.5))
@@ -147,33 +239,33 @@ class SyntheticActor:
             # Nasolabial fold: depth grows with the square of the combined pull (smile, sneer, puff).
             pull = s + 0.6 * sn + 0.3 * a[C["cheek_puff"]]
             if pull > 0:
-                crease, bulge = fold_profile(self.neutral[:, 0], self.neutral[:, 1], sgn, 0.45 * pull)
-                x += n * (0.3 * pull**2 * (0.6 * bulge - crease))[:, None]
+                crease, bulge = fold_profile(x0[:, 0], x0[:, 1], sgn, va.fold_shift * pull)
+                x += n * (va.fold_depth * pull**2 * (0.6 * bulge - crease))[:, None]
         p = a[C["pucker"]]
         x += f["pucker"][:, None] * np.array([0.0, 0.0, 0.7]) * p
-        x[:, 0] -= f["pucker"] * 0.35 * p**1.5 * np.clip(self.neutral[:, 0] / MOUTH_HALF_WIDTH, -1, 1)
+        x[:, 0] -= f["pucker"] * 0.35 * p**1.5 * np.clip(x0[:, 0] / MOUTH_HALF_WIDTH, -1, 1)
         x -= n * (0.06 * p**2 * f["lip_lines"])[:, None]
         bl = a[C["brow_lower"]]
         x += f["brow_lower"][:, None] * np.array([0.0, -0.45, -0.05]) * bl
-        x[:, 0] -= f["brow_lower"] * 0.3 * bl * np.tanh(self.neutral[:, 0] / 1.0) * f["glabella_mask"]
+        x[:, 0] -= f["brow_lower"] * 0.3 * bl * np.tanh(x0[:, 0] / 1.0) * f["glabella_mask"]
         x -= n * (0.1 * bl**2 * f["glabella_lines"])[:, None]
         raise_ = a[C["brow_raise_L"]] * f["forehead_L"] + a[C["brow_raise_R"]] * f["forehead_R"]
         # Forehead creases ride up with the brow (a moving pattern, like the nasolabial fold).
-        yy = self.neutral[:, 1] - 5.0 - 0.5 * raise_
-        lines = f["forehead_mask"] * (0.5 - 0.5 * np.cos(2 * np.pi * yy / 1.3))
+        yy = x0[:, 1] - 5.0 - 0.5 * raise_
+        lines = f["forehead_mask"] * (0.5 - 0.5 * np.cos(2 * np.pi * yy / va.forehead_period))
         x -= n * (0.2 * raise_**2 * lines)[:, None]
         # Puffed cheeks flatten as the jaw opens (a product term).
         puff = a[C["cheek_puff"]] * (1 - 0.6 * a[C["jaw_open"]])
         x += n * (1.0 * puff * f["cheeks"])[:, None]
-        return x
+        return va.warp(x)
 
     def jaw_transform(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rotation (3, 3) and translation (3,) of the jaw bone for parameters (4,)."""
-        return jaw_transform(params)
+        return jaw_transform(params, self.pivot)
 
     def skin(self, x: np.ndarray, params: np.ndarray) -> np.ndarray:
         """Apply the jaw to unskinned positions (V, 3) by linear blend skinning."""
-        r, t = jaw_transform(params)
+        r, t = jaw_transform(params, self.pivot)
         moved = x @ r.T + t
         w = self.jaw_weights[:, None]
         return (1 - w) * x + w * moved
@@ -197,7 +289,7 @@ class SyntheticActor:
         return np.stack([self.evaluate(np.eye(len(CONTROLS))[k]) - self.neutral for k in range(len(CONTROLS))])
 
 
-def jaw_transform(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def jaw_transform(params: np.ndarray, pivot: np.ndarray = JAW_PIVOT) -> tuple[np.ndarray, np.ndarray]:
     """Rigid jaw motion for parameters ``(open_deg, yaw_deg, roll_deg, forward_cm)`` about JAW_PIVOT, in
     the rig convention of :func:`lgi.solve.jaw.jaw_matrix`.
 
@@ -207,7 +299,7 @@ def jaw_transform(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     from lgi.solve.jaw import jaw_matrix
 
-    m = jaw_matrix(params, JAW_PIVOT)
+    m = jaw_matrix(params, pivot)
     return m[:3, :3], m[:3, 3]
 
 
@@ -217,8 +309,9 @@ def _grid_size(n_vertices: int) -> tuple[int, int]:
     return nu, nv
 
 
-def make_actor(n_vertices: int = 20000) -> SyntheticActor:
-    """Build the synthetic actor with at least ``n_vertices`` vertices (deterministic)."""
+def make_actor(n_vertices: int = 20000, variant: ActorVariant | None = None) -> SyntheticActor:
+    """Build the synthetic actor with at least ``n_vertices`` vertices (deterministic); ``variant``: another
+    actor's proportions and expression details (default: the default actor)."""
     if n_vertices < 500:
         raise ValueError(f"the synthetic actor needs at least 500 vertices, got {n_vertices}")
     nu, nv = _grid_size(n_vertices)
@@ -252,8 +345,10 @@ def make_actor(n_vertices: int = 20000) -> SyntheticActor:
     lower = np.zeros(len(vertices), bool)
     lower[: nu * nv] = (vertices[: nu * nv, 1] < MOUTH_Y - 1e-9)
     lower[dup] = True
+    variant = variant or ActorVariant()
     actor = SyntheticActor(
-        neutral=vertices, face_vertices=face_vertices, face_offsets=face_offsets, uvs=uvs,
+        neutral=variant.warp(vertices.copy()), base=None if variant.is_default else vertices, variant=variant,
+        face_vertices=face_vertices, face_offsets=face_offsets, uvs=uvs,
         face_uvs=face_vertices.copy(), lower_lip=lower, jaw_weights=_jaw_weights(vertices, lower),
         grid_shape=(nv, nu),
     )
@@ -292,7 +387,7 @@ def fold_profile(x: np.ndarray, y: np.ndarray, sgn: float, shift: float) -> tupl
 
 
 def _fields(actor: SyntheticActor) -> dict[str, np.ndarray]:
-    v = actor.neutral
+    v = actor.x0
     x, y = v[:, 0], v[:, 1]
     ax = np.abs(x)
     f: dict[str, np.ndarray] = {"normal": vertex_normals(v, actor.triangles)}
@@ -302,7 +397,8 @@ def _fields(actor: SyntheticActor) -> dict[str, np.ndarray]:
         f[f"forehead_{side}"] = _smoothstep((sgn * x + 2.5) / 5.0)
         f[f"sneer_{side}"] = _g(x, y, sgn * 1.1, -1.8, 0.8, 1.2) + 0.6 * _g(x, y, sgn * 1.0, -3.9, 0.9, 0.45)
     f["pucker"] = _g(x, y, 0, MOUTH_Y, 1.8, 1.0)
-    f["lip_lines"] = _g(x, y, 0, MOUTH_Y, 1.6, 0.5) * (0.5 - 0.5 * np.cos(2 * np.pi * x / 0.35))
+    period = actor.variant.lip_line_period
+    f["lip_lines"] = _g(x, y, 0, MOUTH_Y, 1.6, 0.5) * (0.5 - 0.5 * np.cos(2 * np.pi * x / period))
     f["brow_lower"] = _g(x, y, 0, 4.2, 2.5, 1.0)
     f["glabella_mask"] = _g(x, y, 0, 4.0, 1.5, 1.0)
     f["glabella_lines"] = _g(x, y, 0, 3.8, 1.0, 0.8) * (0.5 - 0.5 * np.cos(2 * np.pi * x / 0.8))
@@ -358,7 +454,8 @@ def make_dataset(actor: SyntheticActor, names: list[str] | None = None,
         neutral=actor.neutral, deltas=deltas, names=list(names), face_vertices=actor.face_vertices,
         face_offsets=actor.face_offsets, uvs=actor.uvs, face_uvs=actor.face_uvs, units="cm", shape_meta=meta,
         info={"name": "synthetic-actor", "controls": CONTROLS, "vertices": actor.n_vertices,
-              "jaw_pivot_cm": JAW_PIVOT.tolist()},
+              "jaw_pivot_cm": actor.pivot.tolist(),
+              **({} if actor.variant.is_default else {"actor_seed": actor.variant.seed})},
     )
 
 
@@ -420,7 +517,7 @@ def jaw_rig(actor: SyntheticActor):
     """The actor's true jaw rig (:class:`lgi.solve.jaw.JawRig`): its hinge and skinning weights."""
     from lgi.solve.jaw import JawRig
 
-    return JawRig(JAW_PIVOT.copy(), actor.jaw_weights.copy())
+    return JawRig(actor.pivot.copy(), actor.jaw_weights.copy())
 
 
 def default_layout(actor: SyntheticActor):
@@ -442,4 +539,5 @@ def default_layout(actor: SyntheticActor):
 
     path = shipped("markers_synth.csv")
     xyz = pd.read_csv(path)[["x", "y", "z"]].to_numpy(float)
-    return layout_from_points(read_layout(path).names, xyz, actor.neutral, actor.triangles)
+    # Snapped in the default actor's space, so a marker sits on the same part of any variant's face.
+    return layout_from_points(read_layout(path).names, xyz, actor.x0, actor.triangles)

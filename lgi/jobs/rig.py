@@ -1,0 +1,135 @@
+"""``lgi rig-generate``: an actor-specific blendshape rig from a template rig and the actor's index (paper 7.7).
+
+The algorithm is :mod:`lgi.retarget.template`; this job reads the inputs, checks the outputs before the work,
+and writes a shape dataset (controls and correctives, tagged) and optionally a UsdSkel rig.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lgi.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RigGenerateOptions:
+    """Options of ``lgi rig-generate``.
+
+    Attributes
+    ----------
+    correctives : str or None
+        None (no correctives), ``"auto"`` (pairs of controls that move the same markers, at most 24, not two
+        jaw controls) or comma-separated combinations ``a+b[+c]``.
+    transfer : {"scale", "add"}
+        How the template's displacements reach the actor's markers (:mod:`lgi.retarget.template`).
+    controls : str or None
+        Shell patterns (comma-separated) of the template shapes to use as controls (default: every shape
+        whose name has no ``+``).
+    """
+
+    correctives: str | None = None
+    transfer: str = "scale"
+    controls: str | None = None
+
+    def __post_init__(self) -> None:
+        from lgi.retarget.template import TRANSFERS
+
+        if self.transfer not in TRANSFERS:
+            raise InputError(f"--transfer {self.transfer!r}: use one of {', '.join(TRANSFERS)}")
+
+
+def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Path,
+                 options: RigGenerateOptions | None = None, usd: str | Path | None = None,
+                 show_progress: bool = False) -> dict[str, Any]:
+    """Generate the actor's rig; returns a summary (:func:`rig_generate_report`)."""
+    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
+    from lgi.dataset.shapes import ShapeDataset, ShapeMeta
+    from lgi.index.build import ENTRIES as INDEX_ENTRIES
+    from lgi.index.build import LGIIndex
+    from lgi.io.atomic import check_output, files_in
+    from lgi.progress import progress
+    from lgi.retarget.template import TemplateTransfer, parse_correctives, select_controls
+    from lgi.solve.solver import LGISolver
+
+    o = options or RigGenerateOptions()
+    inputs = [template_dir, index_dir, *files_in(template_dir, DATASET_ENTRIES), *files_in(index_dir, INDEX_ENTRIES)]
+    check_output(out, "dir", inputs=inputs, owned=DATASET_ENTRIES, what="shape dataset")
+    if usd is not None:
+        if Path(usd).suffix not in (".usd", ".usda", ".usdc"):
+            raise InputError("the rig's USD file must end in .usd, .usda or .usdc", path=usd)
+        check_output(usd, "file", inputs=[*inputs, out])
+        if Path(out).resolve() in Path(usd).resolve().parents:
+            raise InputError("the rig's USD file cannot be inside the rig's dataset directory (which is replaced "
+                             "whole)", path=usd)
+    t0 = time.perf_counter()
+    template = ShapeDataset.load(template_dir)
+    index = LGIIndex.load(index_dir)
+    transfer = TemplateTransfer(template, LGISolver(index), o.transfer)
+    controls = select_controls(template.names, o.controls)
+    if not controls:
+        raise InputError(f"no template shape is a control (patterns {o.controls!r}; shapes whose name has '+' "
+                         "are combinations)", path=template_dir)
+    correctives = parse_correctives(o.correctives, transfer, controls)
+    if template.units != "cm":
+        raise InputError(f"the template is in {template.units}; lgi works in cm (re-import it)", path=template_dir)
+    if transfer.rig is None:
+        log.warning("the actor's index has no jaw rig: the jaw moves as marker displacements (a template's jaw "
+                    "rotation lands off the actor's hinge); build the index with --jaw-rig for a jaw transfer")
+    rig = transfer.generate(controls, correctives,
+                            progress=lambda it: progress(it, "generating", disable=not show_progress))
+
+    a = index.arrays
+    neutral = rig.neutral
+    deltas = np.concatenate([rig.shapes - neutral[None].astype(np.float32), rig.corrective_deltas]).astype(np.float32)
+    names = [*controls, *("+".join(p) for p in correctives)]
+    used_template = set(template.names)
+    meta = []
+    for i, name in enumerate(names):
+        combo = None if i < len(controls) else list(correctives[i - len(controls)])
+        from_template = "combination shape" if combo and name in used_template else "sum of parts"
+        meta.append(ShapeMeta(
+            source=f"lgi rig-generate: template {Path(template_dir).name}/{name}",
+            tags=["control"] if combo is None else ["corrective", "combination"],
+            extra={"residual_mm": round(float(rig.residual_mm[i]), 6), "transfer": o.transfer,
+                   **({} if combo is None else {"combination": combo, "template": from_template,
+                                                "driver": "product of the controls' weights"})}))
+    ds = ShapeDataset(neutral=neutral, deltas=deltas, names=names, face_vertices=np.asarray(a["face_vertices"]),
+                      face_offsets=np.asarray(a["face_offsets"]),
+                      uvs=np.asarray(a["uvs"]) if "uvs" in a else None,
+                      face_uvs=np.asarray(a["face_uvs"]) if "face_uvs" in a else None, units="cm", shape_meta=meta,
+                      info={"name": "actor-rig", "template": str(Path(template_dir).resolve()),
+                            "index": str(Path(index_dir).resolve()), "transfer": o.transfer,
+                            "controls": controls, "correctives": ["+".join(p) for p in correctives]})
+    ds.save(out)
+    if usd is not None:
+        from lgi.export.formats import write_usd_rig
+
+        try:
+            write_usd_rig(usd, neutral, ds.face_vertices, ds.face_offsets, names, deltas,
+                          [None] * len(controls) + list(correctives), ds.uvs, ds.face_uvs)
+        except ValueError as e:
+            raise InputError(str(e), path=usd) from None
+    corr = np.linalg.norm(rig.corrective_deltas, axis=2).max(axis=1) * 10 if correctives else np.zeros(0)
+    return {"path": str(Path(out).resolve()), "usd": None if usd is None else str(Path(usd).resolve()),
+            "controls": len(controls), "correctives": ["+".join(p) for p in correctives],
+            "corrective_max_mm": corr.tolist(), "residual_max_mm": float(rig.residual_mm.max(initial=0.0)),
+            "jaw": transfer.rig is not None, "transfer": o.transfer, "seconds": time.perf_counter() - t0}
+
+
+def rig_generate_report(s: dict[str, Any]) -> list[str]:
+    lines = [f"actor rig: {s['controls']} controls, {len(s['correctives'])} correctives "
+             f"({'jaw by parameters' if s['jaw'] else 'no jaw rig'}, transfer {s['transfer']}) in {s['seconds']:.1f} s",
+             f"largest distance of a generated shape from its bundles: {s['residual_max_mm']:.2g} mm"]
+    if s["correctives"]:
+        top = sorted(zip(s["corrective_max_mm"], s["correctives"], strict=True), reverse=True)[:5]
+        lines.append("largest correctives (max mm): " + ", ".join(f"{n} {m:.2f}" for m, n in top))
+    lines.append(f"dataset: {s['path']}" + (f"  usd: {s['usd']}" if s["usd"] else ""))
+    return lines

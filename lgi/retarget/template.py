@@ -1,0 +1,287 @@
+"""Actor-specific rigs from a generic template rig (LGI paper 7.7).
+
+A template rig is a set of shapes (controls) on a template neutral with the actor's mesh topology. The
+paper applies the template rig to the actor's neutral, evaluates the bundles of each control (and of
+combinations of controls, for correctives), and reconstructs them with LGI on the actor: the actor's
+dataset supplies what the actor's face does between the markers, so the generated shape is the actor's
+local geometry passing through the template's marker motion.
+
+How the template's motion reaches the actor's markers (``transfer``):
+
+* ``"add"``: the template's displacement at each marker is added to the actor's neutral marker
+  position. This is "the template rig applied to the actor's neutral" taken literally, and it is also
+  the naive transfer of whole meshes this is compared with.
+* ``"scale"``: the displacement is first mapped by the linear part ``A`` of the affine map fitted (least
+  squares, all vertices) from the template neutral to the actor's. A face 10 % wider smiles about 10 %
+  wider; a global affine map is the simplest deformation transfer that says so.
+
+The jaw (when the actor's index has a jaw rig) is transferred as jaw parameters, not as marker
+displacements: a rotation about the template's hinge, added to markers that sit elsewhere relative to the
+actor's hinge, is no rotation of the actor's jaw (on the second synthetic actor it left 1.7 mm RMS on a
+full jaw opening). The template's rig is the actor's, carried back: the same skinning weights (the
+topology is shared) and the actor's hinge mapped through the inverse of the fitted affine map. Each
+template shape's jaw parameters are fitted with it, its unskinned displacement is transferred to the
+actor's markers as above, and the actor's rig skins them with the same parameters; the solve is then
+given that jaw.
+
+Correctives: for a combination ``a+b[+c]`` the template's combination shape is used when the template
+has it (a shape of that name), otherwise the sum of the parts' deltas (a linear template). The
+reconstructed combination minus the sum of the reconstructed parts' deltas is the corrective, so the
+actor's rig reproduces the reconstructed combination exactly when its controls are at 1.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lgi.dataset.markers import MarkerLayout
+from lgi.dataset.shapes import ShapeDataset
+from lgi.errors import InputError
+
+log = logging.getLogger(__name__)
+
+TRANSFERS = ("add", "scale")
+
+
+def fit_affine(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares affine map ``dst ~ src @ A.T + b``.
+
+    Parameters
+    ----------
+    src, dst : (V, 3) float, same units (cm)
+
+    Returns
+    -------
+    A : (3, 3) float64; b : (3,) float64
+    """
+    x = np.c_[np.asarray(src, np.float64), np.ones(len(src))]
+    m, *_ = np.linalg.lstsq(x, np.asarray(dst, np.float64), rcond=None)
+    return m[:3].T, m[3]
+
+
+def combination_parts(name: str, controls: list[str]) -> tuple[str, ...]:
+    """The controls of a combination name ``a+b[+c]``; refuses unknown or repeated parts and sizes other than
+    2 or 3."""
+    parts = tuple(p.strip() for p in name.split("+"))
+    if len(parts) not in (2, 3) or len(set(parts)) != len(parts):
+        raise InputError(f"corrective {name!r}: give two or three different controls joined by '+'")
+    unknown = [p for p in parts if p not in controls]
+    if unknown:
+        raise InputError(f"corrective {name!r}: {', '.join(map(repr, unknown))} is not a control of the template")
+    return parts
+
+
+def auto_correctives(deltas_at_markers: np.ndarray, controls: list[str], limit: int = 24,
+                     min_overlap: float = 0.25) -> list[tuple[str, str]]:
+    """Pairs of controls that move the same markers (where a linear sum of the two is most wrong).
+
+    Parameters
+    ----------
+    deltas_at_markers : (K, M, 3) float
+        Each control's displacement at the markers.
+    controls : list of str, K names
+    limit : int
+        At most this many pairs, by decreasing overlap.
+    min_overlap : float
+        Overlap ``sum_m min(|d_a|, |d_b|) / min(sum_m |d_a|, sum_m |d_b|)`` a pair needs, in [0, 1].
+
+    Returns
+    -------
+    list of (a, b) control names.
+    """
+    mag = np.linalg.norm(deltas_at_markers, axis=2)  # (K, M)
+    tot = mag.sum(1)
+    pairs = []
+    for i in range(len(controls)):
+        for j in range(i + 1, len(controls)):
+            if tot[i] <= 0 or tot[j] <= 0:
+                continue
+            ov = float(np.minimum(mag[i], mag[j]).sum() / min(tot[i], tot[j]))
+            if ov >= min_overlap:
+                pairs.append((ov, controls[i], controls[j]))
+    pairs.sort(key=lambda p: -p[0])
+    return [(a, b) for _, a, b in pairs[:limit]]
+
+
+@dataclass
+class GeneratedRig:
+    """An actor-specific rig.
+
+    Attributes
+    ----------
+    neutral : (V, 3) float64, cm
+    controls : list of str, K names
+    shapes : (K, V, 3) float32, cm: each control's reconstructed shape (positions)
+    correctives : list of tuple of str: the combinations, each 2 or 3 control names
+    corrective_deltas : (P, V, 3) float32, cm: reconstructed combination minus the sum of its parts' deltas
+    combinations : (P, V, 3) float32, cm: the reconstructed combination shapes (positions)
+    residual_mm : (K + P,) float64: largest distance of a generated shape from its transferred bundles, mm
+    """
+
+    neutral: np.ndarray
+    controls: list[str]
+    shapes: np.ndarray
+    correctives: list[tuple[str, ...]] = field(default_factory=list)
+    corrective_deltas: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
+    combinations: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
+    residual_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def evaluate(self, weights: dict[str, float]) -> np.ndarray:
+        """(V, 3) float64: the rig at control weights (correctives driven by the product of their controls'
+        weights, the usual combination-shape rule)."""
+        x = self.neutral.copy()
+        k = {c: i for i, c in enumerate(self.controls)}
+        for c, w in weights.items():
+            x += w * (self.shapes[k[c]] - self.neutral)
+        for combo, d in zip(self.correctives, self.corrective_deltas, strict=True):
+            x += float(np.prod([weights.get(c, 0.0) for c in combo])) * d
+        return x
+
+
+class TemplateTransfer:
+    """Maps a template rig's shapes onto an actor's markers and reconstructs them with the actor's index.
+
+    Parameters
+    ----------
+    template : ShapeDataset
+        The template rig: its neutral and control shapes, on the actor's mesh topology.
+    solver : LGISolver
+        A solver over the actor's index.
+    transfer : {"add", "scale"}
+        How template displacements reach the actor's markers (module docstring).
+    """
+
+    def __init__(self, template: ShapeDataset, solver, transfer: str = "scale") -> None:
+        if transfer not in TRANSFERS:
+            raise InputError(f"unknown transfer {transfer!r}; use one of {', '.join(TRANSFERS)}")
+        index = solver.index
+        self.solver = solver
+        self.layout: MarkerLayout = solver.layout
+        self.neutral = np.asarray(index.arrays["neutral"], np.float64)
+        if template.n_vertices != len(self.neutral):
+            raise InputError(
+                f"the template has {template.n_vertices} vertices and the actor's neutral {len(self.neutral)}: "
+                "the template must be on the actor's mesh topology (wrap it onto the actor's mesh first)")
+        self.template = template
+        self.transfer = transfer
+        affine, shift = fit_affine(template.neutral, self.neutral)
+        self.A = np.eye(3) if transfer == "add" else affine
+        self.neutral_bundles = self.layout.evaluate(self.neutral)
+        self.rig = index.jaw_rig()
+        self.template_rig = None
+        if self.rig is not None:
+            from lgi.solve.jaw import JawRig
+
+            self.template_rig = JawRig(np.linalg.solve(affine, self.rig.pivot - shift), self.rig.weights)
+
+    def marker_deltas(self, delta: np.ndarray) -> np.ndarray:
+        """(M, 3) float64, cm: a template displacement (V, 3) at the actor's markers, transferred."""
+        return self.layout.evaluate(np.asarray(delta, np.float64)) @ self.A.T  # barycentric, so linear
+
+    def template_delta(self, parts: tuple[str, ...]) -> np.ndarray:
+        """(V, 3) float64: the template's displacement for a control or a combination of controls."""
+        name = "+".join(parts)
+        names = self.template.names
+        if name in names:
+            return np.asarray(self.template.deltas[names.index(name)], np.float64)
+        # Any order of the parts names the same combination.
+        for n in names:
+            if "+" in n and sorted(p.strip() for p in n.split("+")) == sorted(parts):
+                return np.asarray(self.template.deltas[names.index(n)], np.float64)
+        return sum(np.asarray(self.template.deltas[names.index(p)], np.float64) for p in parts)
+
+    def bundles(self, parts: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray | None]:
+        """The actor's bundles (M, 3) float64 cm for a control or combination, and its jaw parameters (4,)
+        (None without a jaw rig)."""
+        x, theta = self._transfer(parts)
+        return self.layout.evaluate(x), theta
+
+    def moves_jaw(self, control: str) -> bool:
+        """Whether a template control opens or moves the jaw (its fitted jaw parameters exceed 1 degree or
+        0.5 mm); False without a jaw rig."""
+        if self.rig is None:
+            return False
+        theta = self._transfer((control,))[1]
+        return bool(np.any(np.abs(theta) > np.array([1.0, 1.0, 1.0, 0.05])))
+
+    def transferred(self, parts: tuple[str, ...]) -> np.ndarray:
+        """(V, 3) float64: the whole template shape transferred as the bundles are (the displacement mapped,
+        the jaw by its parameters), without LGI: what the bundles are sampled from."""
+        return self._transfer(parts)[0]
+
+    def _transfer(self, parts: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray | None]:
+        delta = self.template_delta(parts)
+        if self.rig is None:
+            return self.neutral + delta @ self.A.T, None
+        from lgi.solve.jaw import fit_shape_parameters, unskin_deltas
+
+        theta = fit_shape_parameters(self.template_rig, self.template.neutral, delta[None])[0]
+        u = unskin_deltas(self.template_rig, self.template.neutral, delta[None], theta[None])[0]
+        # Skinned per vertex (then sampled at the markers), as the solver's surface is.
+        return self.rig.skin(self.neutral + np.asarray(u, np.float64) @ self.A.T, theta), theta
+
+    def reconstruct(self, bundles: np.ndarray, jaw: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """The actor's shape (V, 3) float32 through ``bundles`` (M, 3) with the jaw (4,) given (or estimated
+        when None and the index has a rig) and its largest bundle residual, mm."""
+        r = self.solver.solve_frame(bundles, jaw=jaw)
+        return r.vertices, float(np.nanmax(r.residual)) * 10.0
+
+    def naive(self, parts: tuple[str, ...]) -> np.ndarray:
+        """(V, 3) float64: the naive transfer: the template's displacement added to the actor's neutral."""
+        return self.neutral + self.template_delta(parts)
+
+    def generate(self, controls: list[str] | None = None, correctives: list[tuple[str, ...]] | None = None,
+                 progress=None) -> GeneratedRig:
+        """Reconstruct every control (default: every template shape that is not a combination) and every
+        corrective combination."""
+        names = self.template.names
+        controls = controls or [n for n in names if "+" not in n]
+        correctives = correctives or []
+        items: list[tuple[str, ...]] = [(c,) for c in controls] + list(correctives)
+        shapes, resid = [], []
+        for parts in (progress(items) if progress else items):
+            v, r = self.reconstruct(*self.bundles(parts))
+            shapes.append(v)
+            resid.append(r)
+        out = np.stack(shapes) if shapes else np.zeros((0, len(self.neutral), 3), np.float32)
+        ctrl = out[:len(controls)]
+        combos = out[len(controls):]
+        k = {c: i for i, c in enumerate(controls)}
+        cdel = np.stack([combos[i] - self.neutral - sum(ctrl[k[c]] - self.neutral for c in parts)
+                         for i, parts in enumerate(correctives)]).astype(np.float32) if correctives else \
+            np.zeros((0, len(self.neutral), 3), np.float32)
+        return GeneratedRig(self.neutral, list(controls), ctrl.astype(np.float32), list(correctives), cdel,
+                            combos.astype(np.float32), np.asarray(resid))
+
+
+def parse_correctives(spec: str | None, transfer: TemplateTransfer, controls: list[str]) -> list[tuple[str, ...]]:
+    """``--correctives``: None or "" (none), ``auto`` (:func:`auto_correctives`), or comma-separated
+    combinations ``a+b[,c+d+e]`` (shell patterns are not expanded)."""
+    if not spec:
+        return []
+    if spec.strip() == "auto":
+        d = np.stack([transfer.marker_deltas(transfer.template_delta((c,))) for c in controls])
+        moving = {c for c in controls if transfer.moves_jaw(c)}
+        # Two jaw controls combine through the jaw's parameters (the rig), not through a corrective shape.
+        pairs = [p for p in auto_correctives(d, controls, limit=10**6) if not set(p) <= moving]
+        return pairs[:24]
+    out = []
+    for item in spec.split(","):
+        if item.strip():
+            if any(ch in item for ch in "*?["):
+                raise InputError(f"corrective {item!r}: patterns are not accepted; name the controls")
+            out.append(combination_parts(item, controls))
+    if len({tuple(sorted(p)) for p in out}) != len(out):
+        raise InputError("--correctives names a combination twice")
+    return out
+
+
+def select_controls(names: list[str], pattern: str | None) -> list[str]:
+    """Template shapes used as controls: not combinations (``+`` in the name), matching ``pattern`` (shell
+    patterns, comma-separated) when given."""
+    pats = [p.strip() for p in (pattern or "").split(",") if p.strip()]
+    return [n for n in names if "+" not in n and (not pats or any(fnmatch.fnmatchcase(n, p) for p in pats))]
