@@ -1,0 +1,144 @@
+"""lgi rig-generate (paper 7.7): actor rigs from a template, their USD, bad inputs; lgi synth --actor."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lgi.cli import main
+from lgi.dataset.shapes import ShapeDataset
+from lgi.synthetic import actor as A
+
+N_VERTICES = 2500
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "lgi.cli", *args], capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory) -> dict:
+    """A template (the default actor's 13 controls and two of its combinations) and actor 1's index."""
+    d = tmp_path_factory.mktemp("rig")
+    eye = np.eye(len(A.CONTROLS))
+    pairs = [("jaw_open", "pucker"), ("smile_L", "cheek_puff")]
+    acts = np.vstack([eye, *[[eye[A.C[a]] + eye[A.C[b]]] for a, b in pairs]])
+    template = A.make_dataset(A.make_actor(N_VERTICES), [*A.CONTROLS, *("+".join(p) for p in pairs)], acts)
+    template.save(d / "template")
+    assert main(["synth", "--out", str(d / "actor"), "--vertices", str(N_VERTICES), "--frames", "2", "--actor", "1",
+                 "-q"]) == 0
+    assert main(["build", str(d / "actor" / "dataset"), "--markers", str(d / "actor" / "markers.csv"), "--jaw-rig",
+                 str(d / "actor" / "jaw_rig.npz"), "--out", str(d / "index"), "-q"]) == 0
+    return {"dir": d, "pairs": pairs, "actor": A.make_actor(N_VERTICES, A.ActorVariant.draw(1))}
+
+
+def test_actor_variant_is_another_face_and_the_default_is_unchanged() -> None:
+    assert A.ActorVariant.draw(0).is_default
+    base, other = A.make_actor(1000), A.make_actor(1000, A.ActorVariant.draw(1))
+    assert np.array_equal(base.neutral, A.make_actor(1000, A.ActorVariant()).neutral)
+    # Not just a rescaling: after the best affine map between the neutrals, the smile still differs.
+    from lgi.retarget.template import fit_affine
+
+    m, _ = fit_affine(base.neutral, other.neutral)
+    k = A.C["smile_L"]
+    d0, d1 = base.extreme_deltas()[k], other.extreme_deltas()[k]
+    assert np.sqrt(np.mean(np.sum((d1 - d0 @ m.T) ** 2, axis=1))) > 0.003  # cm
+    # Its true jaw rig is a rig of its shapes: the skinned jaw opening is the shape.
+    rig = A.jaw_rig(other)
+    a = np.eye(len(A.CONTROLS))[A.C["jaw_open"]]
+    np.testing.assert_allclose(other.evaluate(a), rig.skin(other.unskinned(a), other.jaw_parameters(a)), atol=1e-9)
+
+
+def test_generated_controls_beat_the_naive_transfer(setup) -> None:
+    """On another actor, the generated controls are at most half the naive transfer's error, and every
+    generated shape passes through its transferred bundles."""
+    from lgi.index.build import LGIIndex
+    from lgi.retarget.template import TemplateTransfer
+    from lgi.solve.solver import LGISolver
+
+    d, actor = setup["dir"], setup["actor"]
+    tt = TemplateTransfer(ShapeDataset.load(d / "template"), LGISolver(LGIIndex.load(d / "index")), "scale")
+    rig = tt.generate(list(A.CONTROLS), setup["pairs"])
+    eye = np.eye(len(A.CONTROLS))
+    err = [np.sqrt(np.mean(np.sum((rig.shapes[k] - actor.evaluate(eye[k])) ** 2, axis=1)))
+           for k in range(len(A.CONTROLS))]
+    naive = [np.sqrt(np.mean(np.sum((tt.naive((c,)) - actor.evaluate(eye[k])) ** 2, axis=1)))
+             for k, c in enumerate(A.CONTROLS)]
+    assert np.sqrt(np.mean(np.square(err))) <= 0.5 * np.sqrt(np.mean(np.square(naive)))
+    assert rig.residual_mm.max() < 1e-3
+    # The rig at both controls of a corrective reproduces the reconstructed combination.
+    for i, (a, b) in enumerate(setup["pairs"]):
+        np.testing.assert_allclose(rig.evaluate({a: 1.0, b: 1.0}), rig.combinations[i], atol=1e-4)
+    # The jaw opening's corrective (a pucker with the jaw open) is the actor's: closer to its true corrective
+    # than to none at all.
+    a, b = setup["pairs"][0]
+    x0 = actor.neutral
+    true = actor.evaluate(eye[A.C[a]] + eye[A.C[b]]) - actor.evaluate(eye[A.C[a]]) - actor.evaluate(eye[A.C[b]]) + x0
+    assert np.linalg.norm(rig.corrective_deltas[0] - true) < 0.5 * np.linalg.norm(true)
+
+
+def test_cli_writes_a_tagged_dataset_and_a_usd_that_reads_back(setup, tmp_path: Path) -> None:
+    pytest.importorskip("pxr")
+    d = setup["dir"]
+    out, usd = tmp_path / "rig", tmp_path / "rig.usda"
+    r = run("rig-generate", "--template", str(d / "template"), "--index", str(d / "index"), "--out", str(out),
+            "--correctives", "jaw_open+pucker,smile_L+cheek_puff+pucker", "--usd", str(usd), "-q")
+    assert r.returncode == 0, r.stderr
+    assert "13 controls, 2 correctives" in r.stdout
+    ds = ShapeDataset.load(out, verify=True)
+    assert ds.names[:13] == list(A.CONTROLS) and ds.names[13:] == ["jaw_open+pucker", "smile_L+cheek_puff+pucker"]
+    assert [m.tags for m in ds.shape_meta][12:] == [["control"], ["corrective", "combination"]] + \
+        [["corrective", "combination"]]
+    assert ds.shape_meta[13].extra["template"] == "combination shape"
+    assert ds.shape_meta[14].extra["template"] == "sum of parts"
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    stage = Usd.Stage.Open(str(usd))
+    binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Rig/Face"))
+    tokens = list(binding.GetBlendShapesAttr().Get())
+    assert tokens == [*A.CONTROLS, "jaw_open__pucker", "smile_L__cheek_puff__pucker"]
+    query = UsdSkel.BlendShapeQuery(binding)
+    assert query.GetNumBlendShapes() == len(ds.names)
+    for k, target in enumerate(binding.GetBlendShapeTargetsRel().GetTargets()):
+        prim = stage.GetPrimAtPath(target)
+        offsets = np.asarray(UsdSkel.BlendShape(prim).GetOffsetsAttr().Get())
+        np.testing.assert_allclose(offsets, ds.deltas[k], atol=1e-6)
+        assert prim.GetAttribute("lgi:name").Get() == ds.names[k]
+    combo = stage.GetPrimAtPath("/Rig/Face/jaw_open__pucker").GetAttribute("lgi:combination").Get()
+    assert list(combo) == ["jaw_open", "pucker"]
+    points = np.asarray(UsdGeom.Mesh(stage.GetPrimAtPath("/Rig/Face")).GetPointsAttr().Get())
+    np.testing.assert_allclose(points, ds.neutral, atol=1e-5)
+
+
+@pytest.mark.parametrize("case, words", [
+    ("vertex_count", ["vertices", "topology"]),
+    ("unknown_control", ["'frown'", "not a control"]),
+    ("one_part", ["two or three"]),
+    ("usd_inside", ["inside the rig's dataset directory"]),
+    ("usd_suffix", [".usda"]),
+])
+def test_bad_input_is_refused_cleanly(setup, tmp_path: Path, case: str, words: list[str]) -> None:
+    d = setup["dir"]
+    template = d / "template"
+    out = tmp_path / "rig"
+    extra: list[str] = []
+    if case == "vertex_count":
+        small = A.make_dataset(A.make_actor(1000), ["smile_L"], np.eye(len(A.CONTROLS))[[A.C["smile_L"]]])
+        template = tmp_path / "small"
+        small.save(template)
+    elif case == "unknown_control":
+        extra = ["--correctives", "smile_L+frown"]
+    elif case == "one_part":
+        extra = ["--correctives", "smile_L"]
+    elif case == "usd_inside":
+        extra = ["--usd", str(out / "rig.usda")]
+    else:
+        extra = ["--usd", str(tmp_path / "rig.obj")]
+    r = run("rig-generate", "--template", str(template), "--index", str(d / "index"), "--out", str(out), *extra)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    for w in words:
+        assert w in r.stderr, r.stderr
+    assert not out.exists() and not list(tmp_path.glob("rig*")) and not list(tmp_path.glob(".rig*"))
