@@ -14,13 +14,17 @@ Methods, all given the same template shapes and the actor's index (its neutral, 
 - transfer, no LGI: the displacement mapped by the neutrals' affine map and the jaw moved by its parameters
   through the actor's rig, whole mesh: everything ``lgi rig-generate`` does except LGI (the strongest baseline
   with the same information);
-- LGI add / LGI scale: ``lgi rig-generate --transfer add|scale``.
+- LGI add / LGI scale: ``lgi rig-generate --transfer add|scale`` (``--coverage 2``, the default: a
+  combination whose bundles lie over 2 mm outside the actor's clouds takes the template's corrective,
+  transferred); and ``--coverage 3`` and ``inf`` (always reconstructed).
 
 ICT (``../shared/data/ict-facekit``): the template is the generic ICT face (its performed expression shapes),
 the actor ICT with an identity blend (``lgi import --identity``), 110 markers (data/markers_ict.csv), no jaw rig.
 ICT's expressions are identity-independent (an additive model), so the actor's truth IS the naive transfer
 here; the figures say what LGI loses by reconstructing from the markers, and what scaling does to a face whose
-expressions do not scale.
+expressions do not scale. With the actor's index built from all its shapes, every control is a dataset shape
+and LGI returns it exactly (paper 7.1: a setup that favours LGI); the second index leaves out the right-side
+shapes (``*_R``), and the ``*_R`` controls are generated from the others.
 """
 
 from __future__ import annotations
@@ -64,23 +68,26 @@ def synthetic(n_vertices: int, seed: int) -> list[str]:
     rows = []
     for label, template in (("template with correctives", with_corr), ("linear template", linear)):
         methods = {}
-        for transfer in ("add", "scale"):
-            tt = TemplateTransfer(template, solver, transfer)
+        for transfer, coverage in (("add", 2.0), ("scale", 2.0), ("scale", 3.0), ("scale", np.inf)):
+            tt = TemplateTransfer(template, solver, transfer, coverage)
             t0 = time.perf_counter()
             rig = tt.generate(controls, pairs)
             secs = time.perf_counter() - t0
-            methods[f"LGI {transfer}"] = ([*rig.shapes], [*rig.combinations], [*rig.corrective_deltas], secs)
+            name = f"LGI {transfer}" + ("" if coverage == 2.0 else f", coverage {coverage:g} mm")
+            n_t = rig.corrective_source.count("template")
+            methods[name] = ([*rig.shapes], [*rig.combinations], [*rig.corrective_deltas], secs, n_t)
             if transfer == "scale":
                 nc = [tt.transferred((c,)) for c in controls]
                 npairs = [tt.transferred(p) for p in pairs]
                 methods["transfer, no LGI"] = (nc, npairs, [q - x0 - sum(nc[A.C[c]] - x0 for c in p)
-                                                            for q, p in zip(npairs, pairs, strict=True)], 0.0)
+                                                            for q, p in zip(npairs, pairs, strict=True)], 0.0, 0)
                 nv = [tt.naive((c,)) for c in controls]
                 nvp = [tt.naive(p) for p in pairs]
                 methods["naive"] = (nv, nvp, [q - x0 - sum(nv[A.C[c]] - x0 for c in p)
-                                              for q, p in zip(nvp, pairs, strict=True)], 0.0)
-        for name in ("naive", "transfer, no LGI", "LGI add", "LGI scale"):
-            sc, sp, corr, secs = methods[name]
+                                              for q, p in zip(nvp, pairs, strict=True)], 0.0, 0)
+        order = ["naive", "transfer, no LGI", *(k for k in methods if k.startswith("LGI"))]
+        for name in order:
+            sc, sp, corr, secs, n_t = methods[name]
             ec = [rms(s - t) for s, t in zip(sc, truth_c, strict=True)]
             mc = max(float(np.linalg.norm(s - t, axis=1).max()) * 10 for s, t in zip(sc, truth_c, strict=True))
             ep = [rms(s - t) for s, t in zip(sp, truth_p, strict=True)]
@@ -88,9 +95,9 @@ def synthetic(n_vertices: int, seed: int) -> list[str]:
             if label == "linear template" and name in ("naive", "transfer, no LGI"):
                 continue  # their controls are the same as above; only the combinations differ
             rows.append(f"| {seed} | {label} | {name} | {pooled(ec):.3f} / {mc:.2f} | {pooled(ep):.3f} | "
-                        f"{pooled(ek):.3f} | {secs:.1f} |")
+                        f"{pooled(ek):.3f} | {n_t} of {len(pairs)} | {secs:.1f} |")
     size = pooled([rms(c) for c in true_corr])
-    rows.append(f"| {seed} | | (true correctives' own size) | | | {size:.3f} | |")
+    rows.append(f"| {seed} | | (true correctives' own size) | | | {size:.3f} | | |")
     return rows
 
 
@@ -117,28 +124,33 @@ def ict(ict_dir) -> list[str]:
     rows = []
     truth = {c: actor.neutral + actor.deltas[actor.index(c)] for c in controls}
     change = rms((actor.neutral - template.neutral)[face])
-    for name in ("naive", "LGI add", "LGI scale"):
-        tt = TemplateTransfer(template, solver, "add" if name != "LGI scale" else "scale")
-        out = [tt.naive((c,)) for c in controls] if name == "naive" else list(tt.generate(controls).shapes)
-        e = [rms((s - truth[c])[face]) for s, c in zip(out, controls, strict=True)]
-        m = max(float(np.linalg.norm((s - truth[c])[face], axis=1).max()) * 10 for s, c in zip(out, controls,
-                                                                                            strict=True))
-        rows.append(f"| ICT, identity {weights} | {name} | {pooled(e):.3f} / {m:.2f} | {len(controls)} |")
-    rows.append(f"(identity change of the neutral: {change:.2f} mm RMS over the face; index built in {build_s:.0f} s)")
+    held = [c for c in controls if c.endswith("_R")]
+    index_l, _ = build_index(actor.select(exclude="*_R"), layout, show_progress=False)
+    for label, slv, ctrl in (("all shapes", solver, controls),
+                             ("without the *_R shapes; the *_R controls", LGISolver(index_l), held)):
+        for name in ("naive", "LGI add", "LGI scale"):
+            tt = TemplateTransfer(template, slv, "add" if name != "LGI scale" else "scale")
+            out = [tt.naive((c,)) for c in ctrl] if name == "naive" else list(tt.generate(ctrl).shapes)
+            e = [rms((s - truth[c])[face]) for s, c in zip(out, ctrl, strict=True)]
+            m = max(float(np.linalg.norm((s - truth[c])[face], axis=1).max()) * 10 for s, c in zip(out, ctrl,
+                                                                                                strict=True))
+            rows.append(f"| {label} | {name} | {pooled(e):.3f} / {m:.2f} | {len(ctrl)} |")
+    rows.append(f"(actor: identity {weights}, which moves the neutral {change:.2f} mm RMS over the face; index built "
+                f"in {build_s:.0f} s)")
     return rows
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--vertices", type=int, default=20000)
-    ap.add_argument("--actors", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--actors", type=int, nargs="*", default=[1, 2, 3], help="synthetic actors (none: ICT only)")
     ap.add_argument("--no-ict", action="store_true")
     args = ap.parse_args()
     print(f"synthetic: template = default actor, actor = lgi synth --actor SEED, {args.vertices} vertices; "
           "vertex error against the actor's true shapes, mm\n")
     print("| actor | template | method | controls: pooled RMS / max | combinations: pooled RMS | "
-          "correctives: pooled RMS error | generation s |")
-    print("|---|---|---|---|---|---|---|")
+          "correctives: pooled RMS error | correctives from the template | generation s |")
+    print("|---|---|---|---|---|---|---|---|")
     for seed in args.actors:
         for row in synthetic(args.vertices, seed):
             print(row, flush=True)
@@ -152,7 +164,7 @@ def main() -> None:
         return
     print("\nICT: face vertices, mm (the actor's truth equals the naive transfer here: ICT's expressions are "
           "identity-independent)\n")
-    print("| actor | method | controls: pooled RMS / max | controls |")
+    print("| actor's index | method | controls: pooled RMS / max | controls |")
     print("|---|---|---|---|")
     for row in ict(d):
         print(row, flush=True)

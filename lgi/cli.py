@@ -174,7 +174,8 @@ def cmd_rig(args: argparse.Namespace) -> int:
 def cmd_rig_generate(args: argparse.Namespace) -> int:
     from lgi.jobs.rig import RigGenerateOptions, generate_rig, rig_generate_report
 
-    opts = RigGenerateOptions(correctives=args.correctives, transfer=args.transfer, controls=args.controls)
+    opts = RigGenerateOptions(correctives=args.correctives, transfer=args.transfer, controls=args.controls,
+                              coverage_mm=args.coverage)
     for line in rig_generate_report(generate_rig(args.template, args.index, args.out, opts, usd=args.usd,
                                                  show_progress=not args.quiet)):
         print(line)
@@ -206,6 +207,26 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     demo(args.out, DemoOptions(vertices=args.vertices, frames=args.frames, seed=args.seed),
          show_progress=not args.quiet)
+    return 0
+
+
+def cmd_layout_design(args: argparse.Namespace) -> int:
+    from lgi.jobs.layout import DesignOptions, design, design_report
+
+    opts = DesignOptions(count=args.count, min_spacing=args.min_spacing, symmetric=args.symmetric,
+                         exclude=args.exclude, held_out=args.held_out, epsilon=args.epsilon,
+                         time_limit=args.time_limit)
+    for line in design_report(design(args.dataset_dir, args.out, opts)):
+        print(line)
+    return 0
+
+
+def cmd_layout_evaluate(args: argparse.Namespace) -> int:
+    from lgi.jobs.layout import EvaluateOptions, evaluate, evaluate_report
+
+    table, summary = evaluate(args.dataset_dir, args.markers, EvaluateOptions(held_out=args.held_out, out=args.out))
+    for line in evaluate_report(table, summary):
+        print(line)
     return 0
 
 
@@ -427,6 +448,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="template displacements scaled by the affine map between the neutrals (default) or added")
     s.add_argument("--controls", default=None, metavar="PATTERN",
                    help="template shapes to use as controls (shell patterns; default: every name without '+')")
+    s.add_argument("--coverage", type=float, default=2.0, metavar="MM",
+                   help="a combination whose bundles lie farther than this outside the actor's dataset takes the "
+                        "template's corrective, transferred, and is reported (default 2; inf: always reconstruct)")
     s.add_argument("--usd", default=None, metavar="RIG.usda", help="also write the rig as UsdSkel blend shapes")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_rig_generate)
@@ -516,6 +540,44 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, metavar="S")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("layout", help="design a marker layout by integer programming, or compare layouts",
+                       description="Marker layouts: design one by integer programming (after Zell et al.), or "
+                                   "measure one on held-out shapes. See docs/layout_design.md.")
+    lsub = s.add_subparsers(dest="layout_command", required=True, metavar="ACTION")
+    d = lsub.add_parser("design", help="design a layout by integer programming (SciPy milp / HiGHS)",
+                        description="Choose COUNT marker positions on the dataset's neutral covering the motion of "
+                                    "its shapes (docs/layout_design.md); write a markers CSV for lgi build. Exit 2 "
+                                    "when the request cannot be met (count too high for the spacing).")
+    d.add_argument("dataset_dir", metavar="DATASET_DIR")
+    d.add_argument("--count", required=True, type=int, metavar="N", help="number of markers")
+    d.add_argument("--out", required=True, metavar="MARKERS_CSV")
+    d.add_argument("--symmetric", action="store_true",
+                   help="markers in mirror pairs across the face's symmetry plane (x = c), selected together")
+    d.add_argument("--min-spacing", type=float, default=8.0, metavar="MM",
+                   help="smallest distance between two markers, mm (default 8)")
+    d.add_argument("--exclude", default="auto", metavar="SPEC",
+                   help="where paint cannot go, comma-separated: auto (the dataset's eyes, inner lips, borders), "
+                        "none, FIRST:LAST (vertex indices), boundary:MM, or a vertex index file (default auto)")
+    d.add_argument("--held-out", metavar="PATTERN",
+                   help="shapes the design ignores (shell patterns or auto, as lgi layout evaluate --held-out), so "
+                        "that a layout is evaluated on shapes it was not designed for (default: none)")
+    d.add_argument("--epsilon", type=float, default=0.5, metavar="E",
+                   help="Zell's threshold: every shape gets a marker moving >= E x its largest motion (0.5; 0: off)")
+    d.add_argument("--time-limit", type=float, default=60.0, metavar="S",
+                   help="seconds for the solver; the best layout found is kept (60)")
+    d.set_defaults(func=cmd_layout_design)
+    e = lsub.add_parser("evaluate", help="held-out error of a layout (LGI and the blendshape baseline)",
+                        description="Build the index for the layout on the dataset minus the held-out shapes, "
+                                    "reconstruct each held-out shape from its own bundles with LGI and with the "
+                                    "blendshape fit, and print vertex RMS / p95 / max (mm).")
+    e.add_argument("dataset_dir", metavar="DATASET_DIR")
+    e.add_argument("--markers", required=True, metavar="MARKERS_CSV")
+    e.add_argument("--held-out", default="auto", metavar="PATTERN",
+                   help="held-out shapes: shell patterns on names, comma-separated, or auto: every fifth shape in "
+                        "the dataset's order from the third (default auto)")
+    e.add_argument("--out", metavar="CSV", help="also write the per-shape table (method, shape, rms, p95, max mm)")
+    e.set_defaults(func=cmd_layout_evaluate)
     return p
 
 

@@ -79,6 +79,29 @@ def test_generated_controls_beat_the_naive_transfer(setup) -> None:
     assert np.linalg.norm(rig.corrective_deltas[0] - true) < 0.5 * np.linalg.norm(true)
 
 
+def test_a_combination_outside_the_actors_dataset_takes_the_templates_corrective(setup, caplog) -> None:
+    """smile_L+cheek_puff deepens the nasolabial fold beyond any shape of the actor's dataset: its bundles lie
+    outside their clouds, so its corrective is the template's (transferred), and a warning says so; the jaw
+    opening with a pucker is in the dataset and is reconstructed."""
+    from lgi.index.build import LGIIndex
+    from lgi.retarget.template import TemplateTransfer
+    from lgi.solve.solver import LGISolver
+
+    d = setup["dir"]
+    template, solver = ShapeDataset.load(d / "template"), LGISolver(LGIIndex.load(d / "index"))
+    with caplog.at_level("WARNING"):
+        rig = TemplateTransfer(template, solver, "scale").generate(list(A.CONTROLS), setup["pairs"])
+    assert rig.corrective_source == ["actor", "template"]
+    assert rig.projection_mm[-1] > 2.0 >= rig.projection_mm[-2]
+    assert any("smile_L+cheek_puff" in r.getMessage() and "template's" in r.getMessage() for r in caplog.records)
+    tt = TemplateTransfer(template, solver, "scale")
+    expected = tt.transferred(setup["pairs"][1]) - sum(tt.transferred((c,)) for c in setup["pairs"][1]) + \
+        tt.neutral
+    np.testing.assert_allclose(rig.corrective_deltas[1], expected, atol=1e-5)
+    always = TemplateTransfer(template, solver, "scale", coverage_mm=np.inf).generate(list(A.CONTROLS), setup["pairs"])
+    assert always.corrective_source == ["actor", "actor"]
+
+
 def test_cli_writes_a_tagged_dataset_and_a_usd_that_reads_back(setup, tmp_path: Path) -> None:
     pytest.importorskip("pxr")
     d = setup["dir"]
@@ -93,6 +116,7 @@ def test_cli_writes_a_tagged_dataset_and_a_usd_that_reads_back(setup, tmp_path: 
         [["corrective", "combination"]]
     assert ds.shape_meta[13].extra["template"] == "combination shape"
     assert ds.shape_meta[14].extra["template"] == "sum of parts"
+    assert ds.shape_meta[13].extra["corrective_from"] == "actor"
     from pxr import Usd, UsdGeom, UsdSkel
 
     stage = Usd.Stage.Open(str(usd))

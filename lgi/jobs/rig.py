@@ -33,17 +33,26 @@ class RigGenerateOptions:
     controls : str or None
         Shell patterns (comma-separated) of the template shapes to use as controls (default: every shape
         whose name has no ``+``).
+    coverage_mm : float
+        A combination whose bundles lie farther outside the actor's clouds takes the template's corrective,
+        transferred (:class:`~lgi.retarget.template.TemplateTransfer`).
     """
 
     correctives: str | None = None
     transfer: str = "scale"
     controls: str | None = None
+    coverage_mm: float = 2.0
 
     def __post_init__(self) -> None:
+        import math
+
         from lgi.retarget.template import TRANSFERS
 
         if self.transfer not in TRANSFERS:
             raise InputError(f"--transfer {self.transfer!r}: use one of {', '.join(TRANSFERS)}")
+        if math.isnan(self.coverage_mm) or self.coverage_mm < 0:
+            raise InputError(f"--coverage must be a distance >= 0 in mm (inf: always reconstruct), not "
+                             f"{self.coverage_mm!r}")
 
 
 def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Path,
@@ -72,7 +81,7 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
     t0 = time.perf_counter()
     template = ShapeDataset.load(template_dir)
     index = LGIIndex.load(index_dir)
-    transfer = TemplateTransfer(template, LGISolver(index), o.transfer)
+    transfer = TemplateTransfer(template, LGISolver(index), o.transfer, o.coverage_mm)
     controls = select_controls(template.names, o.controls)
     if not controls:
         raise InputError(f"no template shape is a control (patterns {o.controls!r}; shapes whose name has '+' "
@@ -99,8 +108,10 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
             source=f"lgi rig-generate: template {Path(template_dir).name}/{name}",
             tags=["control"] if combo is None else ["corrective", "combination"],
             extra={"residual_mm": round(float(rig.residual_mm[i]), 6), "transfer": o.transfer,
-                   **({} if combo is None else {"combination": combo, "template": from_template,
-                                                "driver": "product of the controls' weights"})}))
+                   "outside_clouds_mm": round(float(rig.projection_mm[i]), 4),
+                   **({} if combo is None else {
+                       "combination": combo, "template": from_template, "driver": "product of the controls' weights",
+                       "corrective_from": rig.corrective_source[i - len(controls)]})}))
     ds = ShapeDataset(neutral=neutral, deltas=deltas, names=names, face_vertices=np.asarray(a["face_vertices"]),
                       face_offsets=np.asarray(a["face_offsets"]),
                       uvs=np.asarray(a["uvs"]) if "uvs" in a else None,
@@ -121,6 +132,8 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
     return {"path": str(Path(out).resolve()), "usd": None if usd is None else str(Path(usd).resolve()),
             "controls": len(controls), "correctives": ["+".join(p) for p in correctives],
             "corrective_max_mm": corr.tolist(), "residual_max_mm": float(rig.residual_mm.max(initial=0.0)),
+            "correctives_from_template": [n for n, src in zip(("+".join(p) for p in correctives),
+                                                              rig.corrective_source, strict=True) if src == "template"],
             "jaw": transfer.rig is not None, "transfer": o.transfer, "seconds": time.perf_counter() - t0}
 
 
@@ -128,6 +141,10 @@ def rig_generate_report(s: dict[str, Any]) -> list[str]:
     lines = [f"actor rig: {s['controls']} controls, {len(s['correctives'])} correctives "
              f"({'jaw by parameters' if s['jaw'] else 'no jaw rig'}, transfer {s['transfer']}) in {s['seconds']:.1f} s",
              f"largest distance of a generated shape from its bundles: {s['residual_max_mm']:.2g} mm"]
+    if s["correctives_from_template"]:
+        lines.append(f"{len(s['correctives_from_template'])} of {len(s['correctives'])} correctives are the "
+                     "template's, transferred (the actor's dataset does not cover them): "
+                     + ", ".join(s["correctives_from_template"]))
     if s["correctives"]:
         top = sorted(zip(s["corrective_max_mm"], s["correctives"], strict=True), reverse=True)[:5]
         lines.append("largest correctives (max mm): " + ", ".join(f"{n} {m:.2f}" for m, n in top))

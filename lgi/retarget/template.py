@@ -24,6 +24,13 @@ template shape's jaw parameters are fitted with it, its unskinned displacement i
 actor's markers as above, and the actor's rig skins them with the same parameters; the solve is then
 given that jaw.
 
+Coverage: LGI blends the actor's shapes, so it cannot produce a combination the actor's dataset holds
+nothing like (a deeper nasolabial fold than any captured shape has). Such a combination's bundles fall
+outside their clouds; when one lies farther out than ``coverage_mm``, the generated combination is the
+generated parts plus the template's own corrective, transferred like the shapes, and the rig says so
+(``corrective_source``, a warning). On the second synthetic actor, the combinations its dataset covers (the
+jaw opening with an expression) lay at most 1.1 mm out, the others 3-7 mm.
+
 Correctives: for a combination ``a+b[+c]`` the template's combination shape is used when the template
 has it (a shape of that name), otherwise the sum of the parts' deltas (a linear template). The
 reconstructed combination minus the sum of the reconstructed parts' deltas is the corrective, so the
@@ -120,6 +127,9 @@ class GeneratedRig:
     corrective_deltas : (P, V, 3) float32, cm: reconstructed combination minus the sum of its parts' deltas
     combinations : (P, V, 3) float32, cm: the reconstructed combination shapes (positions)
     residual_mm : (K + P,) float64: largest distance of a generated shape from its transferred bundles, mm
+    projection_mm : (K + P,) float64: farthest a transferred bundle lay outside its cloud (0: all inside), mm
+    corrective_source : P entries: "actor" (reconstructed with LGI) or "template" (the template's corrective,
+        transferred, where the actor's dataset does not cover the combination)
     """
 
     neutral: np.ndarray
@@ -129,6 +139,8 @@ class GeneratedRig:
     corrective_deltas: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
     combinations: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
     residual_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    projection_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    corrective_source: list[str] = field(default_factory=list)
 
     def evaluate(self, weights: dict[str, float]) -> np.ndarray:
         """(V, 3) float64: the rig at control weights (correctives driven by the product of their controls'
@@ -153,9 +165,12 @@ class TemplateTransfer:
         A solver over the actor's index.
     transfer : {"add", "scale"}
         How template displacements reach the actor's markers (module docstring).
+    coverage_mm : float
+        A combination whose bundles lie farther than this outside the actor's clouds takes the template's
+        corrective (module docstring); ``inf`` always reconstructs.
     """
 
-    def __init__(self, template: ShapeDataset, solver, transfer: str = "scale") -> None:
+    def __init__(self, template: ShapeDataset, solver, transfer: str = "scale", coverage_mm: float = 2.0) -> None:
         if transfer not in TRANSFERS:
             raise InputError(f"unknown transfer {transfer!r}; use one of {', '.join(TRANSFERS)}")
         index = solver.index
@@ -168,6 +183,7 @@ class TemplateTransfer:
                 "the template must be on the actor's mesh topology (wrap it onto the actor's mesh first)")
         self.template = template
         self.transfer = transfer
+        self.coverage_mm = float(coverage_mm)
         affine, shift = fit_affine(template.neutral, self.neutral)
         self.A = np.eye(3) if transfer == "add" else affine
         self.neutral_bundles = self.layout.evaluate(self.neutral)
@@ -224,11 +240,13 @@ class TemplateTransfer:
         # Skinned per vertex (then sampled at the markers), as the solver's surface is.
         return self.rig.skin(self.neutral + np.asarray(u, np.float64) @ self.A.T, theta), theta
 
-    def reconstruct(self, bundles: np.ndarray, jaw: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    def reconstruct(self, bundles: np.ndarray, jaw: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
         """The actor's shape (V, 3) float32 through ``bundles`` (M, 3) with the jaw (4,) given (or estimated
-        when None and the index has a rig) and its largest bundle residual, mm."""
+        when None and the index has a rig), its largest bundle residual and the farthest a bundle lay outside
+        its cloud, mm."""
         r = self.solver.solve_frame(bundles, jaw=jaw)
-        return r.vertices, float(np.nanmax(r.residual)) * 10.0
+        out = r.projection[r.status == 1]
+        return r.vertices, float(np.nanmax(r.residual)) * 10.0, float(out.max(initial=0.0)) * 10.0
 
     def naive(self, parts: tuple[str, ...]) -> np.ndarray:
         """(V, 3) float64: the naive transfer: the template's displacement added to the actor's neutral."""
@@ -242,20 +260,38 @@ class TemplateTransfer:
         controls = controls or [n for n in names if "+" not in n]
         correctives = correctives or []
         items: list[tuple[str, ...]] = [(c,) for c in controls] + list(correctives)
-        shapes, resid = [], []
+        shapes, resid, proj = [], [], []
         for parts in (progress(items) if progress else items):
-            v, r = self.reconstruct(*self.bundles(parts))
+            v, r, o = self.reconstruct(*self.bundles(parts))
             shapes.append(v)
             resid.append(r)
+            proj.append(o)
         out = np.stack(shapes) if shapes else np.zeros((0, len(self.neutral), 3), np.float32)
-        ctrl = out[:len(controls)]
-        combos = out[len(controls):]
+        ctrl = out[:len(controls)].astype(np.float64)
+        combos = out[len(controls):].astype(np.float64)
         k = {c: i for i, c in enumerate(controls)}
-        cdel = np.stack([combos[i] - self.neutral - sum(ctrl[k[c]] - self.neutral for c in parts)
-                         for i, parts in enumerate(correctives)]).astype(np.float32) if correctives else \
-            np.zeros((0, len(self.neutral), 3), np.float32)
-        return GeneratedRig(self.neutral, list(controls), ctrl.astype(np.float32), list(correctives), cdel,
-                            combos.astype(np.float32), np.asarray(resid))
+        cdel = np.zeros((len(correctives), len(self.neutral), 3))
+        source = []
+        for i, parts in enumerate(correctives):
+            parts_sum = sum(ctrl[k[c]] - self.neutral for c in parts)
+            if proj[len(controls) + i] > self.coverage_mm:
+                moved = self.transferred(parts) - self.neutral
+                cdel[i] = moved - sum(self.transferred((c,)) - self.neutral for c in parts)
+                combos[i] = self.neutral + parts_sum + cdel[i]
+                source.append("template")
+            else:
+                cdel[i] = combos[i] - self.neutral - parts_sum
+                source.append("actor")
+        outside = [("+".join(p), proj[len(controls) + i]) for i, p in enumerate(correctives) if source[i] == "template"]
+        if outside:
+            log.warning("%d of %d combinations lie outside the actor's dataset (bundles up to %.1f mm outside their "
+                        "clouds: %s): their correctives are the template's, transferred (zero where the template has "
+                        "no such combination shape), not the actor's",
+                        len(outside), len(correctives), max(o for _, o in outside),
+                        ", ".join(f"{n} {o:.1f} mm" for n, o in outside[:6]) + (" ..." if len(outside) > 6 else ""))
+        return GeneratedRig(self.neutral, list(controls), ctrl.astype(np.float32), list(correctives),
+                            cdel.astype(np.float32), combos.astype(np.float32), np.asarray(resid), np.asarray(proj),
+                            source)
 
 
 def parse_correctives(spec: str | None, transfer: TemplateTransfer, controls: list[str]) -> list[tuple[str, ...]]:
