@@ -14,9 +14,10 @@ Methods, all given the same template shapes and the actor's index (its neutral, 
 - transfer, no LGI: the displacement mapped by the neutrals' affine map and the jaw moved by its parameters
   through the actor's rig, whole mesh: everything ``lgi rig-generate`` does except LGI (the strongest baseline
   with the same information);
-- LGI add / LGI scale: ``lgi rig-generate --transfer add|scale`` (``--coverage 2``, the default: a
-  combination whose bundles lie over 2 mm outside the actor's clouds takes the template's corrective,
-  transferred); and ``--coverage 3`` and ``inf`` (always reconstructed).
+- LGI add / LGI scale: ``lgi rig-generate --transfer add|scale`` with the defaults ``--fit 0.5`` (the actor's
+  shapes fitted to the transferred bundles) and ``--coverage 2`` (a combination whose bundles lie over 2 mm
+  outside the actor's clouds takes the template's corrective, transferred); then ``--fit 0`` (the paper's
+  exact interpolation) and ``--coverage inf`` (every combination reconstructed).
 
 ICT (``../shared/data/ict-facekit``): the template is the generic ICT face (its performed expression shapes),
 the actor ICT with an identity blend (``lgi import --identity``), 110 markers (data/markers_ict.csv), no jaw rig.
@@ -68,12 +69,14 @@ def synthetic(n_vertices: int, seed: int) -> list[str]:
     rows = []
     for label, template in (("template with correctives", with_corr), ("linear template", linear)):
         methods = {}
-        for transfer, coverage in (("add", 2.0), ("scale", 2.0), ("scale", 3.0), ("scale", np.inf)):
-            tt = TemplateTransfer(template, solver, transfer, coverage)
+        for transfer, coverage, fit in (("add", 2.0, 0.5), ("scale", 2.0, 0.5), ("scale", 2.0, 0.0),
+                                        ("scale", np.inf, 0.5)):
+            tt = TemplateTransfer(template, solver, transfer, coverage, fit)
             t0 = time.perf_counter()
             rig = tt.generate(controls, pairs)
             secs = time.perf_counter() - t0
-            name = f"LGI {transfer}" + ("" if coverage == 2.0 else f", coverage {coverage:g} mm")
+            name = f"LGI {transfer}" + ("" if coverage == 2.0 else f", coverage {coverage:g} mm") + \
+                ("" if fit == 0.5 else ", interpolated (fit 0)")
             n_t = rig.corrective_source.count("template")
             methods[name] = ([*rig.shapes], [*rig.combinations], [*rig.corrective_deltas], secs, n_t)
             if transfer == "scale":

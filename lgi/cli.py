@@ -175,7 +175,7 @@ def cmd_rig_generate(args: argparse.Namespace) -> int:
     from lgi.jobs.rig import RigGenerateOptions, generate_rig, rig_generate_report
 
     opts = RigGenerateOptions(correctives=args.correctives, transfer=args.transfer, controls=args.controls,
-                              coverage_mm=args.coverage)
+                              coverage_mm=args.coverage, fit_mm=args.fit)
     for line in rig_generate_report(generate_rig(args.template, args.index, args.out, opts, usd=args.usd,
                                                  show_progress=not args.quiet)):
         print(line)
@@ -451,6 +451,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--coverage", type=float, default=2.0, metavar="MM",
                    help="a combination whose bundles lie farther than this outside the actor's dataset takes the "
                         "template's corrective, transferred, and is reported (default 2; inf: always reconstruct)")
+    s.add_argument("--fit", type=float, default=0.5, metavar="MM",
+                   help="fit the actor's shapes to the transferred bundles as measurements with this noise, so the "
+                        "template's own detail at the markers is not copied (default 0.5; 0: interpolate exactly)")
     s.add_argument("--usd", default=None, metavar="RIG.usda", help="also write the rig as UsdSkel blend shapes")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_rig_generate)

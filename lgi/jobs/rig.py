@@ -36,12 +36,15 @@ class RigGenerateOptions:
     coverage_mm : float
         A combination whose bundles lie farther outside the actor's clouds takes the template's corrective,
         transferred (:class:`~lgi.retarget.template.TemplateTransfer`).
+    fit_mm : float
+        The transferred bundles are fitted as measurements with this noise (mm); 0 interpolates them exactly.
     """
 
     correctives: str | None = None
     transfer: str = "scale"
     controls: str | None = None
     coverage_mm: float = 2.0
+    fit_mm: float = 0.5
 
     def __post_init__(self) -> None:
         import math
@@ -53,6 +56,9 @@ class RigGenerateOptions:
         if math.isnan(self.coverage_mm) or self.coverage_mm < 0:
             raise InputError(f"--coverage must be a distance >= 0 in mm (inf: always reconstruct), not "
                              f"{self.coverage_mm!r}")
+        if not math.isfinite(self.fit_mm) or self.fit_mm < 0:
+            raise InputError(f"--fit must be a finite distance >= 0 in mm (0: interpolate exactly), not "
+                             f"{self.fit_mm!r}")
 
 
 def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Path,
@@ -81,7 +87,7 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
     t0 = time.perf_counter()
     template = ShapeDataset.load(template_dir)
     index = LGIIndex.load(index_dir)
-    transfer = TemplateTransfer(template, LGISolver(index), o.transfer, o.coverage_mm)
+    transfer = TemplateTransfer(template, LGISolver(index), o.transfer, o.coverage_mm, o.fit_mm)
     controls = select_controls(template.names, o.controls)
     if not controls:
         raise InputError(f"no template shape is a control (patterns {o.controls!r}; shapes whose name has '+' "
@@ -134,12 +140,15 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
             "corrective_max_mm": corr.tolist(), "residual_max_mm": float(rig.residual_mm.max(initial=0.0)),
             "correctives_from_template": [n for n, src in zip(("+".join(p) for p in correctives),
                                                               rig.corrective_source, strict=True) if src == "template"],
-            "jaw": transfer.rig is not None, "transfer": o.transfer, "seconds": time.perf_counter() - t0}
+            "jaw": transfer.rig is not None, "transfer": o.transfer, "fit_mm": o.fit_mm,
+            "seconds": time.perf_counter() - t0}
 
 
 def rig_generate_report(s: dict[str, Any]) -> list[str]:
     lines = [f"actor rig: {s['controls']} controls, {len(s['correctives'])} correctives "
-             f"({'jaw by parameters' if s['jaw'] else 'no jaw rig'}, transfer {s['transfer']}) in {s['seconds']:.1f} s",
+             f"({'jaw by parameters' if s['jaw'] else 'no jaw rig'}, transfer {s['transfer']}, "
+             f"{'fitted with ' + format(s['fit_mm'], 'g') + ' mm' if s['fit_mm'] else 'interpolated'}) "
+             f"in {s['seconds']:.1f} s",
              f"largest distance of a generated shape from its bundles: {s['residual_max_mm']:.2g} mm"]
     if s["correctives_from_template"]:
         lines.append(f"{len(s['correctives_from_template'])} of {len(s['correctives'])} correctives are the "

@@ -24,6 +24,14 @@ template shape's jaw parameters are fitted with it, its unskinned displacement i
 actor's markers as above, and the actor's rig skins them with the same parameters; the solve is then
 given that jaw.
 
+Fitted, not interpolated (``fit_mm``): the template's displacements at the markers are not measurements of
+the actor; they carry the template's own detail (its forehead creases at the template's spacing, sampled
+wherever a marker sits). Interpolating them exactly puts that detail into the actor's shape. By default they
+are treated as measurements with ``fit_mm`` of noise (the solver's noise model): the actor's shapes are fitted
+to them, so the actor's own detail comes through. On the second synthetic actor this took the controls'
+error from 0.083 to 0.051 mm RMS (a brow raise from 0.187 to 0.003); ``fit_mm=0`` is the paper's exact
+interpolation.
+
 Coverage: LGI blends the actor's shapes, so it cannot produce a combination the actor's dataset holds
 nothing like (a deeper nasolabial fold than any captured shape has). Such a combination's bundles fall
 outside their clouds; when one lies farther out than ``coverage_mm``, the generated combination is the
@@ -126,7 +134,8 @@ class GeneratedRig:
     correctives : list of tuple of str: the combinations, each 2 or 3 control names
     corrective_deltas : (P, V, 3) float32, cm: reconstructed combination minus the sum of its parts' deltas
     combinations : (P, V, 3) float32, cm: the reconstructed combination shapes (positions)
-    residual_mm : (K + P,) float64: largest distance of a generated shape from its transferred bundles, mm
+    residual_mm : (K + P,) float64: largest distance of a generated shape from its transferred bundles (0 when
+        interpolated; up to the template's own detail at a marker when fitted), mm
     projection_mm : (K + P,) float64: farthest a transferred bundle lay outside its cloud (0: all inside), mm
     corrective_source : P entries: "actor" (reconstructed with LGI) or "template" (the template's corrective,
         transferred, where the actor's dataset does not cover the combination)
@@ -168,9 +177,12 @@ class TemplateTransfer:
     coverage_mm : float
         A combination whose bundles lie farther than this outside the actor's clouds takes the template's
         corrective (module docstring); ``inf`` always reconstructs.
+    fit_mm : float
+        Noise (mm per coordinate) the transferred bundles are fitted with; 0 interpolates them exactly.
     """
 
-    def __init__(self, template: ShapeDataset, solver, transfer: str = "scale", coverage_mm: float = 2.0) -> None:
+    def __init__(self, template: ShapeDataset, solver, transfer: str = "scale", coverage_mm: float = 2.0,
+                 fit_mm: float = 0.5) -> None:
         if transfer not in TRANSFERS:
             raise InputError(f"unknown transfer {transfer!r}; use one of {', '.join(TRANSFERS)}")
         index = solver.index
@@ -184,6 +196,14 @@ class TemplateTransfer:
         self.template = template
         self.transfer = transfer
         self.coverage_mm = float(coverage_mm)
+        self.fit_mm = float(fit_mm)
+        self.fitter = solver
+        if self.fit_mm > 0:
+            from lgi.solve.solver import LGISolver
+
+            # The exact solver measures coverage (how far outside the clouds); this one makes the shapes.
+            self.fitter = LGISolver(index)
+            self.fitter.set_noise(self.fit_mm)
         affine, shift = fit_affine(template.neutral, self.neutral)
         self.A = np.eye(3) if transfer == "add" else affine
         self.neutral_bundles = self.layout.evaluate(self.neutral)
@@ -241,12 +261,13 @@ class TemplateTransfer:
         return self.rig.skin(self.neutral + np.asarray(u, np.float64) @ self.A.T, theta), theta
 
     def reconstruct(self, bundles: np.ndarray, jaw: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
-        """The actor's shape (V, 3) float32 through ``bundles`` (M, 3) with the jaw (4,) given (or estimated
-        when None and the index has a rig), its largest bundle residual and the farthest a bundle lay outside
-        its cloud, mm."""
-        r = self.solver.solve_frame(bundles, jaw=jaw)
-        out = r.projection[r.status == 1]
-        return r.vertices, float(np.nanmax(r.residual)) * 10.0, float(out.max(initial=0.0)) * 10.0
+        """The actor's shape (V, 3) float32 for ``bundles`` (M, 3) with the jaw (4,) given (or estimated when
+        None and the index has a rig), its largest distance from the bundles and the farthest a bundle lies
+        outside its cloud, mm."""
+        exact = self.solver.solve_frame(bundles, jaw=jaw)
+        out = float(exact.projection[exact.status == 1].max(initial=0.0)) * 10.0
+        r = exact if self.fitter is self.solver else self.fitter.solve_frame(bundles, jaw=jaw)
+        return r.vertices, float(np.nanmax(r.residual)) * 10.0, out
 
     def naive(self, parts: tuple[str, ...]) -> np.ndarray:
         """(V, 3) float64: the naive transfer: the template's displacement added to the actor's neutral."""
