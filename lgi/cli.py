@@ -577,8 +577,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("dataset_dir", metavar="DATASET_DIR")
     e.add_argument("--markers", required=True, metavar="MARKERS_CSV")
     e.add_argument("--held-out", default="auto", metavar="PATTERN",
-                   help="held-out shapes: shell patterns on names, comma-separated, or auto: every fifth shape in "
-                        "the dataset's order from the third (default auto)")
+                   help="held-out shapes: shell patterns on names, comma-separated; every5: every fifth shape in the "
+                        "dataset's order from the third; auto (default): the accuracy benchmark's six ICT shapes when "
+                        "the dataset has them, else every5")
     e.add_argument("--out", metavar="CSV", help="also write the per-shape table (method, shape, rms, p95, max mm)")
     e.set_defaults(func=cmd_layout_evaluate)
     return p

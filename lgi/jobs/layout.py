@@ -21,6 +21,7 @@ comma-separated list of:
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -32,6 +33,8 @@ import pandas as pd
 
 from lgi.errors import InputError
 from lgi.units import MM_PER_CM
+
+log = logging.getLogger(__name__)
 
 #: ICT FaceKit's vertex count and ranges (ABOUT.md of the data folder; see lgi.evaluation.benchsets).
 ICT_N_VERTICES = 26719
@@ -157,16 +160,27 @@ def region_mask(ds, spec: str, what: str = "--exclude") -> tuple[np.ndarray, str
 
 
 def held_out_names(names: list[str], pattern: str | None) -> list[str]:
-    """Shape names held out by ``pattern``: shell patterns (comma-separated), ``auto`` (every fifth shape in the
-    dataset's order from the third: 20 % of the shapes, spread over the dataset whatever its naming) or
-    ``none``/None."""
-    from lgi.dataset.shapes import _match
+    """Shape names held out by ``pattern``: shell patterns (comma-separated), ``every5`` (every fifth shape in the
+    dataset's order from the third: 20 % of the shapes, spread over the dataset whatever its naming), ``auto`` or
+    ``none``/None.
 
-    if pattern is None or pattern.strip() in ("", "none"):
+    ``auto``: when every one of the accuracy benchmark's held-out ICT shapes
+    (:data:`lgi.evaluation.accuracy.ICT_HELD_OUT`: mouthFunnel, mouthSmile_L, browInnerUp_R, cheekPuff_R,
+    noseSneer_L, jawLeft) is in the dataset, those (``every5`` would hold out ICT's ``mouthClose``, a corrective
+    meant only with ``jawOpen`` that no other shape resembles, whose error then is most of the total); otherwise
+    ``every5``.
+    """
+    from lgi.dataset.shapes import _match
+    from lgi.evaluation.accuracy import ICT_HELD_OUT
+
+    p = "" if pattern is None else pattern.strip()
+    if p in ("", "none"):
         return []
-    if pattern.strip() == "auto":
+    if p == "auto" and set(ICT_HELD_OUT) <= set(names):
+        return [n for n in names if n in ICT_HELD_OUT]
+    if p in ("auto", "every5"):
         return [n for i, n in enumerate(names) if i % 5 == 2]
-    return [n for n in names if _match(n, pattern, False)]
+    return [n for n in names if _match(n, p, False)]
 
 
 # ---------------------------------------------------------------------------------------------- design
@@ -250,7 +264,29 @@ def design_dataset(ds, options: DesignOptions, time_limit: float | None = None):
         count=int(o.count), min_spacing=o.min_spacing / MM_PER_CM, symmetric=o.symmetric, epsilon=o.epsilon,
         time_limit=o.time_limit if time_limit is None else time_limit))
     names = _marker_names(ds.neutral, res.vertices, res.partner, res.info["plane"])
-    return vertex_layout(names, res.vertices, ds.triangles), res, said, held
+    layout = vertex_layout(names, res.vertices, ds.triangles)
+    mid = np.flatnonzero(res.partner == np.arange(len(res.vertices)))
+    if mid.size:
+        # A midline marker's vertex may lie off the plane (no vertex on it): move the marker to the nearest point of
+        # the surface on the plane (where an edge crosses it), so that the layout is exactly symmetric.
+        from scipy.spatial import cKDTree
+
+        t = np.asarray(ds.triangles, np.int64)
+        x0, c = ds.neutral, res.info["plane"]
+        corner = np.stack([np.repeat(np.arange(len(t)), 3), np.tile([0, 1, 2], len(t)), np.tile([1, 2, 0], len(t))], 1)
+        xa, xb = x0[t[corner[:, 0], corner[:, 1]], 0] - c, x0[t[corner[:, 0], corner[:, 2]], 0] - c
+        cross = (xa * xb <= 0) & (xa != xb)
+        corner, xa, xb = corner[cross], xa[cross], xb[cross]
+        u = xa / (xa - xb)  # where along the edge x = c
+        pa, pb = x0[t[corner[:, 0], corner[:, 1]]], x0[t[corner[:, 0], corner[:, 2]]]
+        pts = (1 - u)[:, None] * pa + u[:, None] * pb
+        pts[:, 0] = c
+        _, k = cKDTree(pts).query(x0[res.vertices[mid]])
+        w = np.zeros((mid.size, 3))
+        w[np.arange(mid.size), corner[k, 1]] = 1 - u[k]
+        w[np.arange(mid.size), corner[k, 2]] += u[k]
+        layout.triangles[mid], layout.vertices[mid], layout.weights[mid] = corner[k, 0], t[corner[k, 0]], w
+    return layout, res, said, held
 
 
 def vertex_layout(names: list[str], vertices: np.ndarray, triangles: np.ndarray):
@@ -280,6 +316,14 @@ def design(dataset_dir: str | Path, out: str | Path, options: DesignOptions) -> 
     t0 = time.perf_counter()
     ds = ShapeDataset.load(dataset_dir)
     layout, res, said, held = design_dataset(ds, options)
+    if res.info["status"] != 0:
+        # The time limit stopped HiGHS: the layout is the best found, not proven best within the gap asked for.
+        log.warning("the solver stopped before proving the layout (%s; gap %.2f %%): raise --time-limit for a "
+                    "better one", res.info["message"], 100 * res.info["gap"])
+    if res.info["uncovered_shapes"]:
+        log.warning("no allowed candidate moves >= epsilon of the largest motion in %d shapes (%s): they have no "
+                    "representative marker", len(res.info["uncovered_shapes"]),
+                    ", ".join(res.info["uncovered_shapes"][:5]))
     write_layout(out, layout, neutral=ds.neutral)
     p = layout.evaluate(ds.neutral)
     d = np.linalg.norm(p[:, None] - p[None], axis=2)
@@ -299,10 +343,6 @@ def design_report(s: dict[str, Any]) -> list[str]:
              f"{s['variables']} variables, {s['constraints']} constraints ({s['conflicts']} spacing conflicts)",
              f"HiGHS: {s['message']} in {s['solve_s']:.2f} s{gap} (setup {s['setup_s']:.2f} s)",
              f"closest markers {s['min_distance_mm']:.1f} mm apart" if s["min_distance_mm"] is not None else ""]
-    if s["uncovered_shapes"]:
-        lines.append(f"warning: no allowed candidate moves >= epsilon of the largest motion in "
-                     f"{len(s['uncovered_shapes'])} shapes ({', '.join(s['uncovered_shapes'][:5])}): they have no "
-                     "representative marker")
     lines.append(f"markers: {s['path']}")
     return [line for line in lines if line]
 
