@@ -48,6 +48,7 @@ def test_rest_is_an_equilibrium(actor_model) -> None:
     assert np.abs(r.positions - ds.neutral).max() < 1e-6 and abs(r.volume_change) < 1e-9
 
 
+@pytest.mark.slow  # 26 s; the default suite keeps test_cli.py::test_augment_linear's volume check of simulated shapes
 def test_simulated_in_betweens_keep_volume_where_linear_blends_do_not(actor_model) -> None:
     ds, blender, model = actor_model
     picks = pick_combinations(ds.names, 4, levels=(0.5, 1.0), seed=3)
