@@ -713,6 +713,7 @@ def test_sigint_during_the_solve(world: Path, long_shot: Path, tmp_path: Path, a
     assert not out.exists() or not [q for q in out.iterdir()]
 
 
+@pytest.mark.slow  # 12 s: a 400-frame solve killed while writing, then a re-run
 def test_sigkill_then_rerun_cleans_up(world: Path, long_shot: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
     argv = ["reconstruct", str(world / "idx"), "--bundles", str(long_shot), "--out", str(out), "-q", "--obj"]

@@ -8,6 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from lgi.dataset.markers import write_layout
 from lgi.synthetic import actor as synth
 
@@ -35,6 +37,7 @@ def _env(tmp: Path, api: str | None = None) -> dict:
     return env
 
 
+@pytest.mark.slow  # 27 s: kill a worker mid-rebuild and resume
 def test_kill_and_resume(prefect_api: str, tmp_path: Path, obj_folder: Path, small_actor) -> None:
     root = Path(__file__).resolve().parents[1]
     layout, _ = synth.default_layout(small_actor)

@@ -32,6 +32,7 @@ def _prefect() -> str:
     return str(exe) if exe.exists() else shutil.which("prefect") or "prefect"
 
 
+@pytest.mark.slow  # 43 s: a real Prefect server, deploy and scheduler
 def test_nightly_rebuild_schedule_creates_runs(tmp_path: Path) -> None:
     port = _free_port()
     api = f"http://127.0.0.1:{port}/api"
