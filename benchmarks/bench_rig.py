@@ -20,7 +20,7 @@ Methods, all given the same template shapes and the actor's index (its neutral, 
   exact interpolation) and ``--coverage inf`` (every combination reconstructed).
 
 ICT (``../shared/data/ict-facekit``): the template is the generic ICT face (its performed expression shapes),
-the actor ICT with an identity blend (``lgi import --identity``), 110 markers (data/markers_ict.csv), no jaw rig.
+the actor ICT with an identity blend (``lgi import --identity``), 108 markers (data/markers_ict.csv), no jaw rig.
 ICT's expressions are identity-independent (an additive model), so the actor's truth IS the naive transfer
 here; the figures say what LGI loses by reconstructing from the markers, and what scaling does to a face whose
 expressions do not scale. With the actor's index built from all its shapes, every control is a dataset shape

@@ -433,17 +433,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("rig-generate", help="an actor-specific blendshape rig from a template rig (paper 7.7)",
                        description="Reconstruct each template control (and combinations, for correctives) on the "
-                                   "actor with LGI: the template's displacements at the markers (the jaw by its "
+                                   "actor with LGI: the template's displacements at the markers (scaled by the "
+                                   "affine map between the neutrals unless --transfer add; the jaw by its "
                                    "parameters when the index has a jaw rig) are added to the actor's neutral "
-                                   "bundles. Writes a shape dataset (shapes tagged control / corrective) and, with "
-                                   "--usd, a UsdSkel rig (correctives as blend shapes carrying lgi:combination).")
+                                   "bundles and fitted with the actor's shapes. Writes a shape dataset (shapes "
+                                   "tagged control / corrective) and, with --usd, a UsdSkel rig (correctives as "
+                                   "blend shapes carrying lgi:combination).")
     s.add_argument("--template", required=True, metavar="TEMPLATE_DATASET",
                    help="the template rig: a shape dataset on the actor's mesh topology")
     s.add_argument("--index", required=True, metavar="INDEX_DIR", help="the actor's LGI index")
     s.add_argument("--out", required=True, metavar="RIG_DIR", help="the actor's rig, as a shape dataset")
     s.add_argument("--correctives", default=None, metavar="PAIRS|auto",
-                   help="combinations a+b[+c] (comma-separated) or 'auto' (pairs moving the same markers, at most "
-                        "24); the template's shape of that name is used when it has one, else the sum of the parts")
+                   help="combinations a+b[+c] (comma-separated) or 'auto' (the template's combination shapes, or "
+                        "else up to 24 pairs moving the same markers); the template's combination shape (its parts "
+                        "in any order) is used when it has one, else the sum of the parts")
     s.add_argument("--transfer", choices=["scale", "add"], default="scale",
                    help="template displacements scaled by the affine map between the neutrals (default) or added")
     s.add_argument("--controls", default=None, metavar="PATTERN",

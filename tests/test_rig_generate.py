@@ -113,14 +113,15 @@ def test_cli_writes_a_tagged_dataset_and_a_usd_that_reads_back(setup, tmp_path: 
     d = setup["dir"]
     out, usd = tmp_path / "rig", tmp_path / "rig.usda"
     r = run("rig-generate", "--template", str(d / "template"), "--index", str(d / "index"), "--out", str(out),
-            "--correctives", "jaw_open+pucker,smile_L+cheek_puff+pucker", "--usd", str(usd), "-q")
+            "--correctives", "pucker+jaw_open,smile_L+cheek_puff+pucker", "--usd", str(usd), "-q")
     assert r.returncode == 0, r.stderr
     assert "13 controls, 2 correctives" in r.stdout
     ds = ShapeDataset.load(out, verify=True)
-    assert ds.names[:13] == list(A.CONTROLS) and ds.names[13:] == ["jaw_open+pucker", "smile_L+cheek_puff+pucker"]
+    assert ds.names[:13] == list(A.CONTROLS) and ds.names[13:] == ["pucker+jaw_open", "smile_L+cheek_puff+pucker"]
     assert [m.tags for m in ds.shape_meta][12:] == [["control"], ["corrective", "combination"]] + \
         [["corrective", "combination"]]
-    assert ds.shape_meta[13].extra["template"] == "combination shape"
+    # The template's combination shape is found whatever the order of the parts.
+    assert ds.shape_meta[13].extra["template"] == "combination shape jaw_open+pucker"
     assert ds.shape_meta[14].extra["template"] == "sum of parts"
     assert ds.shape_meta[13].extra["corrective_from"] == "actor"
     from pxr import Usd, UsdGeom, UsdSkel
@@ -128,7 +129,7 @@ def test_cli_writes_a_tagged_dataset_and_a_usd_that_reads_back(setup, tmp_path: 
     stage = Usd.Stage.Open(str(usd))
     binding = UsdSkel.BindingAPI(stage.GetPrimAtPath("/Rig/Face"))
     tokens = list(binding.GetBlendShapesAttr().Get())
-    assert tokens == [*A.CONTROLS, "jaw_open__pucker", "smile_L__cheek_puff__pucker"]
+    assert tokens == [*A.CONTROLS, "pucker__jaw_open", "smile_L__cheek_puff__pucker"]
     query = UsdSkel.BlendShapeQuery(binding)
     assert query.GetNumBlendShapes() == len(ds.names)
     for k, target in enumerate(binding.GetBlendShapeTargetsRel().GetTargets()):
@@ -136,18 +137,21 @@ def test_cli_writes_a_tagged_dataset_and_a_usd_that_reads_back(setup, tmp_path: 
         offsets = np.asarray(UsdSkel.BlendShape(prim).GetOffsetsAttr().Get())
         np.testing.assert_allclose(offsets, ds.deltas[k], atol=1e-6)
         assert prim.GetAttribute("lgi:name").Get() == ds.names[k]
-    combo = stage.GetPrimAtPath("/Rig/Face/jaw_open__pucker").GetAttribute("lgi:combination").Get()
-    assert list(combo) == ["jaw_open", "pucker"]
+    combo = stage.GetPrimAtPath("/Rig/Face/pucker__jaw_open").GetAttribute("lgi:combination").Get()
+    assert list(combo) == ["pucker", "jaw_open"]
     points = np.asarray(UsdGeom.Mesh(stage.GetPrimAtPath("/Rig/Face")).GetPointsAttr().Get())
     np.testing.assert_allclose(points, ds.neutral, atol=1e-5)
 
 
 @pytest.mark.parametrize("case, words", [
     ("vertex_count", ["vertices", "topology"]),
-    ("unknown_control", ["'frown'", "not a control"]),
+    ("unknown_control", ["'frown'", "not among the controls"]),
     ("one_part", ["two or three"]),
     ("usd_inside", ["inside the rig's dataset directory"]),
     ("usd_suffix", [".usda"]),
+    ("controls_typo", ["'smle_R'", "matches no template shape"]),
+    ("usd_names_clash", ["'smile.L'", "'smile_L'", "same USD name"]),
+    ("template_in_mm", ["scales by", "other units"]),
 ])
 def test_bad_input_is_refused_cleanly(setup, tmp_path: Path, case: str, words: list[str]) -> None:
     d = setup["dir"]
@@ -162,6 +166,17 @@ def test_bad_input_is_refused_cleanly(setup, tmp_path: Path, case: str, words: l
         extra = ["--correctives", "smile_L+frown"]
     elif case == "one_part":
         extra = ["--correctives", "smile_L"]
+    elif case == "controls_typo":
+        extra = ["--controls", "smile_L,smle_R"]
+    elif case in ("usd_names_clash", "template_in_mm"):
+        eye = np.eye(len(A.CONTROLS))
+        ds = A.make_dataset(A.make_actor(N_VERTICES), ["smile.L", "smile_L"], eye[[A.C["smile_L"], A.C["smile_R"]]])
+        if case == "template_in_mm":  # the numbers of a mm template labelled cm
+            ds.neutral = ds.neutral * 10
+            ds.deltas = ds.deltas * 10
+        template = tmp_path / "tpl"
+        ds.save(template)
+        extra = ["--usd", str(tmp_path / "rig.usda")]
     elif case == "usd_inside":
         extra = ["--usd", str(out / "rig.usda")]
     else:

@@ -186,7 +186,8 @@ def write_usd_rig(
     the blend shapes with weights 0) and ``Face`` (the Mesh, bound to the skeleton, with ``skel:blendShapes``
     and ``skel:blendShapeTargets`` pointing at ``Face/<name>`` BlendShape prims holding the offsets).
     UsdSkel has no combination driver, so a corrective is a target like any other, carrying
-    ``lgi:combination`` (its controls' names, for a DCC to drive its weight by the product of theirs) and
+    ``lgi:combination`` (its controls' blend-shape names, as in ``skel:blendShapes``, for a DCC to drive its
+    weight by the product of theirs) and
     ``lgi:kind`` ("control" or "corrective"); every target keeps its original name in ``lgi:name``.
 
     Parameters
@@ -211,8 +212,7 @@ def write_usd_rig(
     tokens = [usd_name(n) for n in names]
     if len(set(tokens)) != len(tokens):
         raise ValueError("shape names collide once made valid USD names")
-    anim = UsdSkel.Animation.Define(stage, "/Rig/Skel/Anim")
-    anim.CreateJointsAttr(Vt.TokenArray(["root"]))
+    anim = UsdSkel.Animation.Define(stage, "/Rig/Skel/Anim")  # blend-shape weights only; the joint stays at rest
     anim.CreateBlendShapesAttr(Vt.TokenArray(tokens))
     anim.CreateBlendShapeWeightsAttr(Vt.FloatArray([0.0] * len(tokens)))
     UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])

@@ -71,7 +71,12 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
     from lgi.index.build import LGIIndex
     from lgi.io.atomic import check_output, files_in
     from lgi.progress import progress
-    from lgi.retarget.template import TemplateTransfer, parse_correctives, select_controls
+    from lgi.retarget.template import (
+        TemplateTransfer,
+        parse_correctives,
+        select_controls,
+        template_combinations,
+    )
     from lgi.solve.solver import LGISolver
 
     o = options or RigGenerateOptions()
@@ -93,8 +98,19 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
         raise InputError(f"no template shape is a control (patterns {o.controls!r}; shapes whose name has '+' "
                          "are combinations)", path=template_dir)
     correctives = parse_correctives(o.correctives, transfer, controls)
-    if template.units != "cm":
-        raise InputError(f"the template is in {template.units}; lgi works in cm (re-import it)", path=template_dir)
+    own = template_combinations(template.names, controls)
+    if own and not correctives:
+        log.warning("the template has %d combination shapes (%s) but no corrective was asked for: pass "
+                    "--correctives auto to generate them", len(own), ", ".join("+".join(c) for c in own[:4]))
+    names = [*controls, *("+".join(p) for p in correctives)]
+    if usd is not None:
+        from lgi.export.formats import usd_name
+
+        tokens = [usd_name(n) for n in names]
+        clash = sorted({n for n, t in zip(names, tokens, strict=True) if tokens.count(t) > 1})
+        if clash:
+            raise InputError(f"shape names {', '.join(map(repr, clash))} become the same USD name; rename them in the "
+                             "template", path=template_dir)
     if transfer.rig is None:
         log.warning("the actor's index has no jaw rig: the jaw moves as marker displacements (a template's jaw "
                     "rotation lands off the actor's hinge); build the index with --jaw-rig for a jaw transfer")
@@ -102,14 +118,17 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
                             progress=lambda it: progress(it, "generating", disable=not show_progress))
 
     a = index.arrays
+    # An index may be stored without its faces; the template shares the actor's topology (checked).
+    faces = a if "face_vertices" in a else {"face_vertices": template.face_vertices,
+                                             "face_offsets": template.face_offsets, "uvs": template.uvs,
+                                             "face_uvs": template.face_uvs}
     neutral = rig.neutral
     deltas = np.concatenate([rig.shapes - neutral[None].astype(np.float32), rig.corrective_deltas]).astype(np.float32)
-    names = [*controls, *("+".join(p) for p in correctives)]
-    used_template = set(template.names)
     meta = []
     for i, name in enumerate(names):
         combo = None if i < len(controls) else list(correctives[i - len(controls)])
-        from_template = "combination shape" if combo and name in used_template else "sum of parts"
+        shape = transfer.template_shape(tuple(combo)) if combo else None
+        from_template = f"combination shape {shape}" if shape else "sum of parts"
         meta.append(ShapeMeta(
             source=f"lgi rig-generate: template {Path(template_dir).name}/{name}",
             tags=["control"] if combo is None else ["corrective", "combination"],
@@ -118,13 +137,16 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
                    **({} if combo is None else {
                        "combination": combo, "template": from_template, "driver": "product of the controls' weights",
                        "corrective_from": rig.corrective_source[i - len(controls)]})}))
-    ds = ShapeDataset(neutral=neutral, deltas=deltas, names=names, face_vertices=np.asarray(a["face_vertices"]),
-                      face_offsets=np.asarray(a["face_offsets"]),
-                      uvs=np.asarray(a["uvs"]) if "uvs" in a else None,
-                      face_uvs=np.asarray(a["face_uvs"]) if "face_uvs" in a else None, units="cm", shape_meta=meta,
+    uvs = faces.get("uvs") if "uvs" in faces else None
+    face_uvs = faces.get("face_uvs") if "face_uvs" in faces else None
+    ds = ShapeDataset(neutral=neutral, deltas=deltas, names=names, face_vertices=np.asarray(faces["face_vertices"]),
+                      face_offsets=np.asarray(faces["face_offsets"]),
+                      uvs=None if uvs is None else np.asarray(uvs), face_uvs=None if face_uvs is None else
+                      np.asarray(face_uvs), units="cm", shape_meta=meta,
                       info={"name": "actor-rig", "template": str(Path(template_dir).resolve()),
                             "index": str(Path(index_dir).resolve()), "transfer": o.transfer,
                             "controls": controls, "correctives": ["+".join(p) for p in correctives]})
+    existed = Path(out).exists()
     ds.save(out)
     if usd is not None:
         from lgi.export.formats import write_usd_rig
@@ -132,11 +154,16 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
         try:
             write_usd_rig(usd, neutral, ds.face_vertices, ds.face_offsets, names, deltas,
                           [None] * len(controls) + list(correctives), ds.uvs, ds.face_uvs)
-        except ValueError as e:
-            raise InputError(str(e), path=usd) from None
+        except BaseException:
+            if not existed:  # a run that fails leaves nothing of itself behind
+                import shutil
+
+                shutil.rmtree(out, ignore_errors=True)
+            raise
     corr = np.linalg.norm(rig.corrective_deltas, axis=2).max(axis=1) * 10 if correctives else np.zeros(0)
     return {"path": str(Path(out).resolve()), "usd": None if usd is None else str(Path(usd).resolve()),
             "controls": len(controls), "correctives": ["+".join(p) for p in correctives],
+            "controls_outside": [c for c, d in zip(controls, rig.projection_mm, strict=False) if d > o.coverage_mm],
             "corrective_max_mm": corr.tolist(), "residual_max_mm": float(rig.residual_mm.max(initial=0.0)),
             "correctives_from_template": [n for n, src in zip(("+".join(p) for p in correctives),
                                                               rig.corrective_source, strict=True) if src == "template"],
@@ -150,6 +177,10 @@ def rig_generate_report(s: dict[str, Any]) -> list[str]:
              f"{'fitted with ' + format(s['fit_mm'], 'g') + ' mm' if s['fit_mm'] else 'interpolated'}) "
              f"in {s['seconds']:.1f} s",
              f"largest distance of a generated shape from its bundles: {s['residual_max_mm']:.2g} mm"]
+    if s["controls_outside"]:
+        lines.append(f"{len(s['controls_outside'])} of {s['controls']} controls lie over the coverage distance outside "
+                     "the actor's dataset (they come out short of the template's motion): "
+                     + ", ".join(s["controls_outside"]))
     if s["correctives_from_template"]:
         lines.append(f"{len(s['correctives_from_template'])} of {len(s['correctives'])} correctives are the "
                      "template's, transferred (the actor's dataset does not cover them): "

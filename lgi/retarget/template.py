@@ -9,8 +9,8 @@ local geometry passing through the template's marker motion.
 How the template's motion reaches the actor's markers (``transfer``):
 
 * ``"add"``: the template's displacement at each marker is added to the actor's neutral marker
-  position. This is "the template rig applied to the actor's neutral" taken literally, and it is also
-  the naive transfer of whole meshes this is compared with.
+  position: "the template rig applied to the actor's neutral" taken literally (without a jaw rig, the
+  naive transfer of whole meshes it is compared with, sampled at the markers).
 * ``"scale"``: the displacement is first mapped by the linear part ``A`` of the affine map fitted (least
   squares, all vertices) from the template neutral to the actor's. A face 10 % wider smiles about 10 %
   wider; a global affine map is the simplest deformation transfer that says so.
@@ -22,15 +22,16 @@ full jaw opening). The template's rig is the actor's, carried back: the same ski
 topology is shared) and the actor's hinge mapped through the inverse of the fitted affine map. Each
 template shape's jaw parameters are fitted with it, its unskinned displacement is transferred to the
 actor's markers as above, and the actor's rig skins them with the same parameters; the solve is then
-given that jaw.
+given that jaw. The angles carry over as they are; the forward slide (cm) is not scaled by the affine map
+(on a face 10 % larger it comes out about 10 % short).
 
 Fitted, not interpolated (``fit_mm``): the template's displacements at the markers are not measurements of
 the actor; they carry the template's own detail (its forehead creases at the template's spacing, sampled
 wherever a marker sits). Interpolating them exactly puts that detail into the actor's shape. By default they
 are treated as measurements with ``fit_mm`` of noise (the solver's noise model): the actor's shapes are fitted
-to them, so the actor's own detail comes through. On the second synthetic actor this took the controls'
-error from 0.083 to 0.051 mm RMS (a brow raise from 0.187 to 0.003); ``fit_mm=0`` is the paper's exact
-interpolation.
+to them, so the actor's own detail comes through. On the second synthetic actor (20,000 vertices) this took
+the controls' error from 0.087 to 0.054 mm RMS (a brow raise from 0.19 to under 0.01); ``fit_mm=0`` is the
+paper's exact interpolation.
 
 Coverage: LGI blends the actor's shapes, so it cannot produce a combination the actor's dataset holds
 nothing like (a deeper nasolabial fold than any captured shape has). Such a combination's bundles fall
@@ -86,7 +87,8 @@ def combination_parts(name: str, controls: list[str]) -> tuple[str, ...]:
         raise InputError(f"corrective {name!r}: give two or three different controls joined by '+'")
     unknown = [p for p in parts if p not in controls]
     if unknown:
-        raise InputError(f"corrective {name!r}: {', '.join(map(repr, unknown))} is not a control of the template")
+        raise InputError(f"corrective {name!r}: {', '.join(map(repr, unknown))} is not among the controls (the "
+                         "template's shapes without '+', narrowed by --controls)")
     return parts
 
 
@@ -116,6 +118,15 @@ def auto_correctives(deltas_at_markers: np.ndarray, controls: list[str], limit: 
             if tot[i] <= 0 or tot[j] <= 0:
                 continue
             ov = float(np.minimum(mag[i], mag[j]).sum() / min(tot[i], tot[j]))
+            a, b = deltas_at_markers[i].ravel(), deltas_at_markers[j].ravel()
+            cos = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
+            # An in-between of the other (parallel), or the other contains it (smile_L within smile_LR): a sum of
+            # the two is no expression, so there is no corrective to make.
+            small, big = (i, j) if tot[i] <= tot[j] else (j, i)
+            where = mag[small] > 0.1 * mag[small].max()
+            rest = np.linalg.norm(deltas_at_markers[big][where] - deltas_at_markers[small][where], axis=1).sum()
+            if cos > 0.9 or rest < 0.2 * mag[small][where].sum():
+                continue
             if ov >= min_overlap:
                 pairs.append((ov, controls[i], controls[j]))
     pairs.sort(key=lambda p: -p[0])
@@ -205,6 +216,12 @@ class TemplateTransfer:
             self.fitter = LGISolver(index)
             self.fitter.set_noise(self.fit_mm)
         affine, shift = fit_affine(template.neutral, self.neutral)
+        sv = np.linalg.svd(affine, compute_uv=False)
+        if not np.all(np.isfinite(sv)) or sv.min() < 0.5 or sv.max() > 2.0:
+            raise InputError(
+                f"the template's neutral does not match the actor's: the best affine map between them scales by "
+                f"{sv.min():.3g}-{sv.max():.3g} (expected about 1): other units, another orientation or another "
+                "face layout?")
         self.A = np.eye(3) if transfer == "add" else affine
         self.neutral_bundles = self.layout.evaluate(self.neutral)
         self.rig = index.jaw_rig()
@@ -218,16 +235,24 @@ class TemplateTransfer:
         """(M, 3) float64, cm: a template displacement (V, 3) at the actor's markers, transferred."""
         return self.layout.evaluate(np.asarray(delta, np.float64)) @ self.A.T  # barycentric, so linear
 
-    def template_delta(self, parts: tuple[str, ...]) -> np.ndarray:
-        """(V, 3) float64: the template's displacement for a control or a combination of controls."""
-        name = "+".join(parts)
+    def template_shape(self, parts: tuple[str, ...]) -> str | None:
+        """The template's shape for a control or combination (any order of the parts), or None when the
+        template has no such combination shape."""
         names = self.template.names
-        if name in names:
-            return np.asarray(self.template.deltas[names.index(name)], np.float64)
-        # Any order of the parts names the same combination.
+        if "+".join(parts) in names:
+            return "+".join(parts)
         for n in names:
             if "+" in n and sorted(p.strip() for p in n.split("+")) == sorted(parts):
-                return np.asarray(self.template.deltas[names.index(n)], np.float64)
+                return n
+        return None
+
+    def template_delta(self, parts: tuple[str, ...]) -> np.ndarray:
+        """(V, 3) float64: the template's displacement for a control or a combination of controls (the sum of
+        the parts' when the template has no combination shape)."""
+        names = self.template.names
+        name = self.template_shape(parts)
+        if name is not None:
+            return np.asarray(self.template.deltas[names.index(name)], np.float64)
         return sum(np.asarray(self.template.deltas[names.index(p)], np.float64) for p in parts)
 
     def bundles(self, parts: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray | None]:
@@ -303,6 +328,12 @@ class TemplateTransfer:
             else:
                 cdel[i] = combos[i] - self.neutral - parts_sum
                 source.append("actor")
+        far = [(c, proj[i]) for i, c in enumerate(controls) if proj[i] > self.coverage_mm]
+        if far:
+            log.warning("%d of %d controls lie outside the actor's dataset (bundles up to %.1f mm outside their "
+                        "clouds: %s): LGI blends the actor's shapes, so these come out short of the template's "
+                        "motion", len(far), len(controls), max(o for _, o in far),
+                        ", ".join(f"{n} {o:.1f} mm" for n, o in far[:6]) + (" ..." if len(far) > 6 else ""))
         outside = [("+".join(p), proj[len(controls) + i]) for i, p in enumerate(correctives) if source[i] == "template"]
         if outside:
             log.warning("%d of %d combinations lie outside the actor's dataset (bundles up to %.1f mm outside their "
@@ -321,10 +352,15 @@ def parse_correctives(spec: str | None, transfer: TemplateTransfer, controls: li
     if not spec:
         return []
     if spec.strip() == "auto":
+        own = template_combinations(transfer.template.names, controls)
+        if own:
+            return own  # the template's own combination shapes say which correctives its rig has
         d = np.stack([transfer.marker_deltas(transfer.template_delta((c,))) for c in controls])
         moving = {c for c in controls if transfer.moves_jaw(c)}
         # Two jaw controls combine through the jaw's parameters (the rig), not through a corrective shape.
         pairs = [p for p in auto_correctives(d, controls, limit=10**6) if not set(p) <= moving]
+        if not pairs:
+            log.warning("--correctives auto: no two controls move the same markers; no corrective generated")
         return pairs[:24]
     out = []
     for item in spec.split(","):
@@ -332,8 +368,20 @@ def parse_correctives(spec: str | None, transfer: TemplateTransfer, controls: li
             if any(ch in item for ch in "*?["):
                 raise InputError(f"corrective {item!r}: patterns are not accepted; name the controls")
             out.append(combination_parts(item, controls))
+    if not out:
+        raise InputError(f"--correctives {spec!r} names no combination")
     if len({tuple(sorted(p)) for p in out}) != len(out):
         raise InputError("--correctives names a combination twice")
+    return out
+
+
+def template_combinations(names: list[str], controls: list[str]) -> list[tuple[str, ...]]:
+    """The template's combination shapes (``a+b[+c]`` names) whose parts are all among ``controls``."""
+    out = []
+    for n in names:
+        parts = tuple(p.strip() for p in n.split("+"))
+        if len(parts) in (2, 3) and len(set(parts)) == len(parts) and all(p in controls for p in parts):
+            out.append(parts)
     return out
 
 
@@ -341,4 +389,8 @@ def select_controls(names: list[str], pattern: str | None) -> list[str]:
     """Template shapes used as controls: not combinations (``+`` in the name), matching ``pattern`` (shell
     patterns, comma-separated) when given."""
     pats = [p.strip() for p in (pattern or "").split(",") if p.strip()]
+    unmatched = [p for p in pats if not any("+" not in n and fnmatch.fnmatchcase(n, p) for n in names)]
+    if unmatched:
+        raise InputError(f"--controls: {', '.join(map(repr, unmatched))} matches no template shape (have "
+                         f"{', '.join(n for n in names if '+' not in n)[:300]})")
     return [n for n in names if "+" not in n and (not pats or any(fnmatch.fnmatchcase(n, p) for p in pats))]
