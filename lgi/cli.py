@@ -97,7 +97,8 @@ def _reconstruct_options(args: argparse.Namespace):
                               smooth=args.smooth, jaw_smooth=args.jaw_smooth, noise=args.noise, method=args.method,
                               jaw=args.jaw, max_gap=args.max_gap, bilateral=args.bilateral, obj=args.obj,
                               usd=args.usd, plot=args.plot, fps=args.fps, chunk_size=args.chunk_size,
-                              observations=args.observations, calib=args.calib, contours=args.contours)
+                              observations=args.observations, calib=args.calib, contours=args.contours,
+                              far_field=args.far_field)
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -361,6 +362,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="tie-break toward shapes the neighbours agree on, in mm (1e-3; 0 = none)")
     s.add_argument("--smooth", type=int, default=1, metavar="WINDOW",
                    help="central moving average of each bundle's shape weights over WINDOW frames (1 = none)")
+    s.add_argument("--far-field", default="5:15", metavar="START:END|off",
+                   help="mm from the nearest marker over the skin: beyond START the surface blends from the "
+                        "bundles' local geometry toward the frame's global fit (taken through the bundles by its "
+                        "own correction), wholly beyond END; local geometry carried far from every marker "
+                        "extrapolates (5:15; off = the bundles' weights everywhere)")
     s.add_argument("--noise", default="auto", metavar="MM|auto",
                    help="bundle noise per coordinate: 0 = exact bundles (the surface passes through each); above 0 "
                         "they are measurements: each marker's trajectory is smoothed (window chosen per marker by "

@@ -3,6 +3,7 @@ bundles on the truth, and the ICT actors' jaw and correctives as documented."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -169,3 +170,151 @@ def test_ict_combination_set(ict_combination: BenchSet) -> None:
     assert diff_mm.min() > 0.5
     # Pair frames also move the jaw (as in the jaw set).
     assert s.true_jaw[held, 0].max() > 10
+
+
+# ---------------------------------------------------------------------------------------------- capture sessions
+def _scans(s: BenchSet) -> list[int]:
+    return [k for k, n in enumerate(s.dataset.names) if n.startswith("scan_")]
+
+
+@pytest.fixture(scope="module")
+def session() -> BenchSet:
+    return B.session_set(20, frames=40, n_vertices=5000)
+
+
+def test_session_set(session: BenchSet) -> None:
+    from lgi.synthetic import actor as synth
+
+    s = session
+    _check_common(s, min_off_dataset=0.8)
+    assert s.name == "session_20" and s.rig is not None and s.mask.all() and s.dataset.n_shapes == 47 + 20
+    assert s.info["wide_open_deg"] == pytest.approx(0.6 * 22.0)  # the 47 shapes' widest opening, as synthetic
+    # The scans: named by frame, tagged, spread evenly over the 600-frame performance's active frames.
+    frames = s.info["scan_frames"]
+    perf = synth.random_performance(600, seed=s.info["scan_seed"])
+    active = np.flatnonzero((perf > 0).any(1))
+    assert len(frames) == 20 and np.all(np.diff(frames) > 0) and set(frames) <= set(active)
+    assert frames[0] == active[0] and frames[-1] == active[-1]
+    scans = _scans(s)
+    assert [s.dataset.names[k] for k in scans] == [f"scan_{f:04d}" for f in frames]
+    assert all("scan" in s.dataset.shape_meta[k].tags for k in scans)
+    assert not any("scan" in m.tags for m in s.dataset.shape_meta[:47])
+    # A scan is the actor's true (nonlinear) face at its frame.
+    actor = synth.make_actor(5000)
+    k = scans[7]
+    np.testing.assert_allclose(s.dataset.deltas[k], actor.evaluate(perf[frames[7]]) - actor.neutral, atol=1e-5)
+    # The scans are not the test frames: apart from frames at rest, every frame is off every scan.
+    d_mm = 10 * B.min_shape_distance(s.truth, s.dataset.take(scans), s.mask, include_neutral=False)
+    moving = ~s.info["at_rest"]
+    assert d_mm[moving].min() > 10 * B.OFF_DATASET_CM and np.mean(d_mm > 0.1) >= 0.8
+
+
+def test_session_without_scans_is_the_47_shapes(session: BenchSet) -> None:
+    from lgi.synthetic import actor as synth
+
+    s0 = B.session_set(0, frames=40, n_vertices=5000)
+    ref = synth.make_dataset(synth.make_actor(5000))
+    assert s0.name == "session_0" and s0.dataset.names == ref.names and len(s0.info["scan_frames"]) == 0
+    np.testing.assert_array_equal(s0.dataset.deltas, ref.deltas)
+    assert [m.to_json() for m in s0.dataset.shape_meta] == [m.to_json() for m in ref.shape_meta]
+    # The shot and its noise do not depend on the scans.
+    np.testing.assert_array_equal(s0.truth, session.truth)
+    assert np.array_equal(s0.noisy, session.noisy, equal_nan=True)
+
+
+def test_session_set_refuses_more_scans_than_frames() -> None:
+    from lgi.errors import InputError
+
+    with pytest.raises(InputError, match="scans"):
+        B.session_set(601, frames=10, n_vertices=3000)
+
+
+def test_session_accuracy_baselines(session: BenchSet) -> None:
+    from lgi.evaluation import accuracy as A
+    from lgi.evaluation.baselines import BlendshapeSolver
+    from lgi.evaluation.metrics import vertex_errors
+
+    s = session
+    index = A.build_set_index(s)
+    methods = A.methods_for(s, index, noisy=True)
+    assert [m.label for m in methods if m.baseline][:3] == [
+        "blendshape fit (ridge chosen on the truth)", "blendshape fit + rig", "blendshape fit + rig, smoothed bundles"]
+    # LGI and the fits only: the other methods are run on every set by test_baselines, and slowly.
+    keep = [m for m in methods if m.label == "LGI (default)" or m.label.startswith("blendshape")]
+    table, _ = A.run_set(s, keep, noisy=True, frames=30, index=index)
+    by = table.set_index("method")
+    smoothed, rigged = by.loc["blendshape fit + rig, smoothed bundles"], by.loc["blendshape fit + rig"]
+    assert smoothed.baseline and np.isfinite(smoothed.rms_mm)
+    assert abs(smoothed.rms_mm - rigged.rms_mm) > 0.01 * rigged.rms_mm
+    # Session sets: the plain fit is the best ridge on the truth, with its weight in the note.
+    assert "blendshape fit" not in by.index
+    ridge = by.loc["blendshape fit (ridge chosen on the truth)"]
+    assert ridge.baseline and ridge.note in {f"l2={v:g}" for v in A.RIDGE_L2}
+    plain = BlendshapeSolver(s.dataset, s.layout).solve_sequence(s.noisy[:30])
+    assert ridge.rms_mm <= np.sqrt(np.mean(vertex_errors(plain, s.truth[:30]) ** 2)) + 1e-9
+    with pytest.raises(ValueError, match="first"):
+        A.ridge_on_truth(s).run(s.noisy[1:5])
+    # Far from every marker: a part of the face, where the errors are at most the overall maximum.
+    far = A.far_vertices(s, index)
+    assert 0 < far.sum() < 0.5 * s.mask.sum()
+    assert np.all(np.isfinite(table.rms_far_mm)) and np.all(table.max_far_mm <= table.max_mm + 1e-12)
+    text = A.format_table(table)
+    assert "far max mm" in text and "| note |" in text and "l2=" in text
+    # Without a rig the smoothed baseline is the plain fit of the smoothed bundles.
+    bare = dataclasses.replace(s, rig=None)
+    methods = A.methods_for(bare, A.build_set_index(bare), noisy=True)
+    fit = [m for m in methods if m.label == "blendshape fit, smoothed bundles"]
+    assert len(fit) == 1 and fit[0].baseline and not any("+ rig" in m.label for m in methods)
+    out = fit[0].run(s.noisy[:30])
+    assert out.shape == s.truth[:30].shape and np.all(np.isfinite(out))
+
+
+def test_load_sets_knows_the_sessions(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from lgi.errors import InputError
+
+    assert {"session_0", "session_150", "session_400", "ict_session"} <= set(B.SET_NAMES)
+    assert B.needs_ict("ict_session") and not B.needs_ict("session_400")
+    monkeypatch.setenv("LGI_SHARED_DATA", str(tmp_path))
+    with pytest.raises(InputError, match="ICT"):
+        B.load_sets(["ict_session"])
+
+
+@pytest.fixture(scope="module")
+def ict_session(ict_dir: Path) -> BenchSet:
+    return B.ict_session_set(ict_dir)
+
+
+def test_ict_session_set(ict_session: BenchSet, ict_combination: BenchSet) -> None:
+    s, c = ict_session, ict_combination
+    _check_common(s, min_off_dataset=0.9)
+    ds, rig, info = s.dataset, s.rig, s.info
+    # The frames, noise and actor of ict_combination; the dataset is the jaw actor's 57 shapes plus the scans.
+    np.testing.assert_array_equal(s.truth, c.truth)
+    assert np.array_equal(s.noisy, c.noisy, equal_nan=True)
+    assert info["pairs"] == c.info["pairs"]
+    np.testing.assert_array_equal(info["correctives"], c.info["correctives"])
+    assert ds.n_shapes == 57 + 150 and ds.names[:57] == c.dataset.names[:57]
+    np.testing.assert_array_equal(ds.deltas[:57], c.dataset.deltas[:57])
+    scans = _scans(s)
+    assert scans == list(range(57, 207))
+    assert [ds.names[k] for k in scans] == [f"scan_{f:04d}" for f in info["scan_frames"]]
+    assert all(ds.shape_meta[k].tags == ["scan"] for k in scans)
+    # A scan is the same actor (pairs, correctives) in another motion, captured with its jaw.
+    w, th, idx = info["scan_weights"], info["scan_jaw"], info["pair_index"]
+    assert not np.array_equal(w[:20], info["weights"][:20])
+    x = B.jaw_actor_frames(ds, rig, info["shapes"], w[:5], th[:5], info["correctives"].astype(np.float64), idx)
+    np.testing.assert_allclose(ds.deltas[scans[:5]], x - ds.neutral, atol=1e-5)
+    assert th[:, 0].max() > 10
+    # The scans carry correctives: unskinned by their jaw, at the markers they leave the base shapes' linear span
+    # wherever a pair acts together (about a third of them; the corrective grows with the weights' product).
+    lay = s.layout
+    unskinned = np.stack([rig.unskin(ds.neutral + np.asarray(ds.deltas[k], np.float64), t)
+                          for k, t in zip(scans, th, strict=True)])
+    p = (lay.evaluate(unskinned) - lay.evaluate(ds.neutral)).reshape(len(scans), -1).T
+    span = lay.evaluate(np.asarray(ds.deltas[:57], np.float64)).reshape(57, -1).T
+    resid = p - span @ np.linalg.lstsq(span, p, rcond=None)[0]
+    off_mm = 10 * np.linalg.norm(resid.T.reshape(len(scans), -1, 3), axis=2).max(1)
+    product = (w[:, idx[:, 0]] * w[:, idx[:, 1]]).max(1)
+    assert np.mean(off_mm > 0.1) > 0.3
+    assert np.mean(off_mm[product > 0.05] > 0.1) > 0.95
+    assert off_mm[product == 0].max() < 0.01

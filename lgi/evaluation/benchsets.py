@@ -13,7 +13,13 @@ Sets (:data:`SET_NAMES`):
 * ``ict_heldout`` (:func:`ict_heldout_set`): ICT shapes left out of the dataset and mixes involving
   them (the frames of :func:`lgi.evaluation.accuracy.ict_benchmark`);
 * ``ict_combination`` (:func:`ict_combination_set`): the rotating-jaw actor whose overlapping shape
-  pairs get a corrective when they act together, as captured combination shapes have.
+  pairs get a corrective when they act together, as captured combination shapes have;
+* ``session_0``, ``session_150``, ``session_400`` (:func:`session_set`): a capture session, the synthetic
+  actor's 47 shapes plus 0, 150 or 400 captured poses of another performance, tested on a held-out
+  performance;
+* ``ict_session`` (:func:`ict_session_set`): the frames of ``ict_combination`` against the rotating-jaw
+  actor's shapes plus 150 captured frames of another performance of that actor (its correctives
+  included), so the truth is nonlinear beyond what the base shapes span.
 
 Conventions shared by all sets:
 
@@ -41,7 +47,8 @@ from lgi.dataset.shapes import ShapeDataset, ShapeMeta
 from lgi.errors import InputError
 from lgi.solve.jaw import JawRig
 
-SET_NAMES = ("synthetic", "ict_jaw", "ict_heldout", "ict_combination")
+SET_NAMES = ("synthetic", "ict_jaw", "ict_heldout", "ict_combination", "session_0", "session_150", "session_400",
+             "ict_session")
 
 NOISE_CM = 0.03  # 0.3 mm per coordinate: a good head-mounted stereo rig's triangulation noise
 MISSING_FRACTION = 0.05
@@ -59,6 +66,12 @@ ICT_LOWER_TEETH = np.arange(19247, 21451)
 ICT_NOT_PERFORMED = ("jawOpen", "jawLeft", "jawRight", "jawForward", "mouthClose", "PupilDilate_L", "PupilDilate_R")
 ICT_JAW_MAX_DEG = 25.0
 ICT_JAW_MAX_YAW_DEG = 3.0
+# A frame closer than this (RMS over the measured vertices) to a dataset shape is that shape as stored (float32
+# deltas round at about 1e-6 cm). Not larger: a shot frame moving the jaw alone lies on the one-parameter family
+# of jaw-only scans, and one of session_150's small test variants (5000 vertices) lands 0.0007 mm from one.
+OFF_DATASET_CM = 1e-5
+SCAN_PERFORMANCE_FRAMES = 600  # the session's own performance, the scans are taken from
+SESSION_SCANS = (0, 150, 400)
 
 
 @dataclass
@@ -333,7 +346,8 @@ def _smooth_over_mesh(values: np.ndarray, triangles: np.ndarray, passes: int) ->
     return v
 
 
-def min_shape_distance(truth: np.ndarray, dataset: ShapeDataset, mask: np.ndarray) -> np.ndarray:
+def min_shape_distance(truth: np.ndarray, dataset: ShapeDataset, mask: np.ndarray,
+                       include_neutral: bool = True) -> np.ndarray:
     """How far each frame is from the dataset: the smallest RMS vertex distance to the neutral or a shape.
 
     Parameters
@@ -342,6 +356,8 @@ def min_shape_distance(truth: np.ndarray, dataset: ShapeDataset, mask: np.ndarra
     dataset : ShapeDataset
     mask : (V,) bool
         Vertices compared.
+    include_neutral : bool
+        Whether the neutral counts as a dataset point (False: the shapes only; inf without shapes).
 
     Returns
     -------
@@ -352,8 +368,48 @@ def min_shape_distance(truth: np.ndarray, dataset: ShapeDataset, mask: np.ndarra
     x2 = np.sum(x**2, 1)
     d2 = np.sum(d**2, 1)
     sq = x2[:, None] + d2[None] - 2 * (x @ d.T)
-    sq = np.concatenate([x2[:, None], sq], axis=1)
+    if include_neutral:
+        sq = np.concatenate([x2[:, None], sq], axis=1)
+    if sq.shape[1] == 0:
+        return np.full(len(x), np.inf)
     return np.sqrt(np.maximum(sq.min(1), 0.0) / mask.sum())
+
+
+def _check_off_dataset(name: str, truth: np.ndarray, dataset: ShapeDataset, mask: np.ndarray) -> None:
+    """Refuse a set one of whose frames is a dataset shape (within :data:`OFF_DATASET_CM` RMS over ``mask``): a
+    method could then look it up instead of reconstructing it.
+
+    The neutral is not a shape: frames at rest are allowed (the random performances have some), even where a
+    scan taken at the tail of an expression is as close to the neutral as they are.
+
+    Raises
+    ------
+    RuntimeError
+        Naming the frames and their distances.
+    """
+    d = min_shape_distance(truth, dataset, mask, include_neutral=False)
+    to_neutral = np.sqrt(np.mean(np.sum((np.asarray(truth, np.float64)[:, mask] - dataset.neutral[mask]) ** 2, 2), 1))
+    near = np.flatnonzero((d < OFF_DATASET_CM) & (to_neutral >= OFF_DATASET_CM))
+    if near.size:
+        raise RuntimeError(f"set {name}: frames {near[:10].tolist()} are dataset shapes (RMS distance "
+                           f"{(d[near[:10]] * 10).round(5).tolist()} mm)")
+
+
+def _spread(candidates: np.ndarray, n: int) -> np.ndarray:
+    """``n`` of ``candidates`` (sorted frame numbers) spread evenly over them, first and last included.
+
+    Raises
+    ------
+    InputError
+        More asked for than there are candidates.
+    """
+    if n > len(candidates):
+        raise InputError(f"{n} scans asked for but the scan performance has only {len(candidates)} frames to "
+                         "take them from")
+    if n <= 0:
+        return np.zeros(0, np.int64)
+    pick = np.unique(np.round(np.linspace(0, len(candidates) - 1, n)).astype(np.int64))
+    return np.asarray(candidates, np.int64)[pick]
 
 
 # ---------------------------------------------------------------------------------------------- synthetic
@@ -381,10 +437,7 @@ def synthetic_set(frames: int = 300, seed: int = 1, n_vertices: int = 20000) -> 
     acts = synth.random_performance(frames, seed=seed)
     truth = np.stack([actor.evaluate(a) for a in acts])
     true_jaw = actor.jaw_parameters(acts)
-    x0 = actor.neutral
-    # The slit row, corner to corner (its lower-lip duplicates included).
-    lip_line = np.flatnonzero((np.abs(x0[:, 1] - synth.MOUTH_Y) < 1e-6)
-                              & (np.abs(x0[:, 0]) <= synth.MOUTH_HALF_WIDTH + 1e-6))
+    lip_line = _synthetic_lip_line(actor.neutral)
     widest = max(m.extra["jaw"][0] for m in ds.shape_meta)
     return _finish(
         "synthetic",
@@ -394,6 +447,82 @@ def synthetic_set(frames: int = 300, seed: int = 1, n_vertices: int = 20000) -> 
         ds, layout, synth.jaw_rig(actor), truth, np.ones(actor.n_vertices, bool), lip_line, true_jaw[:, 0],
         widest, true_jaw, seed, {"activations": acts, "controls": list(synth.CONTROLS),
                                  "at_rest": ~(acts > 0).any(1)},
+    )
+
+
+def _synthetic_lip_line(neutral: np.ndarray) -> np.ndarray:
+    """The synthetic actor's mouth slit row, corner to corner (its lower-lip duplicates included)."""
+    from lgi.synthetic import actor as synth
+
+    x0 = np.asarray(neutral)
+    return np.flatnonzero((np.abs(x0[:, 1] - synth.MOUTH_Y) < 1e-6)
+                          & (np.abs(x0[:, 0]) <= synth.MOUTH_HALF_WIDTH + 1e-6))
+
+
+def session_set(n_scans: int, frames: int = 160, seed: int = 3, scan_seed: int = 1,
+                n_vertices: int = 20000) -> BenchSet:
+    """The synthetic actor with a capture session's scans in the dataset: does LGI use captured poses?
+
+    Dataset: the 47 shapes of :func:`lgi.synthetic.actor.make_dataset` plus ``n_scans`` captured poses,
+    the actor's true (nonlinear) evaluation at frames of another performance,
+    :func:`lgi.synthetic.actor.random_performance` (600 frames, ``scan_seed``): of its frames with any
+    control active, ``n_scans`` spread evenly (:func:`_spread`). The scans are named ``scan_NNNN`` (the frame
+    number) and tagged ``scan`` (their metadata also has the activations, the true jaw and ``frame``).
+    Rig: the actor's true one. Frames: ``random_performance(frames, seed)`` evaluated in float64, a
+    different performance; frames with no control active are the neutral. Errors over every vertex;
+    lips and wide open (60 % of the 47 shapes' widest opening) as :func:`synthetic_set`.
+
+    Parameters
+    ----------
+    n_scans : int
+        Captured poses added to the dataset (0: the 47 shapes alone).
+    frames : int
+        Length of the test shot.
+    seed : int
+        Test shot and noise seed.
+    scan_seed : int
+        Seed of the performance the scans are taken from.
+    n_vertices : int
+        At least this many vertices (see :func:`lgi.synthetic.actor.make_actor`).
+
+    Returns
+    -------
+    BenchSet
+        Named ``session_{n_scans}``; ``info`` has ``scan_seed``, ``scan_frames`` (n_scans,) int,
+        ``activations`` (F, C) of the shot, ``controls`` and ``at_rest`` (F,) bool.
+
+    Raises
+    ------
+    InputError
+        More scans than the scan performance has frames with a control active.
+    """
+    from lgi.synthetic import actor as synth
+
+    actor = synth.make_actor(n_vertices)
+    base_names, base_acts = synth.default_dataset_activations()
+    session = synth.random_performance(SCAN_PERFORMANCE_FRAMES, seed=scan_seed)
+    scan_frames = _spread(np.flatnonzero((session > 0).any(1)), n_scans)
+    names = base_names + [f"scan_{f:04d}" for f in scan_frames]
+    ds = synth.make_dataset(actor, names, np.concatenate([base_acts, session[scan_frames]]))
+    for m, f in zip(ds.shape_meta[len(base_names):], scan_frames, strict=True):
+        m.tags = [*m.tags, "scan"]
+        m.extra = {**m.extra, "frame": int(f)}
+    layout, _ = synth.default_layout(actor)
+    acts = synth.random_performance(frames, seed=seed)
+    truth = np.stack([actor.evaluate(a) for a in acts])
+    mask = np.ones(actor.n_vertices, bool)
+    _check_off_dataset(f"session_{n_scans}", truth, ds, mask)
+    true_jaw = actor.jaw_parameters(acts)
+    widest = max(m.extra["jaw"][0] for m in ds.shape_meta[:len(base_names)])
+    return _finish(
+        f"session_{n_scans}",
+        f"The synthetic actor's random performance of {frames} frames (seed {seed}) against a dataset of the 47 "
+        f"shapes plus {n_scans} captured poses (the true nonlinear face at frames of another 600-frame "
+        f"performance, seed {scan_seed}), so no frame is a dataset shape (frames with no control active are the "
+        "neutral).",
+        ds, layout, synth.jaw_rig(actor), truth, mask, _synthetic_lip_line(actor.neutral), true_jaw[:, 0], widest,
+        true_jaw, seed, {"scan_seed": scan_seed, "scan_frames": scan_frames, "activations": acts,
+                         "controls": list(synth.CONTROLS), "at_rest": ~(acts > 0).any(1)},
     )
 
 
@@ -729,6 +858,81 @@ def pair_corrective(neutral: np.ndarray, triangles: np.ndarray, delta_a: np.ndar
     return magnitude * g[:, None] * vertex_normals(x0, triangles)
 
 
+@dataclass
+class _CombinationActor:
+    """The rotating-jaw ICT actor with pair correctives (:func:`ict_combination_set`'s truth model)."""
+
+    jaw: _JawActor
+    names: list[str]  # the performed shapes: columns of a performance's weights
+    mask: np.ndarray  # (V,) bool, the face area
+    pairs: list[tuple[str, str]]
+    magnitudes: np.ndarray  # (P,) cm, signed: each corrective's largest displacement at weights (1, 1)
+    correctives: np.ndarray  # (P, V, 3) float64 cm at weights (1, 1)
+    pair_index: np.ndarray  # (P, 2) int, the pairs as columns of a performance's weights
+
+    def frames(self, weights: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """(F, V, 3) float64 cm: the actor at ``weights`` (F, K) over :attr:`names` and jaw ``theta`` (F, 4)."""
+        return jaw_actor_frames(self.jaw.dataset, self.jaw.rig, self.names, weights, theta, self.correctives,
+                                self.pair_index)
+
+
+def _combination_actor(ict_dir: str | os.PathLike[str], seed: int) -> tuple[_CombinationActor, np.random.Generator]:
+    """The combination actor of :func:`ict_combination_set` for ``seed``, and the random generator after its
+    correctives were drawn (the set's performance continues from it, so the set stays as it always was)."""
+    actor = _jaw_actor(ict_dir)
+    base = actor.dataset
+    rng = np.random.default_rng([seed, 4])
+    mask = _ict_face_mask(base.n_vertices)
+    names = _performed(base.names)
+    cand = [n for n in names if n.startswith(PAIR_PREFIXES)]
+    pairs = [(a, b) for a, b, _ in overlapping_pairs(base, cand, mask)]
+    signs = rng.choice([-1.0, 1.0], len(pairs))
+    mags = rng.uniform(*CORRECTIVE_CM, len(pairs)) * signs
+    corr = np.stack([pair_corrective(base.neutral, base.triangles, np.asarray(base.deltas[base.index(a)], np.float64),
+                                     np.asarray(base.deltas[base.index(b)], np.float64), mask, m)
+                     for (a, b), m in zip(pairs, mags, strict=True)])
+    col = {n: k for k, n in enumerate(names)}
+    pair_index = np.array([[col[a], col[b]] for a, b in pairs])
+    return _CombinationActor(actor, names, mask, pairs, mags, corr, pair_index), rng
+
+
+def _combination_performance(ca: _CombinationActor, frames: int, rng: np.random.Generator
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A performance of the combination actor: about 2/3 of the frames inside a pair event, a track of
+    single expressions that never completes a pair, and the moving jaw (see :func:`ict_combination_set`).
+
+    Returns
+    -------
+    weights : (F, K) float64 in [0, 1], over ``ca.names``
+    theta : (F, 4) float64, jaw parameters
+    pair_active : (F,) bool, frames where a pair's weights are both above 0
+    """
+    pairs, names = ca.pairs, ca.names
+    t = np.arange(frames, dtype=np.float64)
+    col = {n: k for k, n in enumerate(names)}
+    weights = np.zeros((frames, len(names)))
+    busy: list[tuple[tuple[float, float], list[str]]] = []
+    # Gaps of 0.15-0.85 of an event's length (mean 0.5) leave about 2/3 of the frames inside one.
+    windows = _chain(frames, rng, (30.0, 60.0), (1.15, 1.85), cover_start=True)
+    prev = -1
+    for s, d in windows:
+        p = int(rng.choice([k for k in range(len(pairs)) if k != prev]))
+        prev = p
+        a, b = pairs[p]
+        bump = _raised_cosine(t, s, d)
+        # Different exponents keep the two weights from moving in proportion.
+        weights[:, col[a]] += rng.uniform(0.5, 1.0) * bump ** rng.uniform(0.6, 1.0)
+        weights[:, col[b]] += rng.uniform(0.5, 1.0) * bump ** rng.uniform(1.0, 1.8)
+        busy.append(((s, d), [a, b]))
+    pair_set = {frozenset(p) for p in pairs}
+    weights += _expression_weights(frames, names, rng, busy=busy, forbid_together=pair_set, tracks=1)
+    weights = np.clip(weights, 0.0, 1.0)
+    idx = ca.pair_index
+    pair_active = (weights[:, idx[:, 0]] * weights[:, idx[:, 1]] > 0).any(1)
+    theta = _jaw_motion(frames, rng)
+    return weights, theta, pair_active
+
+
 def ict_combination_set(ict_dir: str | os.PathLike[str], frames: int = 120, seed: int = 0) -> BenchSet:
     """The rotating-jaw ICT actor of :func:`ict_jaw_set` with combination correctives, as captured.
 
@@ -749,19 +953,8 @@ def ict_combination_set(ict_dir: str | os.PathLike[str], frames: int = 120, seed
         columns of ``weights``, ``correctives`` (P, V, 3) float32 cm at (1, 1), ``pair_active`` (F,)
         bool and ``jaw_open_params``.
     """
-    actor = _jaw_actor(ict_dir)
-    base = actor.dataset
-    rng = np.random.default_rng([seed, 4])
-    mask = _ict_face_mask(base.n_vertices)
-    names = _performed(base.names)
-    cand = [n for n in names if n.startswith(PAIR_PREFIXES)]
-    pairs = [(a, b) for a, b, _ in overlapping_pairs(base, cand, mask)]
-    signs = rng.choice([-1.0, 1.0], len(pairs))
-    mags = rng.uniform(*CORRECTIVE_CM, len(pairs)) * signs
-    corr = np.stack([pair_corrective(base.neutral, base.triangles, np.asarray(base.deltas[base.index(a)], np.float64),
-                                     np.asarray(base.deltas[base.index(b)], np.float64), mask, m)
-                     for (a, b), m in zip(pairs, mags, strict=True)])
-
+    ca, rng = _combination_actor(ict_dir, seed)
+    actor, base, pairs, corr, mags = ca.jaw, ca.jaw.dataset, ca.pairs, ca.correctives, ca.magnitudes
     extra, extra_names, extra_meta = [], [], []
     for (a, b), c in zip(pairs, corr, strict=True):
         s = np.asarray(base.deltas[base.index(a)], np.float64) + np.asarray(base.deltas[base.index(b)], np.float64)
@@ -776,29 +969,9 @@ def ict_combination_set(ict_dir: str | os.PathLike[str], frames: int = 120, seed
     ds.shape_meta = base.shape_meta + extra_meta
     ds.info = {**base.info, "correctives": {"pairs": [list(p) for p in pairs], "magnitude_cm": mags.tolist()}}
 
-    t = np.arange(frames, dtype=np.float64)
-    col = {n: k for k, n in enumerate(names)}
-    weights = np.zeros((frames, len(names)))
-    busy: list[tuple[tuple[float, float], list[str]]] = []
-    # Gaps of 0.15-0.85 of an event's length (mean 0.5) leave about 2/3 of the frames inside one.
-    windows = _chain(frames, rng, (30.0, 60.0), (1.15, 1.85), cover_start=True)
-    prev = -1
-    for s, d in windows:
-        p = int(rng.choice([k for k in range(len(pairs)) if k != prev]))
-        prev = p
-        a, b = pairs[p]
-        bump = _raised_cosine(t, s, d)
-        # Different exponents keep the two weights from moving in proportion.
-        weights[:, col[a]] += rng.uniform(0.5, 1.0) * bump ** rng.uniform(0.6, 1.0)
-        weights[:, col[b]] += rng.uniform(0.5, 1.0) * bump ** rng.uniform(1.0, 1.8)
-        busy.append(((s, d), [a, b]))
-    pair_set = {frozenset(p) for p in pairs}
-    weights += _expression_weights(frames, names, rng, busy=busy, forbid_together=pair_set, tracks=1)
-    weights = np.clip(weights, 0.0, 1.0)
-    pair_index = np.array([[col[a], col[b]] for a, b in pairs])
-    pair_active = (weights[:, pair_index[:, 0]] * weights[:, pair_index[:, 1]] > 0).any(1)
-    theta = _jaw_motion(frames, rng)
-    truth = jaw_actor_frames(base, actor.rig, names, weights, theta, corr, pair_index)
+    weights, theta, pair_active = _combination_performance(ca, frames, rng)
+    truth = ca.frames(weights, theta)
+    mask = ca.mask
     return _finish(
         "ict_combination",
         f"The rotating-jaw ICT actor, {frames} frames (seed {seed}), about 2/3 of them holding one of 12 "
@@ -806,13 +979,94 @@ def ict_combination_set(ict_dir: str | os.PathLike[str], frames: int = 120, seed
         "expressions and a moving jaw.",
         ds, _ict_layout(ds.triangles), actor.rig, truth, mask, _ict_lip_line(ds.triangles, ds.n_vertices), theta[:, 0],
         float(actor.jaw_open_params[0]), theta, seed,
-        {"shapes": names, "weights": weights, "pairs": pairs, "pair_index": pair_index,
+        {"shapes": ca.names, "weights": weights, "pairs": pairs, "pair_index": ca.pair_index,
          "correctives": corr.astype(np.float32), "pair_active": pair_active,
          "jaw_open_params": actor.jaw_open_params},
     )
 
 
+def ict_session_set(ict_dir: str | os.PathLike[str], n_scans: int = 150, frames: int = 120, seed: int = 0,
+                    scan_seed: int = 7) -> BenchSet:
+    """The combination actor of :func:`ict_combination_set`, with a capture session's scans in the dataset
+    instead of its combination shapes: truth nonlinear beyond what the base shapes span.
+
+    Frames: exactly :func:`ict_combination_set`'s (``frames``, ``seed``; the same noisy bundles too).
+    Dataset: the rotating-jaw actor's base dataset (:func:`ict_jaw_set`'s 57 shapes, without the 24
+    combination shapes) plus ``n_scans`` captured frames of another performance of the same actor (the same
+    pairs, corrective magnitudes and signs: the actor comes from ``seed``; only the motion differs, 600
+    frames drawn from ``scan_seed``), spread evenly over that performance's frames not at rest
+    (:func:`_spread`). A scan is captured as it is, its jaw rotation included (``lgi build --jaw-rig``
+    fits each shape's jaw parameters); scans are named ``scan_NNNN`` (the frame number) and tagged
+    ``scan``. Errors over the face area; wide open as :func:`ict_combination_set`.
+
+    Parameters
+    ----------
+    ict_dir : path
+        The ICT FaceKit folder (:func:`ict_dir_or_none`).
+    n_scans : int
+        Captured frames added to the dataset.
+    frames : int
+        Length of the test shot.
+    seed : int
+        The actor's correctives, the test shot's motion and the noise (as :func:`ict_combination_set`).
+    scan_seed : int
+        The motion of the performance the scans are taken from.
+
+    Returns
+    -------
+    BenchSet
+        ``info`` has ``scan_seed``, ``scan_frames`` (n_scans,) int, ``scan_weights`` (n_scans, K),
+        ``scan_jaw`` (n_scans, 4), and :func:`ict_combination_set`'s ``shapes``, ``weights``, ``pairs``,
+        ``pair_index``, ``correctives``, ``pair_active`` and ``jaw_open_params``.
+
+    Raises
+    ------
+    InputError
+        More scans than the scan performance has frames not at rest.
+    """
+    ca, rng = _combination_actor(ict_dir, seed)
+    weights, theta, pair_active = _combination_performance(ca, frames, rng)
+    truth = ca.frames(weights, theta)
+    # Another stream than the correctives' ([seed, 4]): the scans' motion is independent of the shot's.
+    s_weights, s_theta, _ = _combination_performance(ca, SCAN_PERFORMANCE_FRAMES,
+                                                     np.random.default_rng([scan_seed, 5]))
+    moving = np.flatnonzero((s_weights > 0).any(1) | (s_theta != 0).any(1))
+    scan_frames = _spread(moving, n_scans)
+    scans = ca.frames(s_weights[scan_frames], s_theta[scan_frames])
+    base = ca.jaw.dataset
+    ds = base.take(range(base.n_shapes))
+    ds.deltas = np.concatenate([np.asarray(base.deltas, np.float32),
+                                (scans - base.neutral).astype(np.float32)])
+    ds.names = base.names + [f"scan_{f:04d}" for f in scan_frames]
+    ds.shape_meta = base.shape_meta + [
+        ShapeMeta(source=f"scan: frame {f} of the combination actor's performance (scan seed {scan_seed})",
+                  tags=["scan"], extra={"frame": int(f), "jaw": th.round(9).tolist()})
+        for f, th in zip(scan_frames, s_theta[scan_frames], strict=True)]
+    ds.info = {**base.info, "correctives": {"pairs": [list(p) for p in ca.pairs],
+                                            "magnitude_cm": ca.magnitudes.tolist()}}
+    _check_off_dataset("ict_session", truth, ds, ca.mask)
+    actor = ca.jaw
+    return _finish(
+        "ict_session",
+        f"The frames of ict_combination ({frames} frames, seed {seed}) against the rotating-jaw ICT actor's 57 "
+        f"shapes plus {n_scans} captured frames, jaw included, of another 600-frame performance of the same actor "
+        f"with its pair correctives (scan seed {scan_seed}), so the truth is nonlinear beyond what the dataset "
+        "spans and no frame is a dataset shape.",
+        ds, _ict_layout(ds.triangles), actor.rig, truth, ca.mask, _ict_lip_line(ds.triangles, ds.n_vertices),
+        theta[:, 0], float(actor.jaw_open_params[0]), theta, seed,
+        {"scan_seed": scan_seed, "scan_frames": scan_frames, "scan_weights": s_weights[scan_frames],
+         "scan_jaw": s_theta[scan_frames], "shapes": ca.names, "weights": weights, "pairs": ca.pairs,
+         "pair_index": ca.pair_index, "correctives": ca.correctives.astype(np.float32), "pair_active": pair_active,
+         "jaw_open_params": actor.jaw_open_params},
+    )
+
+
 # ---------------------------------------------------------------------------------------------- loading
+def needs_ict(name: str) -> bool:
+    """Whether set ``name`` is built from ICT FaceKit (the others are the built-in synthetic actor's)."""
+    return name.startswith("ict")
+
+
 def load_sets(names: Iterable[str] | None = None, ict_dir: str | os.PathLike[str] | None = None
               ) -> dict[str, BenchSet]:
     """Build test sets by name with their default sizes and seeds.
@@ -836,15 +1090,17 @@ def load_sets(names: Iterable[str] | None = None, ict_dir: str | os.PathLike[str
     folder = Path(ict_dir) if ict_dir is not None else ict_dir_or_none()
     asked: Sequence[str]
     if names is None:
-        asked = [n for n in SET_NAMES if n == "synthetic" or folder is not None]
+        asked = [n for n in SET_NAMES if not needs_ict(n) or folder is not None]
     else:
         asked = list(names)
     unknown = [n for n in asked if n not in SET_NAMES]
     if unknown:
         raise InputError(f"unknown benchmark set(s) {unknown}; known: {list(SET_NAMES)}")
     builders = {"synthetic": lambda: synthetic_set(), "ict_jaw": lambda: ict_jaw_set(folder),
-                "ict_heldout": lambda: ict_heldout_set(folder), "ict_combination": lambda: ict_combination_set(folder)}
-    if folder is None and any(n != "synthetic" for n in asked):
+                "ict_heldout": lambda: ict_heldout_set(folder), "ict_combination": lambda: ict_combination_set(folder),
+                "ict_session": lambda: ict_session_set(folder),
+                **{f"session_{n}": functools.partial(session_set, n) for n in SESSION_SCANS}}
+    if folder is None and any(needs_ict(n) for n in asked):
         raise InputError("the ICT sets need the ICT FaceKit folder: pass ict_dir or set LGI_SHARED_DATA "
                          "(looked for ../shared/data/ict-facekit)")
     return {n: builders[n]() for n in asked}

@@ -15,8 +15,9 @@ from lgi.units import MM_PER_CM
 
 @dataclass(frozen=True)
 class BenchOptions:
-    """Options of ``lgi bench``: synthetic performance length ``frames``, bundle ``noise`` (mm per coordinate)
-    of the noisy sets, the ICT FaceKit folder ``ict`` (default: the shared data) or ``no_ict``."""
+    """Options of ``lgi bench``: the synthetic set's performance length ``frames`` (the capture-session sets keep
+    their own, :func:`lgi.evaluation.benchsets.session_set`), bundle ``noise`` (mm per coordinate) of the noisy
+    sets, the ICT FaceKit folder ``ict`` (default: the shared data) or ``no_ict``."""
 
     frames: int = 300
     noise: float = 0.3
@@ -33,9 +34,18 @@ class BenchOptions:
         return asdict(self)
 
 
+def _panels(maps: dict[str, Any]) -> dict[str, Any]:
+    """Heat-map panels with long method names broken before their parenthesis, so titles do not overlap."""
+    return {(k.replace(" (", "\n(", 1) if len(k) > 24 else k): v for k, v in maps.items()}
+
+
 def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> dict[str, Any]:
     """``lgi bench``: the accuracy tables (``accuracy.csv``) and heat maps in ``out``; progress and tables
-    through ``log``."""
+    through ``log``.
+
+    Sets: the synthetic actor's performance and its capture sessions (``session_0``, ``session_150``,
+    ``session_400``) always; with the ICT data also ``ict_jaw``, ``ict_heldout``, ``ict_combination`` and
+    ``ict_session``."""
     from lgi.evaluation import benchsets
     from lgi.evaluation.accuracy import accuracy_benchmark
     from lgi.evaluation.render import heatmap_row
@@ -48,7 +58,7 @@ def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> di
     out = Path(out)
     check_output(out, "dir", inputs=[o.ict])
     t0 = time.perf_counter()
-    names = ["synthetic"]
+    names = ["synthetic", *(f"session_{n}" for n in benchsets.SESSION_SCANS)]
     ict = Path(o.ict) if o.ict else shared_data("ict-facekit")
     skipped = None
     if o.no_ict:
@@ -59,7 +69,7 @@ def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> di
         skipped = f"ICT FaceKit not found at {ict}"
         log(f"{skipped}: the ICT sets are skipped")
     else:
-        names += ["ict_jaw", "ict_heldout", "ict_combination"]
+        names += ["ict_jaw", "ict_heldout", "ict_combination", "ict_session"]
     out.mkdir(parents=True, exist_ok=True)
     sets = {}
     for name in names:
@@ -76,12 +86,17 @@ def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> di
     for name, bs in sets.items():
         if name == "synthetic":
             pictures.append(heatmap_row(out / "heatmaps_synthetic.png", bs.dataset.neutral, bs.triangles,
-                                        maps["synthetic_clean"],
+                                        _panels(maps["synthetic_clean"]),
                                         title=f"synthetic held-out performance ({bs.n_frames} frames, clean "
                                               "bundles): mean vertex error"))
+        elif not benchsets.needs_ict(name):
+            pictures.append(heatmap_row(out / f"heatmaps_{name}.png", bs.dataset.neutral, bs.triangles,
+                                        _panels(maps[f"{name}_clean"]),
+                                        title=f"{name}: synthetic actor, {bs.dataset.n_shapes} shapes "
+                                              f"({bs.n_frames} frames, clean bundles): mean vertex error"))
         else:  # ICT pictures derive from ICT data: written only on request of the ICT sets
             pictures.append(heatmap_row(out / f"heatmaps_{name}.png", bs.dataset.neutral, bs.triangles,
-                                        maps[f"{name}_clean"], mask=bs.mask,
+                                        _panels(maps[f"{name}_clean"]), mask=bs.mask,
                                         title=f"{name} (clean bundles): mean vertex error"))
     log(f"heat maps: {', '.join(str(p) for p in pictures)}")
     log(f"({time.perf_counter() - t0:.0f} s; tables and pictures in {out.resolve()})")

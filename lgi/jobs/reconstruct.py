@@ -84,6 +84,10 @@ class ReconstructOptions:
         Lip contours traced per frame and camera (CSV ``frame, camera, curve, point, x, y``, px): the lip
         region is deformed so that the mesh's inner lip edges meet them (:mod:`lgi.solve.contours`); needs
         ``observations`` (its head poses and rig).
+    far_field : str
+        ``START:END`` in mm of distance from the nearest marker (over the skin, UV-geodesic): beyond START
+        the surface blends from the bundles' local geometry toward the frame's global fit, taken through the
+        bundles by its own correction, wholly so beyond END; "off": the bundles' weights everywhere.
     """
 
     temporal_weight: float = 0.02
@@ -103,6 +107,7 @@ class ReconstructOptions:
     observations: str | None = None
     calib: str | None = None
     contours: str | None = None
+    far_field: str = "5:15"
 
     def __post_init__(self) -> None:
         def bad(flag: str, why: str) -> InputError:
@@ -137,6 +142,7 @@ class ReconstructOptions:
             raise bad("contours", "are seen through the head pose and cameras of the tracks table: give "
                                   "--observations too")
         self.bilateral_sigmas()
+        self.far_field_cm()
 
     def bilateral_sigmas(self) -> tuple[float, float, float | None] | None:
         """(sigma_frames, sigma_cm, sigma_space_cm or None) of ``bilateral``, or None."""
@@ -151,6 +157,10 @@ class ReconstructOptions:
                              f"got {self.bilateral!r}") from None
         return vals[0], vals[1] / MM_PER_CM, vals[2] / MM_PER_CM if len(vals) == 3 else None
 
+    def far_field_cm(self) -> tuple[float, float] | None:
+        """(start, end) cm of ``far_field``, or None for "off"."""
+        return parse_far_field(self.far_field)
+
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
@@ -158,6 +168,20 @@ class ReconstructOptions:
     def from_json(cls, d: dict[str, Any] | None) -> ReconstructOptions:
         """Options from a dict (a flow's parameters); unknown keys are refused by name."""
         return options_from_dict(cls, d, "reconstruct")
+
+
+def parse_far_field(text: str | None) -> tuple[float, float] | None:
+    """``--far-field`` (``START:END`` mm, or "off") as (start, end) cm, or None."""
+    if text is None or str(text).strip().lower() == "off":
+        return None
+    try:
+        vals = [float(v) for v in str(text).split(":")]
+        if len(vals) != 2 or not all(math.isfinite(v) for v in vals) or not 0 <= vals[0] < vals[1]:
+            raise ValueError
+    except ValueError:
+        raise InputError("--far-field takes START:END in mm with 0 <= START < END (or off), "
+                         f"got {text!r}") from None
+    return vals[0] / MM_PER_CM, vals[1] / MM_PER_CM
 
 
 def read_jaw_file(path: str | Path, frames: np.ndarray) -> np.ndarray:
@@ -260,7 +284,8 @@ class Shot:
             rest = index.layout().evaluate(index.arrays["neutral"])
             b.positions = bilateral_filter(b.positions, sig[0], sig[1], rest, sig[2])
         self.solver = s = LGISolver(index, temporal_weight=o.temporal_weight, spatial_weight=o.spatial_weight,
-                                    jaw="none" if o.jaw == "none" else "auto", method=o.method)
+                                    jaw="none" if o.jaw == "none" else "auto", method=o.method,
+                                    far_field=o.far_field_cm())
         self.pos, self.frames, self.bridged = s.prepare_shot(b, None, o.max_gap, o.noise)
         self.fit_pos = s.denoise(self.pos)
         if self.rays is not None:

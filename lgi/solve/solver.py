@@ -41,6 +41,9 @@ NOISE_GAIN = 0.0
 LOCAL_MIN_MISFIT = 1e-4
 # Estimated noise below this (mm) is treated as none.
 NOISE_FLOOR = 0.05
+# Far field (cm of UV-geodesic distance to the nearest bundle): up to the first value every vertex mixes the
+# bundles' own weights; beyond the second it takes the frame's global fit; in between a smooth ramp.
+FAR_FIELD = (0.5, 1.5)
 
 log = logging.getLogger(__name__)
 
@@ -173,12 +176,21 @@ class LGISolver:
         trajectories are smoothed first (:meth:`denoise`), every bundle takes the global fit's weights
         (measured: at 0.3 mm the local refits fit the noise, not the face, on every benchmark set) and
         the surface is not pulled onto the bundles.
+    far_field : (float, float) or None, cm
+        Vertices farther than the first distance from every bundle (UV-geodesic, the natural-neighbour
+        metric) blend toward the frame's global fit, reached at the second distance (a smoothstep ramp,
+        so the surface stays C1 in the ramp and C0 overall). A bundle's local geometry is fitted to the
+        bundle and its natural neighbours only; carried past them it extrapolates, while the global fit
+        is held by every bundle (measured on captured datasets: see ``docs/indexing.md``). Bundles lie
+        at distance 0, so the surface still passes through them. None: the bundles' weights everywhere
+        (the paper's blend).
     """
 
     def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.1,
                  correct_residuals: bool = True, tolerance: float = 1e-9, n_project: int = 3,
                  spatial_weight: float = 1e-3, top_k: int = 4, jaw: str = "auto", method: str = "local",
-                 local_prior: float = 1e-4, noise: float = 0.0) -> None:
+                 local_prior: float = 1e-4, noise: float = 0.0,
+                 far_field: tuple[float, float] | None = FAR_FIELD) -> None:
         if method not in ("local", "simplex"):
             raise InputError(f"unknown method {method!r}: use 'local' or 'simplex'")
         self.method = method
@@ -207,6 +219,10 @@ class LGISolver:
         self._deltas = np.ascontiguousarray(index.deltas)  # read once: the blend touches all of it every frame
         self._deltas_flat = self._deltas.reshape(len(self._deltas), -1)  # a view: rows of 3V for blend_uniform
         self._w_sum: np.ndarray | None = None  # (V,) total blend weight per vertex, for uniform blends
+        self.far_field = None if far_field is None else (float(far_field[0]), float(far_field[1]))
+        far = _far_blend(a, index.n_markers, self.far_field)
+        self._far_w = None if far is None else far[:3]
+        self._far_t = None if far is None else far[3]
         nb_off, nb_idx = a["nb_off"], a["nb_idx"]
         self._neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(index.n_markers)]
         self._rest = a["ptab"][0]
@@ -306,7 +322,7 @@ class LGISolver:
             Used only with an index built with a jaw rig.
         """
         sel = self.select_frame(bundles, previous, jaw)
-        return self.blend_frame(sel, sel.shapes, sel.weights, sel.jaw)
+        return self.blend_frame(sel, *self.blend_slots(sel), sel.jaw)
 
     def select_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,
                      jaw: np.ndarray | None = None) -> FrameResult:
@@ -426,7 +442,10 @@ class LGISolver:
         return out_s, out_w, np.where(use_local, local_score, simplex_score), source, notes
 
     def surface(self, shapes: np.ndarray, weights: np.ndarray, jaw: np.ndarray | None) -> np.ndarray:
-        """(V, 3) float64: the natural-neighbour blend of the bundles' shapes, skinned when there is a rig."""
+        """(V, 3) float64: the natural-neighbour blend of the bundles' shapes, skinned when there is a rig.
+
+        ``shapes``, ``weights``: (M, K) slots per bundle, or (M + 1, K) with the frame's global fit last
+        (:meth:`blend_slots`), which the far field blends toward."""
         a = self._a
         x = np.empty_like(self._x0)
         if (shapes == shapes[0]).all() and (weights == weights[0]).all():
@@ -436,11 +455,56 @@ class LGISolver:
                     np.diff(a["w_indptr"]) > 0)
             K.blend_uniform(self._x0.reshape(-1), self._deltas_flat, self._w_sum,
                             shapes[0], weights[0], x.reshape(-1))
+        elif len(shapes) == self.index.n_markers + 1 and self._far_w is not None:
+            # The last row is the global fit's, which the far field blends toward.
+            K.blend(self._x0, self._deltas, *self._far_w, shapes, weights, x)
         else:
-            K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes, weights, x)
+            K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes[:self.index.n_markers],
+                    weights[:self.index.n_markers], x)
         if self.rig is not None:
             K.skin_points(x, self._skin_w, np.ascontiguousarray(jaw_matrix(jaw, self.rig.pivot)[:3]), x)
         return x
+
+    def blend_slots(self, sel: FrameResult) -> tuple[np.ndarray, np.ndarray]:
+        """A frame's slots for :meth:`surface`: the bundles' (M, K), and with a far field the global fit's
+        weights as one more row."""
+        if self._far_w is None or sel.fit is None:
+            return sel.shapes, sel.weights
+        shapes, weights = _append_rows([sel.shapes], [sel.weights], [sel.fit.weights])
+        return shapes[0], weights[0]
+
+    def far_residual(self, shapes: np.ndarray, weights: np.ndarray, jaw: np.ndarray | None,
+                     target: np.ndarray) -> np.ndarray | None:
+        """(M, 3) cm: ``target`` minus the bundles' points on the surface of the last row's weights (the global
+        fit's, :meth:`blend_slots`), skinned; None without that row."""
+        if self._far_w is None or len(shapes) != self.index.n_markers + 1:
+            return None
+        use = weights[-1] != 0
+        mv = self.layout.vertices  # (M, 3): the surface at each bundle is its triangle's corners, skinned
+        corners = self._x0[mv] + np.tensordot(weights[-1][use], self._deltas[shapes[-1][use]][:, mv], axes=1)
+        if self.rig is not None:
+            flat = corners.reshape(-1, 3)
+            corners = self.rig.skin(flat, jaw, self._skin_w[mv].ravel()).reshape(corners.shape)
+        pred = np.einsum("mk,mkc->mc", self.layout.weights, corners)
+        return np.asarray(target, np.float64) - pred
+
+    def correct_far(self, x: np.ndarray, resid: np.ndarray, far_resid: np.ndarray | None, seen: np.ndarray,
+                    gain: float) -> None:
+        """Give the far field the global surface's own correction (in place): :meth:`correct` took ``x`` through
+        the bundles by the correction of the blend's residuals ``resid`` (M, 3); where the far field weighs t,
+        the global surface's share gets the correction of its residuals ``far_resid`` instead. Each surface is
+        taken through the bundles by its own smooth field, and the two are mixed as the surfaces are (at the
+        bundles t is 0, so they are still met exactly)."""
+        if far_resid is None or self._far_t is None or not self.correct_residuals or gain == 0:
+            return
+        d = np.where(seen[:, None], np.nan_to_num(far_resid - resid), 0.0) * gain
+        fix = np.flatnonzero(np.abs(d).max(axis=1) > 1e-7)
+        if not fix.size:
+            return
+        a = self._a
+        y = np.zeros_like(x)
+        K.add_correction(y, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, d[fix])
+        x += self._far_t[:, None] * y
 
     def blend_frame(self, sel: FrameResult, shapes: np.ndarray, weights: np.ndarray,
                     jaw: np.ndarray | None, bundles: np.ndarray | None = None) -> FrameResult:
@@ -453,7 +517,9 @@ class LGISolver:
         seen = np.all(np.isfinite(p), axis=1)
         at = self.layout.evaluate(x)
         before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - at, axis=1), np.nan)
+        far_resid = self.far_residual(shapes, weights, jaw, p)
         self.correct(x, at + self.noise_gain * (p - at), seen)
+        self.correct_far(x, p - at, far_resid, seen, self.noise_gain)
         residual = np.where(seen, np.linalg.norm(np.nan_to_num(p) - self.layout.evaluate(x), axis=1), np.nan)
         return dataclasses.replace(sel, vertices=x.astype(np.float32), residual=residual, jaw=jaw, bundles=p,
                                    residual_before=before)
@@ -697,7 +763,7 @@ class LGISolver:
                 if f < 0:
                     raise sel
                 sels.append(sel)
-                fin.frame(f, sel.shapes, sel.weights, sel.jaw)
+                fin.frame(f, *self.blend_slots(sel), sel.jaw)
         finally:
             stop.set()
             worker.join()
@@ -722,7 +788,11 @@ class LGISolver:
 
         n_f = len(sels)
         hi = n_f if hi is None else hi
-        shapes, lam = _stack_slots([r.shapes for r in sels], [r.weights for r in sels])
+        if self._far_w is not None and all(r.fit is not None for r in sels):
+            shapes, lam = _append_rows([r.shapes for r in sels], [r.weights for r in sels],
+                                       [r.fit.weights for r in sels])
+        else:
+            shapes, lam = _stack_slots([r.shapes for r in sels], [r.weights for r in sels])
         thetas = None
         if self.rig is not None:
             thetas = smooth_parameters(np.stack([r.jaw for r in sels]), smooth if jaw_smooth is None else jaw_smooth)
@@ -736,11 +806,12 @@ class LGISolver:
             # surface would carry the bundles' noise straight back. So every surface is blended first.
             blends = [fin.blend(f - a, shapes[f], lam[f], None if thetas is None else thetas[f])
                       for f in progress(range(a, b), "blending", disable=not show_progress)]
-            resid = np.stack([r for _, r in blends])
+            resid = np.stack([r for _, r, _ in blends])
             fin.before[:] = np.linalg.norm(resid, axis=2)
             resid = moving_average(resid, smooth)
+            far = None if blends[0][2] is None else moving_average(np.stack([r for _, _, r in blends]), smooth)
             for f in range(lo, hi):
-                fin.finish(f - a, blends[f - a][0], resid[f - a])
+                fin.finish(f - a, blends[f - a][0], resid[f - a], None if far is None else far[f - a])
         else:
             for f in progress(range(lo, hi), "blending", disable=not show_progress):
                 fin.frame(f - a, shapes[f], lam[f], None if thetas is None else thetas[f])
@@ -823,25 +894,29 @@ class _Finisher:
         self.r_final = np.empty((n_f, n_m))
 
     def blend(self, f: int, shapes: np.ndarray, lam: np.ndarray, jaw: np.ndarray | None
-              ) -> tuple[np.ndarray, np.ndarray]:
-        """Frame f's surface (V, 3) and its residuals (M, 3) to the fitted positions (NaN where missing)."""
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Frame f's surface (V, 3), its residuals (M, 3) to the fitted positions (NaN where missing) and those
+        of the far field's global surface (None without a far field)."""
         x = self.solver.surface(shapes, lam, jaw)
-        return x, self.fit_pos[f] - self.solver.layout.evaluate(x)
+        return (x, self.fit_pos[f] - self.solver.layout.evaluate(x),
+                self.solver.far_residual(shapes, lam, jaw, self.fit_pos[f]))
 
-    def finish(self, f: int, x: np.ndarray, resid: np.ndarray) -> None:
-        """Correct surface ``x`` by ``noise_gain`` of ``resid`` at the seen bundles and store it."""
+    def finish(self, f: int, x: np.ndarray, resid: np.ndarray, far_resid: np.ndarray | None = None) -> None:
+        """Correct surface ``x`` by ``noise_gain`` of ``resid`` at the seen bundles (its far field by the global
+        surface's ``far_resid``) and store it."""
         s, seen = self.solver, self.seen[f]
         target = np.where(seen[:, None], s.layout.evaluate(x) + s.noise_gain * np.nan_to_num(resid), np.nan)
         s.correct(x, target, seen)
+        s.correct_far(x, resid, far_resid, seen, s.noise_gain)
         self.out[f] = x
         self.r_final[f] = np.where(seen, np.linalg.norm(np.nan_to_num(self.pos[f]) - s.layout.evaluate(x), axis=1),
                                    np.nan)
 
     def frame(self, f: int, shapes: np.ndarray, lam: np.ndarray, jaw: np.ndarray | None) -> None:
         """:meth:`blend` and :meth:`finish` frame f with its own residuals."""
-        x, resid = self.blend(f, shapes, lam, jaw)
+        x, resid, far_resid = self.blend(f, shapes, lam, jaw)
         self.before[f] = np.linalg.norm(resid, axis=1)
-        self.finish(f, x, resid)
+        self.finish(f, x, resid, far_resid)
 
 
 def slot_labels(shapes: np.ndarray, weights: np.ndarray, shape_names: list[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -903,3 +978,59 @@ def _stack_slots(shapes: list[np.ndarray], weights: list[np.ndarray]) -> tuple[n
         out_s[f, :, :s.shape[1]] = s
         out_w[f, :, :w.shape[1]] = w
     return out_s, out_w
+
+
+def _append_rows(shapes: list[np.ndarray], weights: list[np.ndarray], fit_weights: list[np.ndarray]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(F, M + 1, K) slots: each frame's bundles' slots and, as the last row, its global fit's weights (S,)
+    as slots (extended shape indices)."""
+    rows_s, rows_w = [], []
+    for s, w, g in zip(shapes, weights, fit_weights, strict=True):
+        nz = np.flatnonzero(np.asarray(g) > 0)
+        k = max(s.shape[1], len(nz), 1)
+        out_s = np.zeros((s.shape[0] + 1, k), np.int64)
+        out_w = np.zeros((s.shape[0] + 1, k))
+        out_s[:-1, :s.shape[1]] = s
+        out_w[:-1, :w.shape[1]] = w
+        out_s[-1, :len(nz)] = nz + 1
+        out_w[-1, :len(nz)] = np.asarray(g)[nz]
+        rows_s.append(out_s)
+        rows_w.append(out_w)
+    return _stack_slots(rows_s, rows_w)
+
+
+def _far_blend(arrays, n_markers: int, far_field: tuple[float, float] | None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The natural-neighbour weights (CSR arrays over M + 1 columns) with the far field: a vertex at UV-geodesic
+    distance d from its nearest bundle keeps ``1 - t`` of its bundles' weights and gives ``t`` to column M (the
+    global fit), t the smoothstep from ``far_field[0]`` to ``far_field[1]`` cm, and t (V,). Vertices no bundle's
+    weights reach keep none (they stay as the blend leaves them). None when no vertex is that far, or no far
+    field."""
+    if far_field is None:
+        return None
+    d0, d1 = far_field
+    if not (np.isfinite(d0) and d0 >= 0 and d1 > d0):
+        raise InputError(f"far field must be two distances 0 <= start < end (cm), not {far_field}")
+    indptr, indices, data = arrays["w_indptr"], arrays["w_indices"], arrays["w_data"]
+    dist = np.asarray(arrays["nn_distance"], np.float64)
+    u = np.clip((dist - d0) / (d1 - d0), 0.0, 1.0) if np.isfinite(d1) else np.zeros_like(dist)
+    t = u * u * (3.0 - 2.0 * u)
+    t[np.diff(indptr) == 0] = 0.0
+    # A bundle's own triangle keeps its weights whatever its size: the surface passes through the bundle.
+    t[np.asarray(arrays["marker_vertices"]).ravel()] = 0.0
+    if not (t > 0).any():
+        return None
+    n_v = len(indptr) - 1
+    counts = np.diff(indptr) + (t > 0)
+    out_ptr = np.zeros(n_v + 1, np.int64)
+    out_ptr[1:] = np.cumsum(counts)
+    out_idx = np.empty(out_ptr[-1], np.int64)
+    out_dat = np.empty(out_ptr[-1], np.float64)
+    row = np.repeat(np.arange(n_v), np.diff(indptr))
+    pos = out_ptr[row] + (np.arange(len(indices)) - indptr[row])
+    out_idx[pos] = indices
+    out_dat[pos] = data * (1.0 - t[row])
+    far = np.flatnonzero(t > 0)
+    out_idx[out_ptr[far + 1] - 1] = n_markers
+    out_dat[out_ptr[far + 1] - 1] = t[far]
+    return out_ptr, out_idx, out_dat, t
