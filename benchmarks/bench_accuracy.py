@@ -29,7 +29,8 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # small bounded fits: threaded BLAS is 40x slower here
 
-DEFAULT_SETS = "synthetic,ict_jaw,ict_heldout,ict_combination,session_0,session_150,session_400,ict_session"
+DEFAULT_SETS = ("synthetic,ict_jaw,ict_heldout,ict_combination,session_0,session_150,session_400,session_0_norig,"
+                "session_150_norig,session_400_norig,ict_session")
 RIG_FIT = "blendshape fit + rig"
 RIG_FIT_SMOOTHED = "blendshape fit + rig, smoothed bundles"
 
@@ -40,8 +41,8 @@ def session_summary(table, sets: dict) -> str:
     smoothed bundles ("-" where a set has no such row)."""
     from lgi.evaluation.accuracy import SESSION_PREFIXES
 
-    lines = ["| set | scans | bundles | RMS | p95 | max | RMS / best baseline | RMS / rig fit | "
-             "RMS / rig fit, smoothed bundles |", "|" + "---|" * 9]
+    lines = ["| set | scans | bundles | RMS | p95 | max | RMS / best baseline | p95 / best baseline | "
+             "max / lowest baseline max | RMS / rig fit | RMS / rig fit, smoothed bundles |", "|" + "---|" * 11]
     for name, bs in sets.items():
         if not name.startswith(SESSION_PREFIXES):
             continue
@@ -50,12 +51,13 @@ def session_summary(table, sets: dict) -> str:
             if "LGI (default)" not in rows.index:
                 continue
             r = rows.loc["LGI (default)"]
-            ratios = [f"{r.rms_vs_best_baseline:.2f}"]
+            base_max = rows[rows.baseline.astype(bool)].max_mm.min()
+            ratios = [f"{r.rms_vs_best_baseline:.2f}", f"{r.p95_vs_best_baseline:.2f}", f"{r.max_mm / base_max:.2f}"]
             for other in (RIG_FIT, RIG_FIT_SMOOTHED):
                 ok = kind == "noisy" and other in rows.index
                 ratios.append(f"{r.rms_mm / rows.loc[other, 'rms_mm']:.2f}" if ok else "-")
-            lines.append(f"| {name} | {len(bs.info['scan_frames'])} | {kind} | {r.rms_mm:.3f} | {r.p95_mm:.3f} | "
-                         f"{r.max_mm:.2f} | " + " | ".join(ratios) + " |")
+            lines.append(f"| {name} | {len(bs.info['scan_frames'])} | {kind} | {r.rms_mm:.4f} | {r.p95_mm:.4f} | "
+                         f"{r.max_mm:.3f} | " + " | ".join(ratios) + " |")
     return "\n".join(lines) if len(lines) > 2 else ""
 
 

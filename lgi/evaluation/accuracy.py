@@ -287,8 +287,8 @@ def format_table(table: pd.DataFrame) -> str:
             "p95_vs_best_baseline": "p95 / best baseline", "frames_per_s": "frames/s", "note": "note"}
     keep = [c for c in cols if c in table and (c != "note" or table[c].fillna("").astype(bool).any())]
     t = table[keep].rename(columns=cols)
-    fmt = {"RMS mm": "{:.3f}", "p95 mm": "{:.3f}", "max mm": "{:.2f}", "lips RMS mm": "{:.3f}",
-           "wide-open RMS mm": "{:.3f}", "far max mm": "{:.2f}", "bundle residual mm": "{:.1e}",
+    fmt = {"RMS mm": "{:.3g}", "p95 mm": "{:.3g}", "max mm": "{:.3g}", "lips RMS mm": "{:.3g}",
+           "wide-open RMS mm": "{:.3g}", "far max mm": "{:.2f}", "bundle residual mm": "{:.1e}",
            "normal error deg": "{:.2f}", "jitter mm^2": "{:.4f}", "RMS / best baseline": "{:.2f}",
            "p95 / best baseline": "{:.2f}", "frames/s": "{:.0f}"}
     lines = ["| " + " | ".join(t.columns) + " |", "|" + "---|" * len(t.columns)]

@@ -48,7 +48,7 @@ from lgi.errors import InputError
 from lgi.solve.jaw import JawRig
 
 SET_NAMES = ("synthetic", "ict_jaw", "ict_heldout", "ict_combination", "session_0", "session_150", "session_400",
-             "ict_session")
+             "session_0_norig", "session_150_norig", "session_400_norig", "ict_session")
 
 NOISE_CM = 0.03  # 0.3 mm per coordinate: a good head-mounted stereo rig's triangulation noise
 MISSING_FRACTION = 0.05
@@ -460,7 +460,7 @@ def _synthetic_lip_line(neutral: np.ndarray) -> np.ndarray:
 
 
 def session_set(n_scans: int, frames: int = 160, seed: int = 3, scan_seed: int = 1,
-                n_vertices: int = 20000) -> BenchSet:
+                n_vertices: int = 20000, rig: bool = True) -> BenchSet:
     """The synthetic actor with a capture session's scans in the dataset: does LGI use captured poses?
 
     Dataset: the 47 shapes of :func:`lgi.synthetic.actor.make_dataset` plus ``n_scans`` captured poses,
@@ -484,11 +484,14 @@ def session_set(n_scans: int, frames: int = 160, seed: int = 3, scan_seed: int =
         Seed of the performance the scans are taken from.
     n_vertices : int
         At least this many vertices (see :func:`lgi.synthetic.actor.make_actor`).
+    rig : bool
+        With the actor's jaw rig (False: none, as a session without a jaw rig is reconstructed; the set is
+        then named ``session_{n_scans}_norig``).
 
     Returns
     -------
     BenchSet
-        Named ``session_{n_scans}``; ``info`` has ``scan_seed``, ``scan_frames`` (n_scans,) int,
+        Named ``session_{n_scans}`` (``_norig``); ``info`` has ``scan_seed``, ``scan_frames`` (n_scans,) int,
         ``activations`` (F, C) of the shot, ``controls`` and ``at_rest`` (F,) bool.
 
     Raises
@@ -515,12 +518,13 @@ def session_set(n_scans: int, frames: int = 160, seed: int = 3, scan_seed: int =
     true_jaw = actor.jaw_parameters(acts)
     widest = max(m.extra["jaw"][0] for m in ds.shape_meta[:len(base_names)])
     return _finish(
-        f"session_{n_scans}",
+        f"session_{n_scans}" + ("" if rig else "_norig"),
         f"The synthetic actor's random performance of {frames} frames (seed {seed}) against a dataset of the 47 "
         f"shapes plus {n_scans} captured poses (the true nonlinear face at frames of another 600-frame "
         f"performance, seed {scan_seed}), so no frame is a dataset shape (frames with no control active are the "
         "neutral).",
-        ds, layout, synth.jaw_rig(actor), truth, mask, _synthetic_lip_line(actor.neutral), true_jaw[:, 0], widest,
+        ds, layout, synth.jaw_rig(actor) if rig else None, truth, mask, _synthetic_lip_line(actor.neutral),
+        true_jaw[:, 0], widest,
         true_jaw, seed, {"scan_seed": scan_seed, "scan_frames": scan_frames, "activations": acts,
                          "controls": list(synth.CONTROLS), "at_rest": ~(acts > 0).any(1)},
     )
@@ -1099,7 +1103,8 @@ def load_sets(names: Iterable[str] | None = None, ict_dir: str | os.PathLike[str
     builders = {"synthetic": lambda: synthetic_set(), "ict_jaw": lambda: ict_jaw_set(folder),
                 "ict_heldout": lambda: ict_heldout_set(folder), "ict_combination": lambda: ict_combination_set(folder),
                 "ict_session": lambda: ict_session_set(folder),
-                **{f"session_{n}": functools.partial(session_set, n) for n in SESSION_SCANS}}
+                **{f"session_{n}": functools.partial(session_set, n) for n in SESSION_SCANS},
+                **{f"session_{n}_norig": functools.partial(session_set, n, rig=False) for n in SESSION_SCANS}}
     if folder is None and any(needs_ict(n) for n in asked):
         raise InputError("the ICT sets need the ICT FaceKit folder: pass ict_dir or set LGI_SHARED_DATA "
                          "(looked for ../shared/data/ict-facekit)")

@@ -58,7 +58,7 @@ def bench(out: str | Path, options: BenchOptions | None = None, log=print) -> di
     out = Path(out)
     check_output(out, "dir", inputs=[o.ict])
     t0 = time.perf_counter()
-    names = ["synthetic", *(f"session_{n}" for n in benchsets.SESSION_SCANS)]
+    names = ["synthetic", *(f"session_{n}{r}" for r in ("", "_norig") for n in benchsets.SESSION_SCANS)]
     ict = Path(o.ict) if o.ict else shared_data("ict-facekit")
     skipped = None
     if o.no_ict:

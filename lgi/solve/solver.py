@@ -189,7 +189,7 @@ class LGISolver:
     def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.1,
                  correct_residuals: bool = True, tolerance: float = 1e-9, n_project: int = 3,
                  spatial_weight: float = 1e-3, top_k: int = 4, jaw: str = "auto", method: str = "local",
-                 local_prior: float = 1e-4, noise: float = 0.0,
+                 local_prior: float = 1e-6, noise: float = 0.0,
                  far_field: tuple[float, float] | None = FAR_FIELD) -> None:
         if method not in ("local", "simplex"):
             raise InputError(f"unknown method {method!r}: use 'local' or 'simplex'")
