@@ -207,6 +207,7 @@ def test_far_field_keeps_captured_scans_from_extrapolating() -> None:
     # A capture session without a jaw rig: the local fits of the outer bundles pick scans that fit their
     # neighbourhood and extrapolate beyond it. Without the far field the side of the face was off by 4.1 mm
     # (fit: 0.37 mm); with it the maximum is the global fit's or better, and bundles are still met exactly.
+    # Bundles whose weights predict their second ring of neighbours as well as the global fit keep them.
     from lgi.evaluation.benchsets import session_set
     from lgi.index.build import build_index
 
@@ -222,3 +223,6 @@ def test_far_field_keeps_captured_scans_from_extrapolating() -> None:
     assert np.sqrt(np.mean(err[(0.5, 1.5)] ** 2)) < 0.7 * np.sqrt(np.mean(fit**2))
     for r in runs.values():
         assert np.nanmax(r.diagnostics.residual_mm) < 1e-4
+    solver = LGISolver(index)
+    shares = np.stack([solver.select_frame(b).far_share for b in bs.bundles[::10]])
+    assert (shares == 0).mean() > 0.3 and (shares > 0.9).any()

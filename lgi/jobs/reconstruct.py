@@ -524,6 +524,8 @@ def save_choices(path: str | Path, sels: list, durable: bool = True) -> None:
     a["fallback"] = np.array(json.dumps([r.fallback for r in sels]))
     if sels[0].jaw is not None:
         a["jaw"] = np.stack([r.jaw for r in sels])
+    if sels[0].far_share is not None:
+        a["far_share"] = np.stack([r.far_share for r in sels])
     a["fit_weights"] = np.stack([r.fit.weights for r in sels])
     a["fit_residual"] = np.stack([r.fit.residual for r in sels])
     a["fit_rms"] = np.array([r.fit.rms for r in sels], np.float64)
@@ -551,7 +553,7 @@ def load_choices(path: str | Path) -> list:
                                a["n_containing"][f], a["status"][f], a["projection"][f], a["score"][f],
                                a["residual"][f], notes[f], a["jaw"][f] if "jaw" in a else None, a["bundles"][f],
                                None, a["source"][f].astype(object), fit, a["simplex_shapes"][f],
-                               a["simplex_weights"][f]))
+                               a["simplex_weights"][f], a["far_share"][f] if "far_share" in a else None))
     return out
 
 

@@ -44,6 +44,10 @@ NOISE_FLOOR = 0.05
 # Far field (cm of UV-geodesic distance to the nearest bundle): up to the first value every vertex mixes the
 # bundles' own weights; beyond the second it takes the frame's global fit; in between a smooth ramp.
 FAR_FIELD = (0.5, 1.5)
+# A bundle's weights give way to the global fit in the far field where they predict the bundles beyond their
+# neighbourhood this many times worse (RMS) than the global fit does (measured on captured-scan datasets: 1
+# left the rigged session 12 % above its local-only error, 4 within 5 %, with the scans' extrapolation caught).
+FAR_MARGIN = 2.0
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +97,10 @@ class FrameResult:
         The frame's global fit (jaw and weights of all shapes) the local fits started from.
     simplex_shapes, simplex_weights : (M, 4) int64 and float64, or None
         The simplex choice of every bundle (carried to the next frame's temporal preference).
+    far_share : (M,) float64 or None
+        How far each bundle's weights are trusted away from the bundles, as a share given to the global
+        fit in the far field (0: the bundle's own geometry extrapolates as well as the global fit, 1: far
+        worse; :meth:`LGISolver.far_shares`). None: 1 for every bundle.
     """
 
     vertices: np.ndarray
@@ -111,6 +119,7 @@ class FrameResult:
     fit: GlobalFitResult | None = None
     simplex_shapes: np.ndarray | None = None
     simplex_weights: np.ndarray | None = None
+    far_share: np.ndarray | None = None
 
 
 @dataclass
@@ -220,9 +229,8 @@ class LGISolver:
         self._deltas_flat = self._deltas.reshape(len(self._deltas), -1)  # a view: rows of 3V for blend_uniform
         self._w_sum: np.ndarray | None = None  # (V,) total blend weight per vertex, for uniform blends
         self.far_field = None if far_field is None else (float(far_field[0]), float(far_field[1]))
-        far = _far_blend(a, index.n_markers, self.far_field)
-        self._far_w = None if far is None else far[:3]
-        self._far_t = None if far is None else far[3]
+        self._far = _FarField(a, index.n_markers, self.far_field)
+        self._far_w = self._far if self._far.active else None
         nb_off, nb_idx = a["nb_off"], a["nb_idx"]
         self._neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(index.n_markers)]
         self._rest = a["ptab"][0]
@@ -246,6 +254,19 @@ class LGISolver:
         self._pair_w = np.concatenate([np.full(index.n_markers, K.OWN_WEIGHT), np.ones(len(nb_idx))])
         own = np.repeat(np.arange(index.n_markers), counts)
         self._nb_pairs = np.stack([own, nb_idx], 1)[own < nb_idx]
+        # Each bundle's second ring of natural neighbours: where its own weights are tried beyond the bundles
+        # they were fitted to.
+        ring_i, ring_j = [], []
+        for i in range(index.n_markers):
+            first = set(self._neighbours[i].tolist())
+            second = set()
+            for j in first:
+                second.update(self._neighbours[j].tolist())
+            second -= first | {i}
+            ring_i += [i] * len(second)
+            ring_j += sorted(second)
+        self._ring_i = np.asarray(ring_i, np.int64)
+        self._ring_j = np.asarray(ring_j, np.int64)
         # A bundle off a flat cloud's plane by less than the flatness tolerance is still inside it.
         self._dist_tol = float(index.manifest["options"]["cloud"]["flat_tol"])
 
@@ -356,9 +377,14 @@ class LGISolver:
         source = np.full(len(p), "simplex", object)
         if self.method == "local":
             shapes, lam, score, source, fallback = self._local(q, seen, fit, shapes, lam, score, fallback)
+        share = None
+        if self._far.active:
+            dense = np.zeros((len(p), self.global_fit.n_shapes + 1))
+            np.add.at(dense, (np.repeat(np.arange(len(p)), shapes.shape[1]), shapes.ravel()), lam.ravel())
+            share = self.far_shares(q, seen, dense[:, 1:], fit.weights)
         return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, n_contain, status, proj, score,
                            np.where(seen, 0.0, np.nan), fallback, theta, p, None, source, fit, simplex_shapes,
-                           simplex_weights)
+                           simplex_weights, share)
 
     def _misfits(self, q: np.ndarray, seen: np.ndarray, w: np.ndarray) -> np.ndarray:
         """(M,) RMS misfit (cm) of each bundle's weights ``w`` (M, S) at the bundle (weight OWN_WEIGHT) and its
@@ -441,11 +467,13 @@ class LGISolver:
             out_w[i, :len(nz)] = chosen[i, nz]
         return out_s, out_w, np.where(use_local, local_score, simplex_score), source, notes
 
-    def surface(self, shapes: np.ndarray, weights: np.ndarray, jaw: np.ndarray | None) -> np.ndarray:
+    def surface(self, shapes: np.ndarray, weights: np.ndarray, jaw: np.ndarray | None,
+                far: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """(V, 3) float64: the natural-neighbour blend of the bundles' shapes, skinned when there is a rig.
 
         ``shapes``, ``weights``: (M, K) slots per bundle, or (M + 1, K) with the frame's global fit last
-        (:meth:`blend_slots`), which the far field blends toward."""
+        (:meth:`blend_slots`), which the far field blends toward with the frame's ``far`` weights
+        (:meth:`far_weights`; default: every bundle's share 1)."""
         a = self._a
         x = np.empty_like(self._x0)
         if (shapes == shapes[0]).all() and (weights == weights[0]).all():
@@ -455,15 +483,59 @@ class LGISolver:
                     np.diff(a["w_indptr"]) > 0)
             K.blend_uniform(self._x0.reshape(-1), self._deltas_flat, self._w_sum,
                             shapes[0], weights[0], x.reshape(-1))
-        elif len(shapes) == self.index.n_markers + 1 and self._far_w is not None:
+        elif len(shapes) == self.index.n_markers + 1 and self._far.active:
             # The last row is the global fit's, which the far field blends toward.
-            K.blend(self._x0, self._deltas, *self._far_w, shapes, weights, x)
+            ptr, idx, data, _ = self.far_weights(None) if far is None else far
+            K.blend(self._x0, self._deltas, ptr, idx, data, shapes, weights, x)
         else:
             K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes[:self.index.n_markers],
                     weights[:self.index.n_markers], x)
         if self.rig is not None:
             K.skin_points(x, self._skin_w, np.ascontiguousarray(jaw_matrix(jaw, self.rig.pivot)[:3]), x)
         return x
+
+    def far_weights(self, share: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The frame's blend weights with the far field (CSR arrays over M + 1 columns) and its share t (V,) of
+        the global fit, given the bundles' shares (M,) (None: all 1): a vertex at ramp r (:class:`_FarField`)
+        keeps ``N_vb (1 - r s_b)`` of bundle b's weights and gives ``t = r sum_b N_vb s_b`` to the global fit."""
+        return self._far.weights(share)
+
+    def far_shares(self, q: np.ndarray, seen: np.ndarray, weights: np.ndarray, global_weights: np.ndarray
+                   ) -> np.ndarray:
+        """(M,) each bundle's far share: how much worse its weights predict the seen bundles of its second
+        ring of natural neighbours (not fitted to them) than the global fit's do.
+
+        With ``e_b`` its RMS misfit there and ``g_b`` the global fit's, the share is
+        ``(e_b^2 - c g_b^2) / (e_b^2 + c g_b^2)`` clipped to [0, 1], ``c = FAR_MARGIN^2``: 0 unless the bundle's
+        weights miss the ring clearly worse than the global fit (which was fitted to it), near 1 where the
+        bundle's geometry leaves its neighbourhood (a captured scan that fits a bundle's neighbours and not the
+        face beyond).
+
+        Parameters
+        ----------
+        q : (M, 3) float, cm
+            Bundles (unskinned with a rig); rows of unseen ones are ignored.
+        seen : (M,) bool
+        weights : (M, S) float
+            Each bundle's shape weights.
+        global_weights : (S,) float
+        """
+        i, j = self._ring_i, self._ring_j
+        ok = seen[j]
+        i, j = i[ok], j[ok]
+        used = np.flatnonzero(np.any(weights != 0, axis=0))
+        pred = self._rest[j] + np.einsum("ek,kec->ec", weights[i][:, used], self._basis[used][:, j])
+        d_own = np.sum((pred - q[j]) ** 2, axis=1)
+        g = global_weights != 0
+        glob = self._rest + np.tensordot(global_weights[g], self._basis[g], axes=1)
+        d_glob = np.sum((glob[j] - q[j]) ** 2, axis=1)
+        cnt = np.maximum(np.bincount(i, minlength=len(q)), 1)
+        e2 = np.bincount(i, d_own, minlength=len(q)) / cnt
+        g2 = np.bincount(i, d_glob, minlength=len(q)) / cnt
+        # The global fit was fitted to the ring, the bundle's weights were not: the global fit takes a share
+        # only where the bundle's weights miss the ring by more than FAR_MARGIN times its RMS misfit.
+        c = FAR_MARGIN**2
+        return np.clip((e2 - c * g2) / (e2 + c * g2 + 1e-12), 0.0, 1.0)
 
     def blend_slots(self, sel: FrameResult) -> tuple[np.ndarray, np.ndarray]:
         """A frame's slots for :meth:`surface`: the bundles' (M, K), and with a far field the global fit's
@@ -477,7 +549,7 @@ class LGISolver:
                      target: np.ndarray) -> np.ndarray | None:
         """(M, 3) cm: ``target`` minus the bundles' points on the surface of the last row's weights (the global
         fit's, :meth:`blend_slots`), skinned; None without that row."""
-        if self._far_w is None or len(shapes) != self.index.n_markers + 1:
+        if not self._far.active or len(shapes) != self.index.n_markers + 1:
             return None
         use = weights[-1] != 0
         mv = self.layout.vertices  # (M, 3): the surface at each bundle is its triangle's corners, skinned
@@ -489,13 +561,13 @@ class LGISolver:
         return np.asarray(target, np.float64) - pred
 
     def correct_far(self, x: np.ndarray, resid: np.ndarray, far_resid: np.ndarray | None, seen: np.ndarray,
-                    gain: float) -> None:
+                    gain: float, t: np.ndarray | None) -> None:
         """Give the far field the global surface's own correction (in place): :meth:`correct` took ``x`` through
         the bundles by the correction of the blend's residuals ``resid`` (M, 3); where the far field weighs t,
         the global surface's share gets the correction of its residuals ``far_resid`` instead. Each surface is
         taken through the bundles by its own smooth field, and the two are mixed as the surfaces are (at the
-        bundles t is 0, so they are still met exactly)."""
-        if far_resid is None or self._far_t is None or not self.correct_residuals or gain == 0:
+        bundles t (V,) is 0, so they are still met exactly)."""
+        if far_resid is None or t is None or not self.correct_residuals or gain == 0:
             return
         d = np.where(seen[:, None], np.nan_to_num(far_resid - resid), 0.0) * gain
         fix = np.flatnonzero(np.abs(d).max(axis=1) > 1e-7)
@@ -504,7 +576,7 @@ class LGISolver:
         a = self._a
         y = np.zeros_like(x)
         K.add_correction(y, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, d[fix])
-        x += self._far_t[:, None] * y
+        x += t[:, None] * y
 
     def blend_frame(self, sel: FrameResult, shapes: np.ndarray, weights: np.ndarray,
                     jaw: np.ndarray | None, bundles: np.ndarray | None = None) -> FrameResult:
@@ -512,14 +584,16 @@ class LGISolver:
 
         ``bundles`` are the positions to pass through (default: those the selection was made for).
         """
-        x = self.surface(shapes, weights, jaw)
+        far = self.far_weights(sel.far_share) if len(shapes) == self.index.n_markers + 1 and self._far.active \
+            else None
+        x = self.surface(shapes, weights, jaw, far)
         p = sel.bundles if bundles is None else np.asarray(bundles, np.float64)
         seen = np.all(np.isfinite(p), axis=1)
         at = self.layout.evaluate(x)
         before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - at, axis=1), np.nan)
         far_resid = self.far_residual(shapes, weights, jaw, p)
         self.correct(x, at + self.noise_gain * (p - at), seen)
-        self.correct_far(x, p - at, far_resid, seen, self.noise_gain)
+        self.correct_far(x, p - at, far_resid, seen, self.noise_gain, None if far is None else far[3])
         residual = np.where(seen, np.linalg.norm(np.nan_to_num(p) - self.layout.evaluate(x), axis=1), np.nan)
         return dataclasses.replace(sel, vertices=x.astype(np.float32), residual=residual, jaw=jaw, bundles=p,
                                    residual_before=before)
@@ -763,7 +837,7 @@ class LGISolver:
                 if f < 0:
                     raise sel
                 sels.append(sel)
-                fin.frame(f, *self.blend_slots(sel), sel.jaw)
+                fin.frame(f, *self.blend_slots(sel), sel.jaw, sel.far_share)
         finally:
             stop.set()
             worker.join()
@@ -796,25 +870,28 @@ class LGISolver:
         thetas = None
         if self.rig is not None:
             thetas = smooth_parameters(np.stack([r.jaw for r in sels]), smooth if jaw_smooth is None else jaw_smooth)
+        shares = np.stack([np.ones(self.index.n_markers) if r.far_share is None else r.far_share for r in sels])
         if smooth > 1:
             shapes, lam = window_slots(shapes, lam, smooth)
+            shares = moving_average(shares, smooth)
         # With smoothing, a frame's correction averages the residuals of its window: those frames are blended too.
         a, b = (max(0, lo - smooth // 2), min(n_f, hi + smooth // 2)) if smooth > 1 else (lo, hi)
         fin = _Finisher(self, pos[a:b], fit_pos[a:b])
         if smooth > 1:
             # The correction follows the same moving average: corrected to each frame's raw residuals, the
             # surface would carry the bundles' noise straight back. So every surface is blended first.
-            blends = [fin.blend(f - a, shapes[f], lam[f], None if thetas is None else thetas[f])
+            blends = [fin.blend(f - a, shapes[f], lam[f], None if thetas is None else thetas[f], shares[f])
                       for f in progress(range(a, b), "blending", disable=not show_progress)]
-            resid = np.stack([r for _, r, _ in blends])
+            resid = np.stack([r for _, r, _, _ in blends])
             fin.before[:] = np.linalg.norm(resid, axis=2)
             resid = moving_average(resid, smooth)
-            far = None if blends[0][2] is None else moving_average(np.stack([r for _, _, r in blends]), smooth)
+            far = None if blends[0][2] is None else moving_average(np.stack([r for _, _, r, _ in blends]), smooth)
             for f in range(lo, hi):
-                fin.finish(f - a, blends[f - a][0], resid[f - a], None if far is None else far[f - a])
+                fin.finish(f - a, blends[f - a][0], resid[f - a], None if far is None else far[f - a],
+                           blends[f - a][3])
         else:
             for f in progress(range(lo, hi), "blending", disable=not show_progress):
-                fin.frame(f - a, shapes[f], lam[f], None if thetas is None else thetas[f])
+                fin.frame(f - a, shapes[f], lam[f], None if thetas is None else thetas[f], shares[f])
         keep = slice(lo - a, hi - a)
         th = None if thetas is None else thetas[lo:hi]
         diag = self._diagnostics(sels[lo:hi], np.asarray(frames)[lo:hi], bridged[lo:hi], fin.before[keep],
@@ -893,30 +970,35 @@ class _Finisher:
         self.before = np.empty((n_f, n_m))
         self.r_final = np.empty((n_f, n_m))
 
-    def blend(self, f: int, shapes: np.ndarray, lam: np.ndarray, jaw: np.ndarray | None
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """Frame f's surface (V, 3), its residuals (M, 3) to the fitted positions (NaN where missing) and those
-        of the far field's global surface (None without a far field)."""
-        x = self.solver.surface(shapes, lam, jaw)
-        return (x, self.fit_pos[f] - self.solver.layout.evaluate(x),
-                self.solver.far_residual(shapes, lam, jaw, self.fit_pos[f]))
+    def blend(self, f: int, shapes: np.ndarray, lam: np.ndarray, jaw: np.ndarray | None,
+              share: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Frame f's surface (V, 3), its residuals (M, 3) to the fitted positions (NaN where missing), those of
+        the far field's global surface and the far field's share t (V,) (both None without a far field), given
+        the bundles' far shares."""
+        s = self.solver
+        far = s.far_weights(share) if len(shapes) == s.index.n_markers + 1 and s._far.active else None
+        x = s.surface(shapes, lam, jaw, far)
+        return (x, self.fit_pos[f] - s.layout.evaluate(x), s.far_residual(shapes, lam, jaw, self.fit_pos[f]),
+                None if far is None else far[3])
 
-    def finish(self, f: int, x: np.ndarray, resid: np.ndarray, far_resid: np.ndarray | None = None) -> None:
-        """Correct surface ``x`` by ``noise_gain`` of ``resid`` at the seen bundles (its far field by the global
-        surface's ``far_resid``) and store it."""
+    def finish(self, f: int, x: np.ndarray, resid: np.ndarray, far_resid: np.ndarray | None = None,
+               t: np.ndarray | None = None) -> None:
+        """Correct surface ``x`` by ``noise_gain`` of ``resid`` at the seen bundles (where the far field weighs
+        t, by the global surface's ``far_resid``) and store it."""
         s, seen = self.solver, self.seen[f]
         target = np.where(seen[:, None], s.layout.evaluate(x) + s.noise_gain * np.nan_to_num(resid), np.nan)
         s.correct(x, target, seen)
-        s.correct_far(x, resid, far_resid, seen, s.noise_gain)
+        s.correct_far(x, resid, far_resid, seen, s.noise_gain, t)
         self.out[f] = x
         self.r_final[f] = np.where(seen, np.linalg.norm(np.nan_to_num(self.pos[f]) - s.layout.evaluate(x), axis=1),
                                    np.nan)
 
-    def frame(self, f: int, shapes: np.ndarray, lam: np.ndarray, jaw: np.ndarray | None) -> None:
+    def frame(self, f: int, shapes: np.ndarray, lam: np.ndarray, jaw: np.ndarray | None,
+              share: np.ndarray | None = None) -> None:
         """:meth:`blend` and :meth:`finish` frame f with its own residuals."""
-        x, resid, far_resid = self.blend(f, shapes, lam, jaw)
+        x, resid, far_resid, t = self.blend(f, shapes, lam, jaw, share)
         self.before[f] = np.linalg.norm(resid, axis=1)
-        self.finish(f, x, resid, far_resid)
+        self.finish(f, x, resid, far_resid, t)
 
 
 def slot_labels(shapes: np.ndarray, weights: np.ndarray, shape_names: list[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -999,38 +1081,56 @@ def _append_rows(shapes: list[np.ndarray], weights: list[np.ndarray], fit_weight
     return _stack_slots(rows_s, rows_w)
 
 
-def _far_blend(arrays, n_markers: int, far_field: tuple[float, float] | None
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """The natural-neighbour weights (CSR arrays over M + 1 columns) with the far field: a vertex at UV-geodesic
-    distance d from its nearest bundle keeps ``1 - t`` of its bundles' weights and gives ``t`` to column M (the
-    global fit), t the smoothstep from ``far_field[0]`` to ``far_field[1]`` cm, and t (V,). Vertices no bundle's
-    weights reach keep none (they stay as the blend leaves them). None when no vertex is that far, or no far
-    field."""
-    if far_field is None:
-        return None
-    d0, d1 = far_field
-    if not (np.isfinite(d0) and d0 >= 0 and d1 > d0):
-        raise InputError(f"far field must be two distances 0 <= start < end (cm), not {far_field}")
-    indptr, indices, data = arrays["w_indptr"], arrays["w_indices"], arrays["w_data"]
-    dist = np.asarray(arrays["nn_distance"], np.float64)
-    u = np.clip((dist - d0) / (d1 - d0), 0.0, 1.0) if np.isfinite(d1) else np.zeros_like(dist)
-    t = u * u * (3.0 - 2.0 * u)
-    t[np.diff(indptr) == 0] = 0.0
-    # A bundle's own triangle keeps its weights whatever its size: the surface passes through the bundle.
-    t[np.asarray(arrays["marker_vertices"]).ravel()] = 0.0
-    if not (t > 0).any():
-        return None
-    n_v = len(indptr) - 1
-    counts = np.diff(indptr) + (t > 0)
-    out_ptr = np.zeros(n_v + 1, np.int64)
-    out_ptr[1:] = np.cumsum(counts)
-    out_idx = np.empty(out_ptr[-1], np.int64)
-    out_dat = np.empty(out_ptr[-1], np.float64)
-    row = np.repeat(np.arange(n_v), np.diff(indptr))
-    pos = out_ptr[row] + (np.arange(len(indices)) - indptr[row])
-    out_idx[pos] = indices
-    out_dat[pos] = data * (1.0 - t[row])
-    far = np.flatnonzero(t > 0)
-    out_idx[out_ptr[far + 1] - 1] = n_markers
-    out_dat[out_ptr[far + 1] - 1] = t[far]
-    return out_ptr, out_idx, out_dat, t
+class _FarField:
+    """The natural-neighbour weights with a far field (see :class:`LGISolver`, ``far_field``).
+
+    A vertex at UV-geodesic distance d from its nearest bundle has the ramp r (V,): 0 up to ``far_field[0]`` cm,
+    1 from ``far_field[1]``, a smoothstep between, and 0 on every bundle's own triangle (the surface passes
+    through the bundles) and where no bundle's weights reach. Per frame, given each bundle's far share s (M,),
+    the vertex keeps ``N_vb (1 - r_v s_b)`` of bundle b's weights and gives ``t_v = r_v sum_b N_vb s_b`` to
+    column M, the frame's global fit (:meth:`weights`).
+    """
+
+    def __init__(self, arrays, n_markers: int, far_field: tuple[float, float] | None) -> None:
+        self.n_markers = n_markers
+        self.active = False
+        if far_field is None:
+            return
+        d0, d1 = far_field
+        if not (np.isfinite(d0) and d0 >= 0 and d1 > d0):
+            raise InputError(f"far field must be two distances 0 <= start < end (cm), not {far_field}")
+        indptr, indices, data = arrays["w_indptr"], arrays["w_indices"], arrays["w_data"]
+        dist = np.asarray(arrays["nn_distance"], np.float64)
+        u = np.clip((dist - d0) / (d1 - d0), 0.0, 1.0) if np.isfinite(d1) else np.zeros_like(dist)
+        r = u * u * (3.0 - 2.0 * u)
+        r[np.diff(indptr) == 0] = 0.0
+        # A bundle's own triangle keeps its weights whatever its size: the surface passes through the bundle.
+        r[np.asarray(arrays["marker_vertices"]).ravel()] = 0.0
+        if not (r > 0).any():
+            return
+        self.active = True
+        n_v = len(indptr) - 1
+        far = r > 0
+        self.ptr = np.zeros(n_v + 1, np.int64)
+        self.ptr[1:] = np.cumsum(np.diff(indptr) + far)
+        self.idx = np.empty(self.ptr[-1], np.int64)
+        self.row = np.repeat(np.arange(n_v), np.diff(indptr))  # the vertex of each bundle entry
+        self.pos = self.ptr[self.row] + (np.arange(len(indices)) - indptr[self.row])  # where each goes
+        self.col = np.asarray(indices, np.int64)
+        self.nn = np.asarray(data, np.float64)
+        self.idx[self.pos] = self.col
+        self.far_v = np.flatnonzero(far)
+        self.far_pos = self.ptr[self.far_v + 1] - 1
+        self.idx[self.far_pos] = n_markers
+        self.r = r
+        self.n_v = n_v
+
+    def weights(self, share: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(indptr, indices, data) over M + 1 columns and t (V,) for the bundles' far shares (M,) (None: 1)."""
+        s = np.ones(self.n_markers) if share is None else np.clip(np.asarray(share, np.float64), 0.0, 1.0)
+        rs = self.r[self.row] * s[self.col]
+        data = np.empty(self.ptr[-1], np.float64)
+        data[self.pos] = self.nn * (1.0 - rs)
+        t = np.bincount(self.row, self.nn * rs, minlength=self.n_v)
+        data[self.far_pos] = t[self.far_v]
+        return self.ptr, self.idx, data, t
