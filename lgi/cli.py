@@ -523,14 +523,16 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run LGI, the blendshape fits (with and without the jaw rig), RBF weights + "
                                    "smooth and smooth interpolation on the synthetic held-out performance and, when "
                                    "../shared/data has ICT FaceKit, on an ICT actor with a rotating jaw, held-out ICT "
-                                   "shapes and ICT with combination shapes; each with clean and noisy bundles. "
+                                   "shapes and ICT with combination shapes; a capture session (the synthetic actor's "
+                                   "shapes plus 0, 150 or 400 captured poses, with and without its jaw rig, and ICT "
+                                   "with 150 captured frames); each with clean and noisy bundles. "
                                    "Prints one table per set, writes accuracy.csv and heat maps (PNG).")
     s.add_argument("--out", default="lgi-bench", metavar="DIR", help="tables and pictures (default ./lgi-bench)")
     s.add_argument("--frames", type=int, default=300, metavar="F", help="synthetic performance length (300)")
     s.add_argument("--noise", type=float, default=0.3, metavar="MM",
                    help="bundle noise of the noisy sets, per coordinate (0.3; 5 %% of marker-frames also missing)")
     s.add_argument("--ict", metavar="DIR", help="ICT FaceKit folder (default ../shared/data/ict-facekit)")
-    s.add_argument("--no-ict", action="store_true", help="synthetic only")
+    s.add_argument("--no-ict", action="store_true", help="synthetic sets only (the performance and its sessions)")
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("cache", help="list or trim the rebuild's stage cache",

@@ -226,3 +226,11 @@ def test_far_field_keeps_captured_scans_from_extrapolating() -> None:
     solver = LGISolver(index)
     shares = np.stack([solver.select_frame(b).far_share for b in bs.bundles[::10]])
     assert (shares == 0).mean() > 0.3 and (shares > 0.9).any()
+
+
+def test_far_field_option() -> None:
+    from lgi.jobs.reconstruct import ReconstructOptions
+
+    assert ReconstructOptions().far_field_cm() == (0.5, 1.5)
+    assert ReconstructOptions(far_field="off").far_field_cm() is None
+    assert ReconstructOptions(far_field="0:20").far_field_cm() == (0.0, 2.0)

@@ -567,7 +567,7 @@ class LGISolver:
         the global surface's share gets the correction of its residuals ``far_resid`` instead. Each surface is
         taken through the bundles by its own smooth field, and the two are mixed as the surfaces are (at the
         bundles t (V,) is 0, so they are still met exactly)."""
-        if far_resid is None or t is None or not self.correct_residuals or gain == 0:
+        if far_resid is None or t is None or not self.correct_residuals or gain == 0 or not t.any():
             return
         d = np.where(seen[:, None], np.nan_to_num(far_resid - resid), 0.0) * gain
         fix = np.flatnonzero(np.abs(d).max(axis=1) > 1e-7)
