@@ -61,6 +61,55 @@ def session_summary(table, sets: dict) -> str:
     return "\n".join(lines) if len(lines) > 2 else ""
 
 
+def doc_table(table, name: str) -> str:
+    """One set's rows, clean then noisy, as the Markdown table of ``docs/accuracy.md`` (a bundles column first)."""
+    from lgi.evaluation.accuracy import format_table
+
+    sub = table[table.set == name].drop(columns=[c for c in ("jitter_mm2",) if c in table]).copy()
+    if "note" in sub and not sub.note.fillna("").astype(bool).any():
+        sub = sub.drop(columns="note")
+    sub["method"] = sub.method.where(sub.method != "LGI (default)", "**LGI (default)**")
+    lines = format_table(sub).splitlines()
+    return "\n".join(["| bundles " + lines[0], "|---" + lines[1]]
+                     + [f"| {b} " + line for b, line in zip(sub.bundles, lines[2:], strict=True)])
+
+
+def doc_summary(table) -> str:
+    """LGI (default) against the best baseline on every set and bundles kind, as a Markdown table."""
+    rows = ["| set | bundles | LGI RMS / p95 / max mm | RMS / best baseline | p95 / best baseline | "
+            "max / lowest baseline max | RMS / fit of the smoothed bundles |", "|" + "---|" * 7]
+    for (name, kind), g in table.groupby(["set", "bundles"], sort=False):
+        lgi = g[g.method == "LGI (default)"].iloc[0]
+        base = g[g.baseline.astype(bool)]
+        smoothed = g[g.method.str.endswith("smoothed bundles")]
+        rows.append(f"| {name} | {kind} | {lgi.rms_mm:.3g} / {lgi.p95_mm:.3g} / {lgi.max_mm:.3g} | "
+                    f"{lgi.rms_vs_best_baseline:.2f} | {lgi.p95_vs_best_baseline:.2f} | "
+                    f"{lgi.max_mm / base.max_mm.min():.2f} | "
+                    + (f"{lgi.rms_mm / smoothed.rms_mm.iloc[0]:.2f}" if len(smoothed) else "-") + " |")
+    return "\n".join(rows)
+
+
+def update_doc(path: Path, table) -> list[str]:
+    """Rewrite the tables of a Markdown file between ``<!-- table:NAME -->`` and ``<!-- /table -->`` markers (NAME a
+    set of ``table``, or ``summary``); returns the names replaced. Text outside the markers is left alone."""
+    import re
+
+    text = path.read_text()
+    done = []
+
+    def put(m: re.Match) -> str:
+        name = m.group(1)
+        if name != "summary" and name not in set(table.set):
+            return m.group(0)
+        done.append(name)
+        body = doc_summary(table) if name == "summary" else doc_table(table, name)
+        return f"<!-- table:{name} -->\n{body}\n<!-- /table -->"
+
+    text = re.sub(r"<!-- table:([\w-]+) -->\n.*?<!-- /table -->", put, text, flags=re.S)
+    path.write_text(text)
+    return done
+
+
 def main() -> int:
     from lgi.evaluation import benchsets
     from lgi.evaluation.accuracy import accuracy_benchmark
@@ -69,7 +118,16 @@ def main() -> int:
     ap.add_argument("--sets", default=DEFAULT_SETS)
     ap.add_argument("--frames", type=int, default=None, help="first F frames of each set (default: all)")
     ap.add_argument("--out", default="bench-accuracy")
+    ap.add_argument("--doc", help="also rewrite the tables of this Markdown file (docs/accuracy.md) between its "
+                                  "<!-- table:SET --> markers")
+    ap.add_argument("--from-csv", help="no run: take the table from this accuracy.csv (with --doc)")
     args = ap.parse_args()
+    if args.from_csv:
+        import pandas as pd
+
+        table = pd.read_csv(args.from_csv)
+        print("tables written:", ", ".join(update_doc(Path(args.doc), table)) if args.doc else "none (no --doc)")
+        return 0
     names = [n for n in args.sets.split(",") if n]
     ict = benchsets.ict_dir_or_none()
     if ict is None:
@@ -84,6 +142,8 @@ def main() -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "accuracy.csv", index=False, float_format="%.6g")
+    if args.doc:
+        print("tables written into", args.doc, ":", ", ".join(update_doc(Path(args.doc), table)))
     summary = session_summary(table, sets)
     if summary:
         print("\nCapture sessions, LGI (default) per number of scans (mm; ratios of RMS, <= 1 means LGI is at least "
