@@ -363,10 +363,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--smooth", type=int, default=1, metavar="WINDOW",
                    help="central moving average of each bundle's shape weights over WINDOW frames (1 = none)")
     s.add_argument("--far-field", default="5:15", metavar="START:END|off",
-                   help="mm from the nearest marker over the skin: beyond START the surface blends from the "
-                        "bundles' local geometry toward the frame's global fit (taken through the bundles by its "
-                        "own correction), wholly beyond END; local geometry carried far from every marker "
-                        "extrapolates (5:15; off = the bundles' weights everywhere)")
+                   help="mm from the nearest marker over the skin: beyond START, a bundle whose weights predict the "
+                        "markers beyond its neighbourhood clearly worse than the frame's global fit gives way to "
+                        "that fit, wholly beyond END; local geometry carried far from every marker can "
+                        "extrapolate (5:15; off = the bundles' weights everywhere)")
     s.add_argument("--noise", default="auto", metavar="MM|auto",
                    help="bundle noise per coordinate: 0 = exact bundles (the surface passes through each); above 0 "
                         "they are measurements: each marker's trajectory is smoothed (window chosen per marker by "

@@ -86,8 +86,8 @@ class ReconstructOptions:
         ``observations`` (its head poses and rig).
     far_field : str
         ``START:END`` in mm of distance from the nearest marker (over the skin, UV-geodesic): beyond START
-        the surface blends from the bundles' local geometry toward the frame's global fit, taken through the
-        bundles by its own correction, wholly so beyond END; "off": the bundles' weights everywhere.
+        a bundle whose weights predict the markers beyond its neighbourhood clearly worse than the frame's
+        global fit gives way to that fit, wholly so beyond END; "off": the bundles' weights everywhere.
     """
 
     temporal_weight: float = 0.02
@@ -806,6 +806,9 @@ def summarise(res, shot: Shot, out: str | Path, seconds: dict[str, float]) -> di
         "noise_coherence": None if est is None else float(est.coherence),
         "seconds": seconds, "outputs": [n for n in OUTPUTS if (Path(out) / n).exists()],
     }
+    if "far_share" in d and d.far_share.notna().any():
+        # Bundle-frames whose weights gave way, far from the markers, to the frame's global fit (share over a half).
+        s["far_field_share"] = float((d.far_share > 0.5).mean())
     if "constraint" in d and (d.constraint == "ray").any():
         r = d.ray_distance_mm.to_numpy()[(d.constraint == "ray").to_numpy()]
         s["rays_used"] = int(r.size)
@@ -842,6 +845,10 @@ def report_lines(s: dict[str, Any]) -> list[str]:
             else "exact (the surface passes through every seen bundle)")
     lines.append(f"bundles treated as {mode} ({how}); local fits for {s['local_fit_share'] * 100:.1f} % of "
                  "bundle-frames")
+    if "far_field_share" in s:
+        lines.append(f"far field: {s['far_field_share'] * 100:.1f} % of bundle-frames gave way to the global fit "
+                     "far from the markers (--far-field; their weights extrapolated worse; far_share in the "
+                     "diagnostics)")
     if "rays_used" in s:
         lines.append(f"markers seen by one camera: {s['rays_used']} put on their viewing rays (the surface meets them "
                      f"within {s['ray_residual_max_mm']:.2e} mm)")

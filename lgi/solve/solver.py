@@ -187,12 +187,14 @@ class LGISolver:
         the surface is not pulled onto the bundles.
     far_field : (float, float) or None, cm
         Vertices farther than the first distance from every bundle (UV-geodesic, the natural-neighbour
-        metric) blend toward the frame's global fit, reached at the second distance (a smoothstep ramp,
-        so the surface stays C1 in the ramp and C0 overall). A bundle's local geometry is fitted to the
-        bundle and its natural neighbours only; carried past them it extrapolates, while the global fit
-        is held by every bundle (measured on captured datasets: see ``docs/indexing.md``). Bundles lie
-        at distance 0, so the surface still passes through them. None: the bundles' weights everywhere
-        (the paper's blend).
+        metric) blend toward the frame's global fit, reached at the second distance (a smoothstep ramp),
+        as far as their bundles' weights predict the bundles beyond their neighbourhood worse than the
+        global fit (:meth:`far_shares`). A bundle's local geometry is fitted to the bundle and its natural
+        neighbours only; carried past them it can extrapolate, while the global fit is held by every bundle
+        (measured on captured datasets: ``docs/indexing.md`` 0b). The global fit's share is not taken
+        through the bundles by the residual correction, which only extrapolates that far. Bundles' own
+        triangles never blend, so the surface still passes through them. None: the bundles' weights
+        everywhere (the paper's blend).
     """
 
     def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.1,
@@ -921,6 +923,8 @@ class LGISolver:
             "source": source.ravel(),
             "fit_residual_mm": stack(lambda s: s.fit.residual if s.fit is not None else np.nan) * MM_PER_CM,
             "fit_rms_mm": stack(lambda s: s.fit.rms if s.fit is not None else np.nan) * MM_PER_CM,
+            # How far from the markers this bundle's weights gave way to the global fit (0: not at all).
+            "far_share": stack(lambda s: s.far_share if s.far_share is not None else np.nan),
         }
         if thetas is not None:
             for k, n in enumerate(PARAM_NAMES):
