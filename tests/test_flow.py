@@ -29,6 +29,13 @@ def test_rebuild_flow_caches_by_content(prefect_harness, tmp_path: Path, obj_fol
     assert first["content_hash"] == import_obj_folder(obj_folder, show_progress=False).content_hash()
     assert first["n_shapes"] == 3 == ds.n_shapes
     assert first["verification"]["passed"] and (tmp_path / "a" / "index" / "manifest.json").is_file()
+    # The published folders and the report, nothing else (no lock files beside them); the report's picture is
+    # the per-shape chart, drawn with the verification.
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == [".cache", "dataset", "index", "report.md",
+                                                                  "verification"]
+    assert [p.name for p in (tmp_path / "a" / ".cache").iterdir() if not p.name.endswith(".lock")] == []
+    assert (tmp_path / "a" / "verification" / "errors.png").stat().st_size > 5000
+    assert "(verification/errors.png)" in (tmp_path / "a" / "report.md").read_text()
 
     again = rebuild_dataset(str(obj_folder), str(tmp_path / "b"), markers=str(markers), cache_dir=cache)
     assert all(again["stages"].values())  # nothing recomputed

@@ -43,6 +43,17 @@ def test_reconstruct_command_runs_the_flow(prefect_harness, shot: Path) -> None:
     a = np.load(shot / "via_flow" / "meshes.npz")["vertices"]
     b = np.load(shot / "plain" / "meshes.npz")["vertices"]
     np.testing.assert_array_equal(a, b)  # one chunk: the flow and the plain functions agree exactly
+    # The shot's artifacts, under keys of its output folder: the report carries the per-frame plot even without
+    # --plot (drawn for the report only), and the progress artifact is keyed too.
+    from prefect.artifacts import Artifact
+
+    from lgi.orchestration import artifact_key
+
+    assert not (shot / "via_flow" / "per_frame.png").exists()
+    report = Artifact.get(artifact_key("shot-report", shot / "via_flow"))
+    assert report is not None and "![per-frame plot](data:image/png;base64," in report.data
+    progress = Artifact.get(artifact_key("shot-progress", shot / "via_flow"))
+    assert progress is not None and progress.type == "progress" and float(progress.data) == 100.0
 
 
 def test_shot_flow_from_footage(prefect_harness, tmp_path: Path) -> None:

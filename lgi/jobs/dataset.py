@@ -27,8 +27,11 @@ class ImportOptions:
     ----------
     neutral : str or None
         File stem of the neutral (default: the one file named ``*neutral*``).
-    include, exclude : str or None
-        Shell patterns (comma-separated) on file stems.
+    include : str or None
+        Shell patterns (comma-separated) on file stems: besides the neutral, only the shapes matching one are
+        read (None: all).
+    exclude : str or None
+        Shell patterns (comma-separated) on file stems: the shapes matching one are left out.
     rigid_vertices : str or None
         Vertex index file of the skull, "auto" or "none" (stabilisation).
     units : "mm", "cm", "m" or "in"

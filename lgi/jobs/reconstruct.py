@@ -61,6 +61,8 @@ class ReconstructOptions:
     noise : float (mm) or "auto"
         Bundle noise per coordinate; 0 = exact bundles.
     method : "local" or "simplex"
+        Where a bundle's weights come from: refitted over its natural neighbours ("local"), or the paper's
+        choice among the containing simplices only ("simplex").
     jaw : "auto", "none" or a CSV path
         With a rigged index: estimate the jaw per frame, or read it (frame, open_deg, yaw_deg, roll_deg,
         forward_cm); "none" needs an index without a rig.
@@ -68,8 +70,13 @@ class ReconstructOptions:
         Bridge missing runs of up to this many frames (0 = off).
     bilateral : str or None
         ``SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]``: bilateral filter of the bundles before solving.
-    obj, usd, plot : bool
-        Also write ``obj/frame_NNNNN.obj``, ``shot.usdc`` (at ``fps``), ``per_frame.png``.
+    obj : bool
+        Also write one OBJ mesh per frame, ``obj/frame_NNNNN.obj``.
+    usd : bool
+        Also write the animated mesh as ``shot.usdc`` (``fps`` time codes per second).
+    plot : bool
+        Also write ``per_frame.png``: per frame, the largest distance to the bundles before the correction and
+        the bundles projected, missing or bridged.
     fps : float
         USD time codes per second.
     chunk_size : int

@@ -28,6 +28,7 @@ from prefect.states import Completed
 
 from lgi.jobs.capture import CalibrateOptions
 from lgi.orchestration import artifact_key, capture_library_logs, transient_only
+from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
 from lgi.orchestration.reconstruct import reconstruct_shot
 
@@ -121,6 +122,10 @@ def capture_session(
     """Calibrate once, then track, reconstruct and export every shot; returns the session summary (``shots``:
     per shot its status, frames, outputs, or the error)."""
     capture_library_logs()
+    at = run_paths()  # a deployment run's relative paths go under the data root, never the worker's cwd
+    calibration_images, index_dir = at(calibration_images, "calibration_images"), at(index_dir, "index_dir")
+    markers, out, helmet = at(markers, "markers"), at(out, "out"), at(helmet, "helmet")
+    shots = [at(s, "shots") for s in shots] if isinstance(shots, (list, tuple)) else at(shots, "shots")
     from lgi.io.atomic import check_output
     from lgi.jobs.export import ExportOptions
 

@@ -38,7 +38,8 @@ def option_docs(cls: type) -> dict[str, str]:
 def described(*sources: type, **extra: str) -> Callable[[F], F]:
     """Append a Google-style ``Args:`` section (what Prefect reads) to a flow function's docstring: each
     parameter's description from ``extra`` or from the first of the option classes ``sources`` that documents
-    it. A parameter without one is an error (a new parameter cannot go undocumented)."""
+    it. A parameter without one, or two sharing one, is an error (a new parameter cannot go undocumented, nor
+    borrow another's words)."""
     def wrap(fn: F) -> F:
         docs: dict[str, str] = {}
         for cls in reversed(sources):
@@ -47,6 +48,12 @@ def described(*sources: type, **extra: str) -> Callable[[F], F]:
         missing = [p for p in inspect.signature(fn).parameters if p not in docs]
         if missing:
             raise TypeError(f"{fn.__name__}: parameters without a description: {missing}")
+        # One docstring entry for several options ("a, b : bool") would show the same words under each of them.
+        shared: dict[str, list[str]] = {}
+        for p in inspect.signature(fn).parameters:
+            shared.setdefault(docs[p], []).append(p)
+        if clash := [names for names in shared.values() if len(names) > 1]:
+            raise TypeError(f"{fn.__name__}: parameters sharing one description: {clash}")
         lines = [f"    {p}: {docs[p]}" for p in inspect.signature(fn).parameters]
         fn.__doc__ = inspect.cleandoc(fn.__doc__ or "") + "\n\nArgs:\n" + "\n".join(lines) + "\n"
         return fn

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import functools
 import json
+import re
 import shutil
-from dataclasses import asdict, fields
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 import pandas as pd
@@ -25,6 +26,7 @@ from lgi.index.build import IndexOptions
 from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
 from lgi.jobs.index import RigOptions, VerifyOptions
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png, transient_only
+from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
 from lgi.pipeline import stages as pipeline
 from lgi.pipeline.cache import StageCache
@@ -163,8 +165,16 @@ def rebuild_dataset(
     Returns a summary: paths, the dataset's content hash, counts, verification figures, and which stages
     were cache hits (``stages``: name -> true if nothing was computed).
     """
-    params = dict(locals())
     capture_library_logs()
+    at = run_paths()  # a deployment run's relative paths go under the data root, never the worker's cwd
+    shapes_dir, out, markers = at(shapes_dir, "shapes_dir"), at(out, "out"), at(markers, "markers")
+    rigid_vertices = at(rigid_vertices, "rigid_vertices", ("auto", "none"))
+    jaw_rig, cache_dir = at(jaw_rig, "jaw_rig"), at(cache_dir, "cache_dir")
+    if rig is not None:
+        rig = rig if isinstance(rig, RigOptions) else RigOptions(**rig)
+        if not re.fullmatch(r"\s*\d+\s*:\s*\d+\s*", rig.jaw_vertices):  # an index file, not FIRST:LAST
+            rig = replace(rig, jaw_vertices=at(rig.jaw_vertices, "rig.jaw_vertices"))
+    params = dict(locals())
     imp = ImportOptions(**{f.name: params[f.name] for f in fields(ImportOptions)})
     aug_opts = (augmentation if isinstance(augmentation, AugmentOptions) or augmentation is None
                 else AugmentOptions.from_json(augmentation))
@@ -246,6 +256,7 @@ def _artifacts(summary: dict, out_dir: Path) -> None:
                               description="every shape from its own bundles: error in mm")
     absolute = md.replace("`dataset/`", f"`{summary['path']}`")
     if png is not None:
-        absolute = absolute.replace("![worst verification error](verification/worst.png)",
-                                    embedded_png(png, "worst verification error"))
-    create_markdown_artifact(markdown=absolute, key=key("rebuild-report"))
+        absolute = absolute.replace("![verification error per shape](verification/errors.png)",
+                                    embedded_png(png, "verification error per shape"))
+    create_markdown_artifact(markdown=absolute, key=key("rebuild-report"),
+                             description="the rebuild's report: stages computed or cached, verification and its chart")

@@ -24,6 +24,7 @@ from prefect.cache_policies import NO_CACHE
 
 from lgi.jobs import reconstruct as job
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
+from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
 
 _T = {"cache_policy": NO_CACHE, "persist_result": False}
@@ -139,8 +140,13 @@ def reconstruct_shot(
     With ``footage`` (stereo frames), ``calib`` and ``markers``, the shot starts from the cameras: the
     ``track-footage`` task writes ``bundles`` (and its 2D tracks table) first, with ``helmet`` dots if given.
     """
-    params = dict(locals())
     capture_library_logs()
+    at = run_paths()  # a deployment run's relative paths go under the data root, never the worker's cwd
+    index_dir, bundles, out = at(index_dir, "index_dir"), at(bundles, "bundles"), at(out, "out")
+    jaw = at(jaw, "jaw", ("auto", "none"))
+    observations, calib, contours = at(observations, "observations"), at(calib, "calib"), at(contours, "contours")
+    footage, markers, helmet = at(footage, "footage"), at(markers, "markers"), at(helmet, "helmet")
+    params = dict(locals())
     if footage:
         if not (calib and markers):
             raise ValueError("a shot from footage needs calib and markers")
@@ -171,14 +177,18 @@ def reconstruct_shot(
     parent.mkdir(parents=True, exist_ok=True)
     sweep(parent, prefix)
     work = make_temp_dir(parent, prefix)
+    # One progress artifact per shot (keyed by OUT, so `prefect artifact ls` lists it), updated by both passes.
+    progress_key = artifact_key("shot-progress", out)
+
     def chunks(bundles_file: str, options: dict, into: str, folder: Path) -> dict:
         folder.mkdir(exist_ok=True)
         if runner is None:
             # Prefect's threads in this process: the flow's own task runner, and the finished chunks handed to
             # the writer in memory.
-            return chunk_work(index_dir, bundles_file, options, bounds, str(folder), into, keep=True)
+            return chunk_work(index_dir, bundles_file, options, bounds, str(folder), into, keep=True,
+                              progress_key=progress_key)
         return reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles_file, options, bounds,
-                                                                   str(folder), into)
+                                                                   str(folder), into, progress_key)
 
     try:
         if opts.observations:
@@ -220,16 +230,17 @@ def task_runner(dask_address: str | None):
 
 @flow(name="reconstruct-chunks")
 def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work: str,
-                       out: str) -> dict:
+                       out: str, progress_key: str | None = None) -> dict:
     """:func:`chunk_work` on the task runner this subflow was given (Dask), the chunks passed as files."""
-    return chunk_work(index_dir, bundles, options, bounds, work, out)
+    return chunk_work(index_dir, bundles, options, bounds, work, out, progress_key=progress_key)
 
 
 def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work: str, out: str,
-               keep: bool = False) -> dict:
+               keep: bool = False, progress_key: str | None = None) -> dict:
     """The chunk work of :func:`reconstruct_shot`, on the task runner of the flow that calls it: frames chosen
     in chunks chained one after another, then finished in chunks mapped over the runner, then written.
-    ``keep``: the finished chunks stay in memory for the writer (every task in this process)."""
+    ``keep``: the finished chunks stay in memory for the writer (every task in this process). ``progress_key``:
+    the key of the progress artifact (default: one made from ``out``)."""
     from threadpoolctl import threadpool_limits
 
     work_dir = Path(work)
@@ -239,7 +250,8 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
     # whole chunk work keeps every task at one BLAS thread.
     blas = threadpool_limits(limits=1, user_api="blas")
     try:
-        progress = create_progress_artifact(progress=0.0, description=f"frames chosen, in {len(bounds)} chunks")
+        progress = create_progress_artifact(progress=0.0, key=progress_key or artifact_key("shot-progress", out),
+                                            description=f"{bounds[-1][1]} frames chosen, in {len(bounds)} chunks")
         prev = None
         for lo, hi in bounds:
             prev = choose_chunk.submit(index_dir, bundles, options, lo, hi, str(work_dir / f"choice_{lo:06d}.npz"),
@@ -286,8 +298,17 @@ def _report(summary: dict, out: str) -> None:
                           description="per marker: share of frames contained in the data; frames projected, "
                                       "taking a neighbour's blend, missing")
     png = Path(out) / "per_frame.png"
-    plot = f"{embedded_png(png, 'per-frame plot')}\n\n" if png.is_file() else ""
-    create_markdown_artifact(key=artifact_key("shot-report", out), markdown=(
+    if png.is_file():
+        plot = f"{embedded_png(png, 'per-frame plot')}\n\n"
+    else:
+        # Not asked for in OUT (plot false): drawn for the report only, from the per-frame table.
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            job.plot_per_frame(pd.read_csv(Path(out) / "per_frame.csv"), Path(tmp) / "per_frame.png")
+            plot = f"{embedded_png(Path(tmp) / 'per_frame.png', 'per-frame plot')}\n\n"
+    create_markdown_artifact(key=artifact_key("shot-report", out),
+                             description="the shot's report: bundle status shares and the per-frame plot", markdown=(
         f"# Shot reconstruction\n\n{summary['frames']} frames x {summary['markers']} markers -> `{summary['out']}`\n\n"
         "| contained | projected | neighbour's blend | missing or bridged | max bundle residual |\n"
         "|---|---|---|---|---|\n"

@@ -30,7 +30,7 @@ import pandas as pd
 from lgi.dataset.importing import RawShapes
 from lgi.dataset.markers import read_layout
 from lgi.dataset.shapes import ShapeDataset
-from lgi.index.build import NATURAL_FIELDS, IndexOptions, LGIIndex, assemble_index, clouds_stage, natural_stage
+from lgi.index.build import NATURAL_FIELDS, IndexOptions, assemble_index, clouds_stage, natural_stage
 from lgi.io.npz import save_npz
 from lgi.io.obj import PolyMesh
 from lgi.jobs.dataset import AugmentOptions, ImportOptions, augment, read_shapes, stabilise_shapes
@@ -185,8 +185,10 @@ def verify_stage(cache: StageCache, index_dir: Path, options: VerifyOptions) -> 
         table, summary = verify(index_dir / "index", options)
         table.to_csv(out / "verification.csv", index=False, float_format="%.6g")
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        verification_chart(table, options.tolerance, out / "errors.png")
 
-    return cache.run("verify", inputs, make, _VERIFY)
+    # This module too: the chart is drawn here.
+    return cache.run("verify", inputs, make, (*_VERIFY, "lgi.pipeline.stages"))
 
 
 def options_from(params: dict[str, Any] | None) -> IndexOptions:
@@ -225,9 +227,12 @@ def publish(src: Path, dest: str | os.PathLike[str], kind: str) -> Path:
 
     dest = Path(dest)
     # Two rebuilds into one OUT publish in turn (each replaces the folder whole; without the lock one could
-    # find the other's half-moved folder).
-    with locked(dest.parent / f".{dest.name}.lock"), atomic_dir(dest, *published(kind)) as tmp:
+    # find the other's half-moved folder). The lock file lives in OUT/.cache, the pipeline's own folder, not
+    # beside the published folders (a lock file cannot be removed after use without breaking the turn-taking).
+    with locked(dest.parent / ".cache" / f".publish-{dest.name}.lock"), atomic_dir(dest, *published(kind)) as tmp:
         shutil.copytree(src, tmp, dirs_exist_ok=True, ignore=shutil.ignore_patterns(".complete", ".*.lock"))
+    # Where earlier versions kept the lock: nothing takes it any more.
+    (dest.parent / f".{dest.name}.lock").unlink(missing_ok=True)
     return dest
 
 
@@ -245,8 +250,8 @@ def rebuild_report(s: dict[str, Any]) -> list[str]:
 
 
 def rebuild_markdown(summary: dict[str, Any], out_dir: Path) -> tuple[str, Path | None]:
-    """The rebuild's markdown report (relative links; also written to ``OUT/report.md``) and, with an index, the
-    heat map of the worst verification error (``OUT/verification/worst.png``)."""
+    """The rebuild's markdown report (relative links; also written to ``OUT/report.md``) and, with an index, its
+    picture: the per-shape verification error chart (``OUT/verification/errors.png``)."""
     lines = ["# Dataset rebuild\n", f"`dataset/`: {summary['n_shapes']} shapes, {summary['n_vertices']} "
              f"vertices, content hash `{summary['content_hash'][:16]}`, stabilisation: {summary['stabilisation']}.\n",
              "| stage | " + " | ".join(summary["stages"]) + " |", "|---|" + "---|" * len(summary["stages"]),
@@ -255,36 +260,60 @@ def rebuild_markdown(summary: dict[str, Any], out_dir: Path) -> tuple[str, Path 
     if "verification" in summary:
         v = summary["verification"]
         bundles = pd.read_csv(out_dir / "index" / "bundles.csv")
-        png = verification_heatmap(out_dir, v["worst_shape"])
+        png = out_dir / "verification" / "errors.png"
         lines += [f"Verification of {v['shapes']} shapes: worst RMS {v['worst_rms_mm']:.5f} mm ({v['worst_shape']}), "
                   f"worst max {v['worst_max_mm']:.4f} mm; tolerance {v['tolerance_mm']} mm: "
                   f"{'passed' if v['passed'] else 'FAILED'}.\n",
                   f"Points per bundle after pruning: median {bundles.points_after.median():.0f} of "
-                  f"{bundles.points_before.iloc[0]}; simplices: {bundles.simplices.sum()}.\n",
-                  "![worst verification error](verification/worst.png)\n"]
+                  f"{bundles.points_before.iloc[0]}; simplices: {bundles.simplices.sum()}.\n"]
+        if png.is_file():
+            lines.append("![verification error per shape](verification/errors.png)\n")
+        else:  # a verification cached before the chart existed
+            png = None
     md = "\n".join(lines)
     (out_dir / "report.md").write_text(md)
     return md, png
 
 
-def verification_heatmap(out_dir: Path, shape: str) -> Path:
-    """PNG of the vertex error of ``shape`` reconstructed from its own bundles with ``OUT/index``."""
-    from lgi.dataset.mesh import triangulate
-    from lgi.evaluation.render import heatmap_row
-    from lgi.solve.solver import LGISolver
-    from lgi.units import MM_PER_CM
+def verification_chart(table: pd.DataFrame, tolerance: float, path: Path, most: int = 40) -> Path:
+    """Bar chart of the verification's per-shape error (RMS and max over the marked region, mm) on a log
+    scale with the tolerance, the worst shapes on top (at most ``most`` of them: the title says how many of
+    how many). A log scale because a passing verification spans orders of magnitude below the tolerance,
+    where a linear one (or a colour map of the worst shape) shows nothing. Exact zeros are drawn at the
+    axis' floor; a non-finite error as a red bar across the chart."""
+    import matplotlib
 
-    index = LGIIndex.load(out_dir / "index")
-    k = index.manifest["shapes"].index(shape)
-    truth = np.asarray(index.arrays["neutral"], np.float64) + np.asarray(index.deltas[k + 1], np.float64)
-    jaw = None
-    if index.jaw_rig() is not None:
-        jaw = index.arrays["jaw_shape_params"][k]
-        truth = index.jaw_rig().skin(truth, jaw)
-    solver = LGISolver(index)
-    r = solver.solve_frame(solver.layout.evaluate(truth), jaw=jaw)
-    err = np.linalg.norm(r.vertices - truth, axis=1) * MM_PER_CM
-    tris, _ = triangulate(index.arrays["face_vertices"], index.arrays["face_offsets"])
-    return heatmap_row(out_dir / "verification" / "worst.png", index.arrays["neutral"], tris,
-                       {f"{shape} (worst)": err}, mask=index.arrays["nn_region"],
-                       title="verification: vertex error of the worst shape", label="error (mm)").resolve()
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = table.assign(_key=np.nan_to_num(table.rms_mm.to_numpy(float), nan=np.inf)).sort_values("_key")
+    t = t.iloc[-most:]
+    rms, mx = t.rms_mm.to_numpy(float), t.max_mm.to_numpy(float)
+    finite = np.concatenate([rms[np.isfinite(rms) & (rms > 0)], mx[np.isfinite(mx) & (mx > 0)], [tolerance]])
+    lo = 10.0 ** np.floor(np.log10(finite.min())) / 10.0
+    hi = 10.0 ** np.ceil(np.log10(finite.max() * 1.5))
+    y = np.arange(len(t))
+    fig, ax = plt.subplots(figsize=(8.0, 1.6 + 0.24 * len(t)), layout="constrained")
+    for values, dy, colour, label in ((mx, 0.2, "#9ecae1", "max"), (rms, -0.2, "#08519c", "RMS")):
+        bad = ~np.isfinite(values)
+        shown = np.where(bad, hi, np.maximum(np.nan_to_num(values), lo))
+        ax.barh(y + dy, shown - lo, left=lo, height=0.4, color=np.where(bad, "#d62728", colour), label=label)
+    for k in range(len(t)):
+        if not np.isfinite(rms[k]):
+            ax.text(lo * 1.3, k - 0.2, "not finite", va="center", fontsize=7, color="white")
+        elif rms[k] == 0:
+            ax.text(lo * 1.3, k - 0.2, "exact (0)", va="center", fontsize=7)
+    ax.axvline(tolerance, color="#d62728", linestyle="--", linewidth=1, label=f"tolerance on the RMS, {tolerance:g} mm")
+    ax.set_xscale("log")
+    ax.set_xlim(lo, hi)
+    ax.set_yticks(y, t["shape"].astype(str).tolist(), fontsize=8)
+    ax.set_ylim(-0.7, len(t) - 0.3)
+    ax.set_xlabel("vertex error over the marked region (mm, log scale)")
+    ax.grid(axis="x", which="major", alpha=0.3)
+    fig.legend(loc="outside lower center", ncols=3, fontsize=8)  # below the axes: it never hides a bar
+    shown_of = f"the {len(t)} worst of {len(table)} shapes" if len(t) < len(table) else f"{len(table)} shapes"
+    ax.set_title(f"Verification: each shape from its own bundles, {shown_of}", fontsize=10)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
