@@ -157,6 +157,9 @@ def test_data_root_from_the_variable(prefect_harness, caplog) -> None:
         Variable.set(DATA_ROOT_VARIABLE, "relative/root", overwrite=True)
         with pytest.raises(InputError, match="absolute path"):
             data_root()
+        Variable.set(DATA_ROOT_VARIABLE, str(ROOT / "datasets"), overwrite=True)
+        with pytest.raises(InputError, match="inside the lgi source tree"):
+            data_root()
     finally:
         Variable.unset(DATA_ROOT_VARIABLE)
 

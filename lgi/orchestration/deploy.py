@@ -138,7 +138,8 @@ def in_deployment() -> bool:
 
 def data_root() -> Path:
     """The folder a deployment run's relative paths are taken under: the Prefect Variable ``lgi_data_root``, or
-    ``~/lgi-data`` with a warning when it is not set. Must be absolute (``~`` allowed)."""
+    ``~/lgi-data`` with a warning when it is not set. Must be absolute (``~`` allowed) and outside the source
+    tree lgi runs from."""
     from prefect.variables import Variable
 
     from lgi.errors import InputError
@@ -154,6 +155,12 @@ def data_root() -> Path:
     root = Path(value.strip()).expanduser()
     if not root.is_absolute():
         raise InputError(f"Prefect variable {DATA_ROOT_VARIABLE} must be an absolute path, not {value!r}")
+    from lgi.paths import REPO_ROOT
+
+    # A nightly run writing into the source tree is what the root is there to prevent.
+    if (REPO_ROOT / "prefect.yaml").is_file() and Path(os.path.realpath(root)).is_relative_to(REPO_ROOT):
+        raise InputError(f"Prefect variable {DATA_ROOT_VARIABLE} ({root}) is inside the lgi source tree {REPO_ROOT}: "
+                         "set it to a folder outside it")
     return root
 
 
