@@ -7,7 +7,7 @@ import logging
 import sys
 
 from lgi import __version__
-from lgi.errors import InputError, LgiError
+from lgi.errors import InputError, LgiError, Terminated
 
 
 def _import_options(args: argparse.Namespace):
@@ -631,10 +631,6 @@ def _quiet_stdout() -> None:
         pass
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (a scheduler or a farm cancelling the job), unwound like Ctrl-C so the run cleans up after itself."""
-
-
 def _raise_terminated(signum: int, frame: object) -> None:
     raise Terminated()
 
@@ -685,7 +681,7 @@ def main(argv: list[str] | None = None) -> int:
             interrupted.set()
             raise KeyboardInterrupt
 
-        signal.signal(signal.SIGINT, on_sigint)
+        previous_int = signal.signal(signal.SIGINT, on_sigint)
     try:
         code = _run(args, name, debug, interrupted)
         if interrupted is not None and interrupted.is_set() and code == 0:
@@ -695,7 +691,8 @@ def main(argv: list[str] | None = None) -> int:
         return code
     finally:
         if interrupted is not None:
-            signal.signal(signal.SIGINT, signal.default_int_handler)
+            # The caller's handler back (the entry point's, which after the run only notes a signal).
+            signal.signal(signal.SIGINT, previous_int)
         lgi_log.removeHandler(handler)  # a caller running several commands in one process gets each its own
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -65,3 +65,8 @@ def cell_text(value: object) -> str:
     if item is not None and getattr(value, "ndim", 1) == 0:
         return str(item())
     return str(value)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler or a farm cancelling the job), unwound like Ctrl-C so the run cleans up after itself
+    and ends with status 143."""

@@ -12,6 +12,7 @@ from lgi.solve.jaw import JawRig
 from lgi.solve.solver import LGISolver
 from lgi.solve.temporal import bilateral_filter, bridge_gaps, moving_average, window_slots
 from lgi.synthetic import actor as synth
+from tests.checks import THROUGH_MM, bundle_gaps_mm, gaps_mm
 
 
 @pytest.fixture(scope="module")
@@ -47,9 +48,10 @@ def test_jaw_index_verifies_and_estimates_the_jaw(jaw_index) -> None:
     acts = synth.random_performance(40, seed=4)
     acts[:, synth.C["jaw_open"]] = np.linspace(0, 1, 40)
     truth = a.evaluate_many(acts).astype(np.float64)
-    res = LGISolver(index).solve_sequence(layout.evaluate(truth))
-    assert np.abs(res.jaw[:, 0] - a.jaw_parameters(acts)[:, 0]).max() < 0.5  # degrees
-    assert res.diagnostics.residual_mm.max() < 1e-4
+    bundles = layout.evaluate(truth)
+    res = LGISolver(index).solve_sequence(bundles)
+    assert np.abs(res.jaw[:, 0] - a.jaw_parameters(acts)[:, 0]).max() < 0.1  # degrees; measured 0.012
+    assert gaps_mm(res.vertices, layout, bundles).max() < THROUGH_MM  # measured 4.8e-6 mm
 
 
 def test_jaw_handling_beats_none_on_open_frames(jaw_index) -> None:
@@ -61,10 +63,12 @@ def test_jaw_handling_beats_none_on_open_frames(jaw_index) -> None:
     b = layout.evaluate(truth)
     e_jaw = np.linalg.norm(LGISolver(index).solve_sequence(b).vertices - truth, axis=2)
     e_plain = np.linalg.norm(LGISolver(plain).solve_sequence(b).vertices - truth, axis=2)
-    # Measured: 0.042 mm with the rig against 0.068 without (the exact global fit of the active-set solver
-    # made the rig-less reconstruction much better than the 2x gap this test once asked for: 0.104 mm).
+    # The reference is the same index told the true jaw: estimating the jaw from the bundles may cost at most
+    # a tenth over knowing it (measured: 0.0415 mm estimated, 0.0442 mm with the true jaw, 0.078 mm without a rig).
+    e_true = np.linalg.norm(LGISolver(index).solve_sequence(b, jaw=a.jaw_parameters(acts)).vertices - truth, axis=2)
     rms_jaw, rms_plain = np.sqrt((e_jaw**2).mean()) * 10, np.sqrt((e_plain**2).mean()) * 10
-    assert rms_jaw < 0.7 * rms_plain and rms_jaw < 0.05
+    rms_true = np.sqrt((e_true**2).mean()) * 10
+    assert rms_jaw < 1.1 * rms_true and rms_jaw < rms_plain and rms_jaw < 0.1
 
 
 def test_jaw_none_refused_for_rigged_index(jaw_index) -> None:
@@ -138,7 +142,8 @@ def test_reconstruct_smoothing_jaw_file_and_occlusion(tmp_path: Path) -> None:
     d = pd.read_csv(out / "diagnostics.csv")
     occ = d[(d.frame >= 10) & (d.frame <= 14) & d.marker.isin(hidden)]
     assert (occ.status == "bridged").all() and len(occ) == 10
-    assert d.residual_mm.max() < 1e-4  # through every bundle, bridged ones included
+    gaps = bundle_gaps_mm(out / "meshes.npz", s / "markers.csv", tmp_path / "occluded.csv")
+    assert len(gaps) == len(b) and gaps.max() < THROUGH_MM  # through every seen bundle
     np.testing.assert_allclose(m["jaw"], truth["jaw"], atol=1e-6)
     # Noisy bundles (0.3 mm): the moving average of the weights (and of the correction) cuts jitter.
     rng = np.random.default_rng(0)

@@ -116,7 +116,13 @@ def test_evaluate_reports_numbers(dataset_dir, tmp_path, capsys):
     assert set(t["method"]) == {"lgi", "blendshape"}
     allrows = t[t["shape"] == "ALL"]
     assert len(allrows) == 2 and np.isfinite(allrows[["rms_mm", "p95_mm", "max_mm"]].to_numpy()).all()
-    assert (allrows["rms_mm"] > 0).all() and (allrows["max_mm"] >= allrows["p95_mm"]).all()
+    assert (allrows["rms_mm"] > 0).all()
+    # The ALL rows pool the held-out shapes (each the same vertices): the largest error is the largest shape's,
+    # and the RMS the root of the shapes' mean squares.
+    for method, rows in t[t["shape"] != "ALL"].groupby("method"):
+        pooled = allrows[allrows["method"] == method].iloc[0]
+        assert pooled["max_mm"] == pytest.approx(rows["max_mm"].max(), rel=1e-6)
+        assert pooled["rms_mm"] == pytest.approx(np.sqrt(np.mean(rows["rms_mm"] ** 2)), rel=1e-3)
     # Held-out shapes that are not in the dataset are refused.
     assert main(["layout", "evaluate", str(dataset_dir), "--markers", str(markers), "--held-out", "nope*"]) == 2
     assert "matches no shape" in capsys.readouterr().err

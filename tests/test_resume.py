@@ -8,8 +8,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
-
 from lgi.dataset.markers import write_layout
 from lgi.synthetic import actor as synth
 
@@ -37,7 +35,7 @@ def _env(tmp: Path, api: str | None = None) -> dict:
     return env
 
 
-@pytest.mark.slow  # 27 s: kill a worker mid-rebuild and resume
+# 27 s (kill a worker mid-rebuild and resume): in the default set, as users rely on resuming
 def test_kill_and_resume(prefect_api: str, tmp_path: Path, obj_folder: Path, small_actor) -> None:
     root = Path(__file__).resolve().parents[1]
     layout, _ = synth.default_layout(small_actor)

@@ -70,12 +70,14 @@ def test_hinge_from_openings_only_synthetic(actor) -> None:
     err = np.linalg.norm(rig.pivot - true.pivot)
     print(f"synthetic: pivot error {err * 10:.2e} mm; opening errors "
           + ", ".join(f"{n} {rep.angles_deg[n] - a:+.2e} deg" for n, a in angles.items()))
-    assert err < 0.1
+    # The shapes are exact hinge motions: what is left is float64 rounding (measured: pivot 1.2e-11 mm, openings
+    # 5e-14 deg).
+    assert err * 10 < 1e-10  # mm
     assert rep.used == ["jawOpen", "jawOpen_50"] and rep.widest == "jawOpen" and rep.joint_slides
     assert set(rep.skipped) == {"jawForward", "jawLeft", "jawRight"}
     assert "translation" in rep.skipped["jawForward"] and "lateral x axis" in rep.skipped["jawLeft"]
     for n, a in angles.items():
-        assert abs(rep.angles_deg[n] - a) < 0.5 and abs(params[names.index(n), 0] - a) < 0.5
+        assert abs(rep.angles_deg[n] - a) < 5e-13 and abs(params[names.index(n), 0] - a) < 5e-13
         assert rep.residual_rms[n] < 1e-3  # true hinge motions (jaw vertices of weight > 0.999)
     np.testing.assert_allclose([rep.slides["jawOpen"], rep.slides["jawOpen_50"]],
                                [SLIDE_CM, SLIDE_CM * (HALF_DEG / OPEN_DEG) ** 2], atol=1e-3)
@@ -105,8 +107,9 @@ def test_ict_hinge_with_two_openings(ict_dir: Path) -> None:
     angle_err = {n: rep.angles_deg[n] - a for n, a in (("jawOpen", full[0]), ("jawOpen_50", full[0] / 2))}
     print(f"ICT: reference pivot {np.round(ref.pivot, 3).tolist()} cm, jawOpen {full[0]:.2f} deg; pivot error "
           f"{err * 10:.2e} mm; opening errors " + ", ".join(f"{n} {v:+.2e} deg" for n, v in angle_err.items()))
-    assert err < 0.1
-    assert all(abs(v) < 0.5 for v in angle_err.values())
+    # Exact hinge motions of the reference rig (measured: pivot 2.3e-9 mm, openings 2e-14 deg).
+    assert err * 10 < 2e-8  # mm
+    assert all(abs(v) < 2e-13 for v in angle_err.values())
     assert rep.used == ["jawOpen", "jawOpen_50"]
     assert set(rep.skipped) == {"jawForward", "jawLeft", "jawRight"}
     assert not rep.warnings

@@ -765,11 +765,13 @@ def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], op
     ``per_frame.png`` and ``bundles_constrained.parquet`` (the bundles with the rays' points: ``constrained``);
     through :func:`lgi.io.atomic.job_outputs` (an earlier run's outputs not written now are
     removed)."""
+    from lgi._stages import stage as debug_stage
     from lgi.io.atomic import job_outputs
     from lgi.io.csvio import write_csv
     from lgi.io.npz import save_npz
 
     with job_outputs(out, OUTPUTS, OUTPUT_CONTENTS) as stage:
+        debug_stage("write")
         extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
         save_npz(stage / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
         write_csv(res.diagnostics, stage / "diagnostics.csv")
@@ -886,11 +888,14 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
 
     With ``options.observations``, twice: without the markers seen by one camera, then through their points on
     their rays (:func:`constrain_to_rays`)."""
+    from lgi._stages import stage
+
     options = options or ReconstructOptions()
     check_output(out, (index_dir, bundles, options.jaw, options.observations, options.calib, options.contours))
     t0 = time.perf_counter()
     shot = Shot(index_dir, bundles, options)
     t1 = time.perf_counter()
+    stage("solve")
     res = shot.run(show_progress)
     t2 = time.perf_counter()
     if not options.observations:
