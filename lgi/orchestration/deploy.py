@@ -86,14 +86,10 @@ def _enter_project(recorded: str) -> dict[str, str]:
                                     "prefect deploy --all again from it")
     if not directory.is_dir() or (missing := _missing(directory)):
         what = "does not exist" if not directory.is_dir() else f"lacks {', '.join(missing)}"
-        hint = ""
-        try:
-            from lgi.paths import REPO_ROOT
+        from lgi.paths import REPO_ROOT
 
-            if not _missing(REPO_ROOT):
-                hint = f" (the lgi installed for this worker is the project at {REPO_ROOT})"
-        except Exception:  # noqa: BLE001 - only a hint in the message; the error is raised either way
-            pass
+        # An editable install names its checkout: most likely the folder meant.
+        hint = "" if _missing(REPO_ROOT) else f" (the lgi installed for this worker is the project at {REPO_ROOT})"
         raise ProjectDirectoryError(
             f"lgi project directory {directory} ({source}) {what}: set {PROJECT_ENV} in the worker's environment "
             f"to the lgi repository root (the folder holding prefect.yaml and flows/){hint}, or run prefect deploy "
