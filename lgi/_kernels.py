@@ -516,8 +516,11 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
 def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, tinv,
                   hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
                   agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
-                  cand_in, cand_score_in, first_score):  # pragma: no cover - compiled
+                  cand_in, cand_score_in, first_score, active):  # pragma: no cover - compiled
     """Choose every bundle's simplex and barycentric weights for one frame (bundles in parallel).
+
+    Only the seen bundles with ``active`` (M,) bool are searched; the others keep the outputs' fill values
+    (status MISSING, no shapes).
 
     ``cand_in`` (M, top_k): a first pass's candidates to reuse (rows of -2 mean scan the grid), with
     their first-pass scores ``cand_score_in`` and each bundle's first-pass best ``first_score``.
@@ -537,13 +540,31 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
     proj = np.zeros(m)
     score = np.full(m, np.nan)
     for i in nb.prange(m):
-        if seen[i]:
+        if seen[i] and active[i]:
             _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx,
                        tinv, hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r,
                        prev, mu, agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
                        cand_in, cand_score_in, first_score, out_shapes, out_lam, out_pts, n_contain, status, proj,
                        score, cand_out, cand_score_out)
     return out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out
+
+
+@nb.njit(cache=True, inline="always")
+def _gather_slots(v, a0, a1, a2, w_indptr, w_indices, w_data, shapes, lam, deltas):  # pragma: no cover - compiled
+    """(a0, a1, a2) plus vertex v's blend ``sum_i w[v, i] sum_c lam[i, c] deltas[shapes[i, c], v]`` (CSR
+    weights; slots of weight 0 skipped)."""
+    for e in range(w_indptr[v], w_indptr[v + 1]):
+        i = w_indices[e]
+        w = w_data[e]
+        for c in range(shapes.shape[1]):
+            lc = lam[i, c]
+            if lc != 0.0:
+                k = shapes[i, c]
+                f = w * lc
+                a0 += f * deltas[k, v, 0]
+                a1 += f * deltas[k, v, 1]
+                a2 += f * deltas[k, v, 2]
+    return a0, a1, a2
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
@@ -555,20 +576,40 @@ def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma:
         a0 = x0[v, 0]
         a1 = x0[v, 1]
         a2 = x0[v, 2]
+        out[v, 0], out[v, 1], out[v, 2] = _gather_slots(v, a0, a1, a2, w_indptr, w_indices, w_data, shapes, lam,
+                                                        deltas)
+
+
+@nb.njit(cache=True, nogil=True)
+def blend_on_base(x0, deltas, deltas_flat, base_shapes, base_lam, w_indptr, w_indices, w_data, d_shapes, d_lam,
+                  out):  # pragma: no cover - compiled
+    """:func:`blend` of slots that mostly repeat one base blend: ``out[v] = x0[v] + W_v B[v] + sum_i w[v, i]
+    sum_c d_lam[i, c] deltas[d_shapes[i, c], v]``, with ``B = sum_c base_lam[c] deltas[base_shapes[c]]``, ``W_v``
+    the vertex's total weight (the row sum of w) and ``d_lam`` each column's difference from the base (rows of
+    zeros for the columns that blend the base itself).
+
+    The base is one streaming pass per shape row, as in :func:`blend_uniform`; the per-vertex gather, 4-10x
+    slower per row, is left only for the columns that differ from it. ``out`` (V, 3); ``deltas`` (S, V, 3) and
+    ``deltas_flat`` (S, 3V) views of one array."""
+    n_v = x0.shape[0]
+    flat = out.reshape(3 * n_v)
+    for j in range(3 * n_v):
+        flat[j] = 0.0
+    for c in range(base_shapes.shape[0]):
+        lc = base_lam[c]
+        if lc != 0.0:
+            row = deltas_flat[base_shapes[c]]
+            for j in range(3 * n_v):
+                flat[j] += lc * row[j]
+    for v in range(n_v):
+        tot = 0.0
         for e in range(w_indptr[v], w_indptr[v + 1]):
-            i = w_indices[e]
-            w = w_data[e]
-            for c in range(shapes.shape[1]):
-                lc = lam[i, c]
-                if lc != 0.0:
-                    k = shapes[i, c]
-                    f = w * lc
-                    a0 += f * deltas[k, v, 0]
-                    a1 += f * deltas[k, v, 1]
-                    a2 += f * deltas[k, v, 2]
-        out[v, 0] = a0
-        out[v, 1] = a1
-        out[v, 2] = a2
+            tot += w_data[e]
+        a0 = x0[v, 0] + tot * out[v, 0]
+        a1 = x0[v, 1] + tot * out[v, 1]
+        a2 = x0[v, 2] + tot * out[v, 2]
+        out[v, 0], out[v, 1], out[v, 2] = _gather_slots(v, a0, a1, a2, w_indptr, w_indices, w_data, d_shapes, d_lam,
+                                                        deltas)
 
 
 @nb.njit(cache=True, nogil=True)

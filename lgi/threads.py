@@ -8,6 +8,12 @@ import functools
 from collections.abc import Callable
 from typing import TypeVar
 
+# The compiled kernels' dense products (numba's np.dot) call SciPy's own OpenBLAS, a second copy beside
+# NumPy's that loads only when SciPy's BLAS is first used. threadpoolctl limits the copies loaded when
+# the limit is entered: loaded later, in the first frame, SciPy's kept its threads, and the exact path's
+# global fit took 27 instead of 1.4 ms of CPU per frame (500 shapes; its idle threads spin). Loading it
+# here puts it under every limit.
+import scipy.linalg.cython_blas  # noqa: F401
 from threadpoolctl import threadpool_limits
 
 F = TypeVar("F", bound=Callable)

@@ -840,7 +840,9 @@ def report_lines(s: dict[str, Any]) -> list[str]:
         lines.append(f"reconstructed {s['frames']} frames x {s['vertices']} vertices through the reconstruct-shot "
                      "flow")
     if s["fitted_share"] > 0:
-        lines.append(f"bundles: {s['fitted_share'] * 100:.1f} % fitted as measurements (noisy: no simplex searched)")
+        what = ("fitted as measurements (noisy: no simplex searched)" if s["noise_mm"] > 0 else
+                "met by the global fit with their natural neighbours (exact: no simplex searched)")
+        lines.append(f"bundles: {s['fitted_share'] * 100:.1f} % {what}")
     lines.append(f"bundles: {s['contained_share'] * 100:.1f} % contained, {s['projected_share'] * 100:.1f} % projected "
                  f"(median distance {s['median_projection_mm']:.3f} mm), {s['missing_share'] * 100:.1f} % missing; "
                  f"max bundle residual {s['max_residual_mm']:.2e} mm")
