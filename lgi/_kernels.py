@@ -549,24 +549,6 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
     return out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out
 
 
-@nb.njit(cache=True, inline="always")
-def _gather_slots(v, a0, a1, a2, w_indptr, w_indices, w_data, shapes, lam, deltas):  # pragma: no cover - compiled
-    """(a0, a1, a2) plus vertex v's blend ``sum_i w[v, i] sum_c lam[i, c] deltas[shapes[i, c], v]`` (CSR
-    weights; slots of weight 0 skipped)."""
-    for e in range(w_indptr[v], w_indptr[v + 1]):
-        i = w_indices[e]
-        w = w_data[e]
-        for c in range(shapes.shape[1]):
-            lc = lam[i, c]
-            if lc != 0.0:
-                k = shapes[i, c]
-                f = w * lc
-                a0 += f * deltas[k, v, 0]
-                a1 += f * deltas[k, v, 1]
-                a2 += f * deltas[k, v, 2]
-    return a0, a1, a2
-
-
 @nb.njit(parallel=True, cache=True, nogil=True)
 def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma: no cover - compiled
     """out[v] = x0[v] + sum_i w[v, i] sum_c lam[i, c] deltas[shapes[i, c], v] (deltas shape-major; any
@@ -576,40 +558,59 @@ def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma:
         a0 = x0[v, 0]
         a1 = x0[v, 1]
         a2 = x0[v, 2]
-        out[v, 0], out[v, 1], out[v, 2] = _gather_slots(v, a0, a1, a2, w_indptr, w_indices, w_data, shapes, lam,
-                                                        deltas)
+        for e in range(w_indptr[v], w_indptr[v + 1]):
+            i = w_indices[e]
+            w = w_data[e]
+            for c in range(shapes.shape[1]):
+                lc = lam[i, c]
+                if lc != 0.0:
+                    k = shapes[i, c]
+                    f = w * lc
+                    a0 += f * deltas[k, v, 0]
+                    a1 += f * deltas[k, v, 1]
+                    a2 += f * deltas[k, v, 2]
+        out[v, 0] = a0
+        out[v, 1] = a1
+        out[v, 2] = a2
 
 
 @nb.njit(cache=True, nogil=True)
-def blend_on_base(x0, deltas, deltas_flat, base_shapes, base_lam, w_indptr, w_indices, w_data, d_shapes, d_lam,
+def blend_on_base(x0, deltas, base_shapes, base_lam, w_sum, c_ptr, c_vert, c_w, ramp, share, rows, d_shapes, d_lam,
                   out):  # pragma: no cover - compiled
-    """:func:`blend` of slots that mostly repeat one base blend: ``out[v] = x0[v] + W_v B[v] + sum_i w[v, i]
-    sum_c d_lam[i, c] deltas[d_shapes[i, c], v]``, with ``B = sum_c base_lam[c] deltas[base_shapes[c]]``, ``W_v``
-    the vertex's total weight (the row sum of w) and ``d_lam`` each column's difference from the base (rows of
-    zeros for the columns that blend the base itself).
+    """:func:`blend` of bundles whose weights mostly repeat one base blend (the frame's global fit), with the far
+    field: ``out[v] = x0[v] + w_sum[v] B[v] + sum_b N[v, b] (1 - ramp[v] share[b]) D_b[v]``, where
+    ``B = sum_c base_lam[c] deltas[base_shapes[c]]`` and ``D_b`` the blend of bundle b's differences from the
+    base (``d_shapes``, ``d_lam`` (M, K'), zeros after each row's last; only the bundles in ``rows`` have any).
+    The far field's share of the global fit is already in the base term: a vertex's weights sum to w_sum.
 
-    The base is one streaming pass per shape row, as in :func:`blend_uniform`; the per-vertex gather, 4-10x
-    slower per row, is left only for the columns that differ from it. ``out`` (V, 3); ``deltas`` (S, V, 3) and
-    ``deltas_flat`` (S, 3V) views of one array."""
-    n_v = x0.shape[0]
-    flat = out.reshape(3 * n_v)
-    for j in range(3 * n_v):
-        flat[j] = 0.0
+    Both terms stream over shape rows, one row at a time (the base over every vertex, a difference over the
+    vertices its bundle reaches, from the weights by bundle: CSC ``c_ptr`` (M+1,), ``c_vert``, ``c_w``): reading
+    memory in order, as :func:`blend_uniform` does. Flat arrays: ``x0``, ``out`` (3V,), ``deltas`` (S, 3V)."""
+    n = out.shape[0]
+    for j in range(n):
+        out[j] = 0.0
     for c in range(base_shapes.shape[0]):
         lc = base_lam[c]
         if lc != 0.0:
-            row = deltas_flat[base_shapes[c]]
-            for j in range(3 * n_v):
-                flat[j] += lc * row[j]
-    for v in range(n_v):
-        tot = 0.0
-        for e in range(w_indptr[v], w_indptr[v + 1]):
-            tot += w_data[e]
-        a0 = x0[v, 0] + tot * out[v, 0]
-        a1 = x0[v, 1] + tot * out[v, 1]
-        a2 = x0[v, 2] + tot * out[v, 2]
-        out[v, 0], out[v, 1], out[v, 2] = _gather_slots(v, a0, a1, a2, w_indptr, w_indices, w_data, d_shapes, d_lam,
-                                                        deltas)
+            row = deltas[base_shapes[c]]
+            for j in range(n):
+                out[j] += lc * row[j]
+    for v in range(n // 3):
+        ws = w_sum[v]
+        for d in range(3):
+            out[3 * v + d] = x0[3 * v + d] + ws * out[3 * v + d]
+    for b in rows:
+        sb = share[b]
+        for c in range(d_shapes.shape[1]):
+            lc = d_lam[b, c]
+            if lc == 0.0:
+                break
+            row = deltas[d_shapes[b, c]]
+            for e in range(c_ptr[b], c_ptr[b + 1]):
+                v = c_vert[e]
+                f = c_w[e] * (1.0 - ramp[v] * sb) * lc
+                for d in range(3):
+                    out[3 * v + d] += f * row[3 * v + d]
 
 
 @nb.njit(cache=True, nogil=True)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+import scipy.sparse
 
 from lgi import _kernels as K
 from lgi.capture.bundles import Bundles
@@ -231,6 +232,15 @@ class LGISolver:
         self._deltas = np.ascontiguousarray(index.deltas)  # read once: the blend touches all of it every frame
         self._deltas_flat = self._deltas.reshape(len(self._deltas), -1)  # a view: rows of 3V for blend_uniform
         self._w_sum: np.ndarray | None = None  # (V,) total blend weight per vertex, for uniform blends
+        # The natural-neighbour weights by bundle (CSC), for blending each bundle's own weights over the vertices
+        # it reaches (:func:`lgi._kernels.blend_on_base`).
+        csc = scipy.sparse.csr_matrix((a["w_data"], a["w_indices"], a["w_indptr"]),
+                                      shape=(len(self._x0), index.n_markers)).tocsc()
+        csc.sort_indices()
+        self._csc_ptr = csc.indptr.astype(np.int64)
+        self._csc_vert = csc.indices.astype(np.int64)
+        self._csc_w = csc.data.astype(np.float64)
+        self._no_ramp = np.zeros(len(self._x0))
         self.far_field = None if far_field is None else (float(far_field[0]), float(far_field[1]))
         self._far = _FarField(a, index.n_markers, self.far_field)
         nb_off, nb_idx = a["nb_off"], a["nb_idx"]
@@ -522,32 +532,33 @@ class LGISolver:
         return out_s, out_w, np.where(use_local, local_score, simplex_score), source, notes
 
     def surface(self, shapes: np.ndarray, weights: np.ndarray, jaw: np.ndarray | None,
-                far: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+                far_share: np.ndarray | None = None) -> np.ndarray:
         """(V, 3) float64: the natural-neighbour blend of the bundles' shapes, skinned when there is a rig.
 
         ``shapes``, ``weights``: (M, K) slots per bundle, or (M + 1, K) with the frame's global fit last
-        (:meth:`blend_slots`), which the far field blends toward with the frame's ``far`` weights
-        (:meth:`far_weights`; default: every bundle's share 1)."""
+        (:meth:`blend_slots`), which the far field blends toward with the bundles' far shares ``far_share``
+        (M,) (:meth:`far_shares`; default: every bundle's share 1)."""
         a = self._a
         x = np.empty_like(self._x0)
         if (shapes == shapes[0]).all() and (weights == weights[0]).all():
             # Every bundle has the same weights (noisy bundles: the global fit's): no per-vertex mixing.
-            if self._w_sum is None:
-                self._w_sum = np.add.reduceat(np.r_[a["w_data"], 0.0], a["w_indptr"][:-1]) * (
-                    np.diff(a["w_indptr"]) > 0)
-            K.blend_uniform(self._x0.reshape(-1), self._deltas_flat, self._w_sum,
+            K.blend_uniform(self._x0.reshape(-1), self._deltas_flat, self._blend_w_sum(),
                             shapes[0], weights[0], x.reshape(-1))
         elif len(shapes) == self.index.n_markers + 1:
             # The last row is the global fit's, which the far field blends toward. Most bundles of an exact
             # frame keep the global weights too: blend that row once over the mesh and, per vertex, only the
             # other bundles' differences from it (12.5 -> 1.6 ms per frame at 500 ICT shapes).
+            m = self.index.n_markers
             if self._far.active:
-                ptr, idx, data, _ = self.far_weights(None) if far is None else far
+                ramp = self._far.r
+                share = np.ones(m) if far_share is None else np.clip(np.asarray(far_share, np.float64), 0.0, 1.0)
             else:
-                ptr, idx, data = a["w_indptr"], a["w_indices"], a["w_data"]
+                ramp, share = self._no_ramp, np.zeros(m)
             d_shapes, d_lam = _differences(shapes, weights)
-            K.blend_on_base(self._x0, self._deltas, self._deltas_flat, shapes[-1], weights[-1], ptr, idx, data,
-                            d_shapes, d_lam, x)
+            rows = np.flatnonzero(d_lam[:m, 0] != 0)
+            K.blend_on_base(self._x0.reshape(-1), self._deltas_flat, shapes[-1], weights[-1], self._blend_w_sum(),
+                            self._csc_ptr, self._csc_vert, self._csc_w, ramp, share, rows, d_shapes, d_lam,
+                            x.reshape(-1))
         else:
             K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes[:self.index.n_markers],
                     weights[:self.index.n_markers], x)
@@ -555,11 +566,18 @@ class LGISolver:
             K.skin_points(x, self._skin_w, np.ascontiguousarray(jaw_matrix(jaw, self.rig.pivot)[:3]), x)
         return x
 
-    def far_weights(self, share: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The frame's blend weights with the far field (CSR arrays over M + 1 columns) and its share t (V,) of
-        the global fit, given the bundles' shares (M,) (None: all 1): a vertex at ramp r (:class:`_FarField`)
-        keeps ``N_vb (1 - r s_b)`` of bundle b's weights and gives ``t = r sum_b N_vb s_b`` to the global fit."""
-        return self._far.weights(share)
+    def _blend_w_sum(self) -> np.ndarray:
+        """(V,) each vertex's total natural-neighbour weight (1 where bundles reach, 0 elsewhere)."""
+        if self._w_sum is None:
+            a = self._a
+            self._w_sum = np.add.reduceat(np.r_[a["w_data"], 0.0], a["w_indptr"][:-1]) * (np.diff(a["w_indptr"]) > 0)
+        return self._w_sum
+
+    def far_global_share(self, share: np.ndarray | None) -> np.ndarray:
+        """(V,) the far field's share t of the global fit per vertex, given the bundles' far shares (M,) (None:
+        all 1): a vertex at ramp r (:class:`_FarField`) keeps ``N_vb (1 - r s_b)`` of bundle b's weights and gives
+        ``t = r sum_b N_vb s_b`` to the global fit."""
+        return self._far.global_share(share)
 
     def far_shares(self, q: np.ndarray, seen: np.ndarray, weights: np.ndarray, global_weights: np.ndarray
                    ) -> np.ndarray:
@@ -632,15 +650,15 @@ class LGISolver:
 
         ``bundles`` are the positions to pass through (default: those the selection was made for).
         """
-        far = self.far_weights(sel.far_share) if len(shapes) == self.index.n_markers + 1 and self._far.active \
+        t = self.far_global_share(sel.far_share) if len(shapes) == self.index.n_markers + 1 and self._far.active \
             else None
-        x = self.surface(shapes, weights, jaw, far)
+        x = self.surface(shapes, weights, jaw, sel.far_share)
         p = sel.bundles if bundles is None else np.asarray(bundles, np.float64)
         seen = np.all(np.isfinite(p), axis=1)
         at = self.layout.evaluate(x)
         before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - at, axis=1), np.nan)
         self.correct(x, at + self.noise_gain * (p - at), seen)
-        self.correct_far(x, p - at, seen, self.noise_gain, None if far is None else far[3])
+        self.correct_far(x, p - at, seen, self.noise_gain, t)
         residual = np.where(seen, np.linalg.norm(np.nan_to_num(p) - self.layout.evaluate(x), axis=1), np.nan)
         return dataclasses.replace(sel, vertices=x.astype(np.float32), residual=residual, jaw=jaw, bundles=p,
                                    residual_before=before)
@@ -1022,9 +1040,9 @@ class _Finisher:
         """Frame f's surface (V, 3), its residuals (M, 3) to the fitted positions (NaN where missing) and the far
         field's share t (V,) of the global fit (None without a far field), given the bundles' far shares."""
         s = self.solver
-        far = s.far_weights(share) if len(shapes) == s.index.n_markers + 1 and s._far.active else None
-        x = s.surface(shapes, lam, jaw, far)
-        return x, self.fit_pos[f] - s.layout.evaluate(x), None if far is None else far[3]
+        t = s.far_global_share(share) if len(shapes) == s.index.n_markers + 1 and s._far.active else None
+        x = s.surface(shapes, lam, jaw, share)
+        return x, self.fit_pos[f] - s.layout.evaluate(x), t
 
     def finish(self, f: int, x: np.ndarray, resid: np.ndarray, t: np.ndarray | None = None) -> None:
         """Correct surface ``x`` by ``noise_gain`` of ``resid`` at the seen bundles (but for the far field's share
@@ -1156,7 +1174,7 @@ class _FarField:
     1 from ``far_field[1]``, a smoothstep between, and 0 on every bundle's own triangle (the surface passes
     through the bundles) and where no bundle's weights reach. Per frame, given each bundle's far share s (M,),
     the vertex keeps ``N_vb (1 - r_v s_b)`` of bundle b's weights and gives ``t_v = r_v sum_b N_vb s_b`` to
-    column M, the frame's global fit (:meth:`weights`).
+    the frame's global fit (:meth:`global_share`; :func:`lgi._kernels.blend_on_base` blends them).
     """
 
     def __init__(self, arrays, n_markers: int, far_field: tuple[float, float] | None) -> None:
@@ -1177,28 +1195,13 @@ class _FarField:
         if not (r > 0).any():
             return
         self.active = True
-        n_v = len(indptr) - 1
-        far = r > 0
-        self.ptr = np.zeros(n_v + 1, np.int64)
-        self.ptr[1:] = np.cumsum(np.diff(indptr) + far)
-        self.idx = np.empty(self.ptr[-1], np.int64)
-        self.row = np.repeat(np.arange(n_v), np.diff(indptr))  # the vertex of each bundle entry
-        self.pos = self.ptr[self.row] + (np.arange(len(indices)) - indptr[self.row])  # where each goes
+        self.n_v = len(indptr) - 1
+        self.row = np.repeat(np.arange(self.n_v), np.diff(indptr))  # the vertex of each weight
         self.col = np.asarray(indices, np.int64)
         self.nn = np.asarray(data, np.float64)
-        self.idx[self.pos] = self.col
-        self.far_v = np.flatnonzero(far)
-        self.far_pos = self.ptr[self.far_v + 1] - 1
-        self.idx[self.far_pos] = n_markers
         self.r = r
-        self.n_v = n_v
 
-    def weights(self, share: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(indptr, indices, data) over M + 1 columns and t (V,) for the bundles' far shares (M,) (None: 1)."""
+    def global_share(self, share: np.ndarray | None) -> np.ndarray:
+        """(V,) t for the bundles' far shares (M,) (None: 1)."""
         s = np.ones(self.n_markers) if share is None else np.clip(np.asarray(share, np.float64), 0.0, 1.0)
-        rs = self.r[self.row] * s[self.col]
-        data = np.empty(self.ptr[-1], np.float64)
-        data[self.pos] = self.nn * (1.0 - rs)
-        t = np.bincount(self.row, self.nn * rs, minlength=self.n_v)
-        data[self.far_pos] = t[self.far_v]
-        return self.ptr, self.idx, data, t
+        return np.bincount(self.row, self.nn * self.r[self.row] * s[self.col], minlength=self.n_v)
