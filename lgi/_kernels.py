@@ -586,19 +586,7 @@ def blend_on_base(x0, deltas, base_shapes, base_lam, w_sum, c_ptr, c_vert, c_w, 
     Both terms stream over shape rows, one row at a time (the base over every vertex, a difference over the
     vertices its bundle reaches, from the weights by bundle: CSC ``c_ptr`` (M+1,), ``c_vert``, ``c_w``): reading
     memory in order, as :func:`blend_uniform` does. Flat arrays: ``x0``, ``out`` (3V,), ``deltas`` (S, 3V)."""
-    n = out.shape[0]
-    for j in range(n):
-        out[j] = 0.0
-    for c in range(base_shapes.shape[0]):
-        lc = base_lam[c]
-        if lc != 0.0:
-            row = deltas[base_shapes[c]]
-            for j in range(n):
-                out[j] += lc * row[j]
-    for v in range(n // 3):
-        ws = w_sum[v]
-        for d in range(3):
-            out[3 * v + d] = x0[3 * v + d] + ws * out[3 * v + d]
+    blend_uniform(x0, deltas, w_sum, base_shapes, base_lam, out)
     for b in rows:
         sb = share[b]
         for c in range(d_shapes.shape[1]):
