@@ -3,8 +3,8 @@
 Each fault is a small, named change to the code (a string replaced, the target asserted to occur exactly once so
 that a fault whose code has changed is reported as stale instead of silently skipped). For each one the script
 copies the repository to a temporary folder, applies the change there, runs the tests meant to notice it and
-reports whether any failed ("caught") or all passed ("MISSED"). The repository itself is never modified; each
-temporary copy is removed afterwards.
+reports whether any failed ("caught") or all passed ("MISSED"). The repository itself is never modified; the
+temporary copies are removed afterwards.
 
     python scripts/check_mutations.py            # every fault
     python scripts/check_mutations.py --list     # their names
@@ -117,10 +117,11 @@ FAULTS = [
           "        raise InputError(\"non-finite jaw parameter\", path=p, frame=int(frames[r]))\n"
           "    return np.zeros_like(vals)\n",
           ("tests/test_jaw_temporal.py",)),
-    Fault("chunk-boundary-off-by-one", "the flow's chunks end one frame early",
-          "lgi/jobs/reconstruct.py", "        return [(lo, min(lo + c, n)) for lo in range(0, n, c)]\n",
-          "        return [(lo, min(lo + c - 1, n)) for lo in range(0, n, c)]\n",
-          ("tests/test_shot_flow.py::test_shot_flow_thread_and_dask_agree",)),
+    Fault("chunk-boundary-off-by-one", "the reconstruct-shot flow's chunks end one frame early",
+          "lgi/orchestration/reconstruct.py",
+          "    bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]\n",
+          "    bounds = [(lo, min(lo + chunk_size - 1, n)) for lo in range(0, n, chunk_size)]\n",
+          ("tests/test_reconstruct_job.py::test_plain_and_flow_agree_with_non_default_options",)),
     Fault("noise-always-exact", "noisy bundles always judged exact (never smoothed and fitted)",
           "lgi/solve/temporal.py",
           "        return bool(np.isfinite(self.noise_mm) and self.coherence < NOISE_MAX_COHERENCE)\n",
@@ -150,9 +151,7 @@ def _copy(dst: Path) -> None:
     """The working tree (with others' uncommitted edits, as the tests would see them), without caches that the
     tests do not need; the numba cache (__pycache__ next to the kernels) is kept so nothing recompiles."""
     shutil.copytree(ROOT, dst, symlinks=True, ignore=shutil.ignore_patterns(
-        ".git", ".pytest_cache", ".ruff_cache", ".benchmarks", "*.egg-info", "data"))
-    if (ROOT / "data").exists():
-        (dst / "data").symlink_to(ROOT / "data")
+        ".git", ".pytest_cache", ".ruff_cache", ".benchmarks", "*.egg-info"))
 
 
 def check_targets(faults: list[Fault]) -> list[str]:
@@ -165,42 +164,54 @@ def check_targets(faults: list[Fault]) -> list[str]:
     return stale
 
 
-def run_fault(f: Fault, keep: bool = False) -> tuple[str, float, str]:
-    """("caught" | "MISSED" | "ERROR", seconds, the tail of pytest's output) for one fault, on a copy."""
+def run_fault(f: Fault, base: Path, keep: bool = False) -> tuple[str, float, str]:
+    """("caught" | "MISSED" | "ERROR" | "STALE", seconds, the tail of pytest's output) for one fault, on a copy
+    at ``base/repo`` (the same path for every fault, so that the compiled kernels cached in ``base/numba-cache``,
+    which numba keys by the source's path, are compiled once per run of this script, not once per fault)."""
     t0 = time.perf_counter()
-    tmp = Path(tempfile.mkdtemp(prefix=f"lgi-mutation-{f.name}-"))
+    repo = base / "repo"
+    shutil.rmtree(repo, ignore_errors=True)
     try:
-        repo = tmp / "repo"
         _copy(repo)
         target = repo / f.path
         text = target.read_text()
-        assert text.count(f.old) == 1, f"{f.name}: target not found once in the copy"
+        if text.count(f.old) != 1:  # changed since the check at the start (someone is editing that file)
+            return "STALE", time.perf_counter() - t0, f"{f.path} holds the target {text.count(f.old)} times"
         target.write_text(text.replace(f.old, f.new))
         # The copy's lgi first, for pytest and for every command the tests start (they import lgi through
         # PYTHONPATH, ahead of the editable install that points at the repository).
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")]).rstrip(
-            os.pathsep), "PYTHONDONTWRITEBYTECODE": "1"}
-        r = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *f.tests],
+            os.pathsep), "PYTHONDONTWRITEBYTECODE": "1", "NUMBA_CACHE_DIR": str(base / "numba-cache"),
+            # The shared data the repository finds beside itself (../shared/data), which the copy would not.
+            "LGI_SHARED_DATA": os.environ.get("LGI_SHARED_DATA", str(ROOT.parent / "shared" / "data"))}
+        r = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider",
+                            f"--basetemp={base / 'pytest'}", *f.tests],
                            cwd=repo, env=env, capture_output=True, text=True, timeout=1800)
-        tail = "\n".join((r.stdout + r.stderr).strip().splitlines()[-3:])
+        lines = (r.stdout + r.stderr).strip().splitlines()
+        failed = [ln for ln in lines if ln.startswith(("FAILED ", "ERROR "))]
+        tail = "\n".join(failed[:1] if r.returncode == 1 and failed else lines[-3:])
         # pytest: 1 = tests failed (the fault was noticed); 0 = all passed; anything else = could not run them.
         verdict = {1: "caught", 0: "MISSED"}.get(r.returncode, "ERROR")
+        if verdict == "caught" and not any(ln.startswith("FAILED ") for ln in failed):
+            verdict = "ERROR"  # a fixture or the collection broke: the tests did not get to judge the fault
         if verdict == "caught":
-            check = subprocess.run([sys.executable, "-c", "import lgi, sys; print(lgi.__file__)"], cwd=tmp, env=env,
+            check = subprocess.run([sys.executable, "-c", "import lgi, sys; print(lgi.__file__)"], cwd=base, env=env,
                                    capture_output=True, text=True)
             if not check.stdout.strip().startswith(str(repo)):  # the tests must have run the changed copy
                 verdict, tail = "ERROR", f"lgi imported from {check.stdout.strip()}, not the copy"
         return verdict, time.perf_counter() - t0, tail
     finally:
-        if not keep:
-            shutil.rmtree(tmp, ignore_errors=True)
+        if keep:
+            os.replace(repo, base / f.name)
+        else:
+            shutil.rmtree(repo, ignore_errors=True)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("names", nargs="*", help="faults to run (default: all)")
     p.add_argument("--list", action="store_true", help="list the faults and exit")
-    p.add_argument("--keep", action="store_true", help="keep the temporary copies (for a look at a missed fault)")
+    p.add_argument("--keep", action="store_true", help="keep the changed copies (for a look at a missed fault)")
     args = p.parse_args(argv)
     faults = [f for f in FAULTS if not args.names or f.name in args.names]
     unknown = set(args.names) - {f.name for f in FAULTS}
@@ -215,12 +226,18 @@ def main(argv: list[str] | None = None) -> int:
         print("stale faults (their code changed; update them):", *stale, sep="\n  ", file=sys.stderr)
         return 2
     results = []
-    for i, f in enumerate(faults, 1):
-        verdict, seconds, tail = run_fault(f, args.keep)
-        results.append(verdict)
-        print(f"[{i:2d}/{len(faults)}] {verdict:6s} {f.name:32s} {seconds:6.1f} s  {f.what}", flush=True)
-        if verdict != "caught":
-            print("        " + tail.replace("\n", "\n        "), flush=True)
+    base = Path(tempfile.mkdtemp(prefix="lgi-mutations-"))
+    try:
+        for i, f in enumerate(faults, 1):
+            verdict, seconds, tail = run_fault(f, base, args.keep)
+            results.append(verdict)
+            print(f"[{i:2d}/{len(faults)}] {verdict:6s} {f.name:32s} {seconds:6.1f} s  {f.what}", flush=True)
+            print("        " + tail.replace("\n", "\n        "), flush=True)  # the test that noticed, or why not
+    finally:
+        if args.keep:
+            print(f"copies kept in {base}")
+        else:
+            shutil.rmtree(base, ignore_errors=True)
     caught = results.count("caught")
     print(f"{caught} of {len(faults)} faults caught" + ("" if caught == len(faults) else
                                                        f"; missed or not run: {len(faults) - caught}"))
