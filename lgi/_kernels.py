@@ -512,6 +512,14 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
         out_pts[i, c] = bpts[c]
 
 
+@nb.njit(cache=True, nogil=True)
+def _solve_outputs(m, top_k):  # pragma: no cover - compiled
+    """:func:`solve_bundles`' outputs for m bundles, at their fill values (no shapes, status MISSING)."""
+    return (np.zeros((m, 4), np.int64), np.zeros((m, 4)), np.full((m, 4), -1, np.int64), np.zeros(m, np.int64),
+            np.full(m, MISSING, np.int64), np.zeros(m), np.full(m, np.nan), np.full((m, top_k), -1, np.int64),
+            np.full((m, top_k), np.inf))
+
+
 @nb.njit(parallel=True, cache=True, nogil=True)
 def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, tinv,
                   hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
@@ -530,16 +538,27 @@ def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
     distinct best containing simplices (M, top_k) (-1 padded) with their scores, for a second pass.
     """
     m = p.shape[0]
-    cand_out = np.full((m, top_k), -1, np.int64)
-    cand_score_out = np.full((m, top_k), np.inf)
-    out_shapes = np.zeros((m, 4), np.int64)
-    out_lam = np.zeros((m, 4))
-    out_pts = np.full((m, 4), -1, np.int64)
-    n_contain = np.zeros(m, np.int64)
-    status = np.full(m, MISSING, np.int64)
-    proj = np.zeros(m)
-    score = np.full(m, np.nan)
-    for i in nb.prange(m):
+    out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out = _solve_outputs(m, top_k)
+    for i in nb.prange(m):  # solve_bundles_serial: the same loop on one thread
+        if seen[i] and active[i]:
+            _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx,
+                       tinv, hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r,
+                       prev, mu, agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
+                       cand_in, cand_score_in, first_score, out_shapes, out_lam, out_pts, n_contain, status, proj,
+                       score, cand_out, cand_score_out)
+    return out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out
+
+
+@nb.njit(cache=True, nogil=True)
+def solve_bundles_serial(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx,
+                         tinv, hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r,
+                         prev, mu, agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
+                         cand_in, cand_score_in, first_score, active):  # pragma: no cover - compiled
+    """:func:`solve_bundles` on the calling thread alone (a shot's frames chosen on one thread while another
+    blends: no parallel region is launched from two threads)."""
+    m = p.shape[0]
+    out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out = _solve_outputs(m, top_k)
+    for i in range(m):
         if seen[i] and active[i]:
             _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx,
                        tinv, hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r,
@@ -684,6 +703,22 @@ def agreement(points, lam, seen, alias_off, class_off, alias_shape, nb_off, nb_i
     return out
 
 
+@nb.njit(cache=True, nogil=True)
+def _correction_part(part, half, c_indptr, c_indices, c_data, fix, resid, buf):  # pragma: no cover - compiled
+    """Half ``part`` (0 or 1) of :func:`add_correction`'s rows summed into ``buf[part]``."""
+    for f in range(part * half, min(fix.shape[0], (part + 1) * half)):
+        b = fix[f]
+        r0 = resid[f, 0]
+        r1 = resid[f, 1]
+        r2 = resid[f, 2]
+        for e in range(c_indptr[b], c_indptr[b + 1]):
+            v = c_indices[e]
+            w = c_data[e]
+            buf[part, v, 0] += w * r0
+            buf[part, v, 1] += w * r1
+            buf[part, v, 2] += w * r2
+
+
 @nb.njit(parallel=True, cache=True, nogil=True)
 def add_correction(x, c_indptr, c_indices, c_data, fix, resid):  # pragma: no cover - compiled
     """x[v] += sum_f resid[f] * corr[fix[f], v], the correction basis stored as sparse rows (one per
@@ -694,18 +729,21 @@ def add_correction(x, c_indptr, c_indices, c_data, fix, resid):  # pragma: no co
     buf = np.zeros((2, n_v, 3))
     half = (fix.shape[0] + 1) // 2
     for part in nb.prange(2):
-        for f in range(part * half, min(fix.shape[0], (part + 1) * half)):
-            b = fix[f]
-            r0 = resid[f, 0]
-            r1 = resid[f, 1]
-            r2 = resid[f, 2]
-            for e in range(c_indptr[b], c_indptr[b + 1]):
-                v = c_indices[e]
-                w = c_data[e]
-                buf[part, v, 0] += w * r0
-                buf[part, v, 1] += w * r1
-                buf[part, v, 2] += w * r2
+        _correction_part(part, half, c_indptr, c_indices, c_data, fix, resid, buf)
     for v in nb.prange(n_v):
+        for k in range(3):
+            x[v, k] += buf[0, v, k] + buf[1, v, k]
+
+
+@nb.njit(cache=True, nogil=True)
+def add_correction_serial(x, c_indptr, c_indices, c_data, fix, resid):  # pragma: no cover - compiled
+    """:func:`add_correction` on the calling thread alone, summed in the same two halves (the same bits)."""
+    n_v = x.shape[0]
+    buf = np.zeros((2, n_v, 3))
+    half = (fix.shape[0] + 1) // 2
+    for part in range(2):
+        _correction_part(part, half, c_indptr, c_indices, c_data, fix, resid, buf)
+    for v in range(n_v):
         for k in range(3):
             x[v, k] += buf[0, v, k] + buf[1, v, k]
 
@@ -876,6 +914,58 @@ def box_qp(h, g, lo, hi, x, max_iter=0, tol=1e-13, gain=0.0):  # pragma: no cove
     return max_iter
 
 
+@nb.njit(cache=True, nogil=True)
+def _local_fit_one(i, resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight,
+                   out):  # pragma: no cover - compiled
+    """Bundle i's row of :func:`local_fits`."""
+    a0, a1 = col_off[i], col_off[i + 1]
+    n = a1 - a0
+    for k in range(w_global.shape[0]):
+        out[i, k] = w_global[k]
+    if n == 0:
+        return
+    h = np.zeros((n, n))
+    g = np.zeros(n)
+    for a in range(n):
+        h[a, a] = beta[i]
+    n_rows = 0
+    for e in range(nb_off[i] - 1, nb_off[i + 1]):
+        # The bundle itself first (e = nb_off[i] - 1), then its natural neighbours.
+        own = e < nb_off[i]
+        j = np.int64(i) if own else nb_idx[e]
+        if not seen[j]:
+            continue
+        n_rows += 1
+        cw = own_weight if own else 1.0
+        for a in range(n):
+            ka = cols[a0 + a]
+            acc = 0.0
+            for d in range(3):
+                acc += basis[ka, j, d] * resid[j, d]
+            g[a] += cw * acc
+            for b in range(a + 1):
+                kb = cols[a0 + b]
+                acc = 0.0
+                for d in range(3):
+                    acc += basis[ka, j, d] * basis[kb, j, d]
+                h[a, b] += cw * acc
+    if n_rows == 0:
+        return
+    for a in range(n):
+        for b in range(a):
+            h[b, a] = h[a, b]
+    lo = np.empty(n)
+    hi = np.empty(n)
+    x = np.zeros(n)
+    for a in range(n):
+        wk = w_global[cols[a0 + a]]
+        lo[a] = -wk
+        hi[a] = 1.0 - wk
+    box_qp(h, g, lo, hi, x)
+    for a in range(n):
+        out[i, cols[a0 + a]] = w_global[cols[a0 + a]] + x[a]
+
+
 @nb.njit(parallel=True, cache=True, nogil=True)
 def local_fits(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight,
                out):  # pragma: no cover - compiled
@@ -898,55 +988,16 @@ def local_fits(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta
     out : (M, S) float64
         Filled with each bundle's weights.
     """
-    m = resid.shape[0]
-    for i in nb.prange(m):
-        a0, a1 = col_off[i], col_off[i + 1]
-        n = a1 - a0
-        for k in range(w_global.shape[0]):
-            out[i, k] = w_global[k]
-        if n == 0:
-            continue
-        h = np.zeros((n, n))
-        g = np.zeros(n)
-        for a in range(n):
-            h[a, a] = beta[i]
-        n_rows = 0
-        for e in range(nb_off[i] - 1, nb_off[i + 1]):
-            # The bundle itself first (e = nb_off[i] - 1), then its natural neighbours.
-            own = e < nb_off[i]
-            j = np.int64(i) if own else nb_idx[e]
-            if not seen[j]:
-                continue
-            n_rows += 1
-            cw = own_weight if own else 1.0
-            for a in range(n):
-                ka = cols[a0 + a]
-                acc = 0.0
-                for d in range(3):
-                    acc += basis[ka, j, d] * resid[j, d]
-                g[a] += cw * acc
-                for b in range(a + 1):
-                    kb = cols[a0 + b]
-                    acc = 0.0
-                    for d in range(3):
-                        acc += basis[ka, j, d] * basis[kb, j, d]
-                    h[a, b] += cw * acc
-        if n_rows == 0:
-            continue
-        for a in range(n):
-            for b in range(a):
-                h[b, a] = h[a, b]
-        lo = np.empty(n)
-        hi = np.empty(n)
-        x = np.zeros(n)
-        for a in range(n):
-            wk = w_global[cols[a0 + a]]
-            lo[a] = -wk
-            hi[a] = 1.0 - wk
-        box_qp(h, g, lo, hi, x)
-        for a in range(n):
-            out[i, cols[a0 + a]] = w_global[cols[a0 + a]] + x[a]
+    for i in nb.prange(resid.shape[0]):
+        _local_fit_one(i, resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight, out)
 
+
+@nb.njit(cache=True, nogil=True)
+def local_fits_serial(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight,
+                      out):  # pragma: no cover - compiled
+    """:func:`local_fits` on the calling thread alone (see :func:`solve_bundles_serial`)."""
+    for i in range(resid.shape[0]):
+        _local_fit_one(i, resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight, out)
 
 
 # The global fit's linearisation (lgi.solve.globalfit.GlobalFit). Bundle i = seen_idx[e] is modelled as

@@ -168,22 +168,28 @@ def test_ict_layout_estimates_the_rotating_jaw_within_a_degree(ict_dir) -> None:
     assert np.abs(noisy.jaw[:, 0] - bs.true_jaw[:, 0]).max() < 1.0
 
 
-def test_noisy_sequence_on_two_threads_equals_the_two_passes(synth_set) -> None:
-    # solve_sequence chooses frame f + 1 while it blends frame f; the result must be the one that choosing
-    # every frame and then blending them gives, and a failure in the choosing thread must reach the caller.
+@pytest.mark.parametrize("noise", [0.3, 0.0], ids=["noisy", "exact"])
+def test_sequence_on_two_threads_equals_the_two_passes(synth_set, noise) -> None:
+    # solve_sequence chooses frame f + 1 while it blends frame f, each thread with the kernels' one-thread twins;
+    # the result must be the one that choosing every frame and then blending them (parallel kernels) gives, and
+    # a failure in the choosing thread must reach the caller.
     bs, index = synth_set
     sol = LGISolver(index)
-    res = sol.solve_sequence(bs.noisy, noise=0.3)
-    pos, frames, bridged = sol.prepare_shot(bs.noisy, None, 0, 0.3)
+    shot = bs.noisy if noise else bs.bundles
+    res = sol.solve_sequence(shot, noise=noise)
+    pos, frames, bridged = sol.prepare_shot(shot, None, 0, noise)
     fit_pos = sol.denoise(pos)
-    ref = sol.finish_sequence(sol.select_sequence(fit_pos, frames), pos, frames, bridged, fit_pos=fit_pos)
+    sels = sol.select_sequence(fit_pos, frames)
+    if not noise:
+        assert (res.diagnostics.source == "local fit").any()  # the local fits ran on both threads' paths
+    ref = sol.finish_sequence(sels, pos, frames, bridged, fit_pos=fit_pos)
     assert np.array_equal(res.vertices, ref.vertices)
     assert res.diagnostics.equals(ref.diagnostics)
     assert np.array_equal(res.jaw, ref.jaw)
-    bad = np.array(bs.noisy, copy=True)
+    bad = np.array(shot, copy=True)
     bad[37] = np.nan  # no marker seen: the choice of frame 37 fails
     with pytest.raises(InputError) as err:
-        sol.solve_sequence(bad, noise=0.3)
+        sol.solve_sequence(bad, noise=noise)
     assert err.value.frame == 37 and "no marker seen" in err.value.message
 
 

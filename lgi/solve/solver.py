@@ -232,6 +232,10 @@ class LGISolver:
         self._deltas = np.ascontiguousarray(index.deltas)  # read once: the blend touches all of it every frame
         self._deltas_flat = self._deltas.reshape(len(self._deltas), -1)  # a view: rows of 3V for blend_uniform
         self._w_sum: np.ndarray | None = None  # (V,) total blend weight per vertex, for uniform blends
+        # Set while a shot is chosen on one thread and blended on another (:meth:`_select_and_finish`): each
+        # thread then runs the kernels' one-thread twins, the same bits, so no parallel region is launched from
+        # two threads (the "workqueue" threading layer aborts on that) or competes for the two cores.
+        self._serial = False
         # The natural-neighbour weights by bundle (CSC), for blending each bundle's own weights over the vertices
         # it reaches (:func:`lgi._kernels.blend_on_base`).
         csc = scipy.sparse.csr_matrix((a["w_data"], a["w_indices"], a["w_indptr"]),
@@ -317,7 +321,8 @@ class LGISolver:
             needed[self._pair_j[(needed & ~seen)[self._pair_i]]] = True
             first = needed.copy()
             first[self._pair_j[needed[self._pair_i]]] = True
-        shapes, lam, pts, n_contain, status, proj, score, cand, cand_score = K.solve_bundles(
+        search = K.solve_bundles_serial if self._serial else K.solve_bundles
+        shapes, lam, pts, n_contain, status, proj, score, cand, cand_score = search(
             *args, self._no_agree, 0.0, self._no_shapes, self._no_lam, *tail, self._scan, self._no_scores,
             self._no_first, first)
         if self.spatial_weight > 0:
@@ -326,7 +331,7 @@ class LGISolver:
                                 a["nb_idx"], self._n_ext)
             # Bundles with no containing simplex in the first pass scan again (their projection).
             cand[cand[:, 0] < 0] = -2
-            shapes, lam, pts, n_contain, status, proj, score, _, _ = K.solve_bundles(
+            shapes, lam, pts, n_contain, status, proj, score, _, _ = search(
                 *args, agree, self.spatial_weight / MM_PER_CM, shapes, lam, *tail, cand, cand_score,
                 np.nan_to_num(score, nan=np.inf), needed)
         fallback = self._fill_missing(seen, shapes, lam, previous)
@@ -342,7 +347,7 @@ class LGISolver:
                 fix = np.flatnonzero(np.abs(resid_vec).max(axis=1) > 1e-7)
                 if not fix.size:
                     break
-                K.add_correction(x, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, resid_vec[fix])
+                self._add_correction(x, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, resid_vec[fix])
                 resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
         return np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
 
@@ -502,8 +507,9 @@ class LGISolver:
         resid = np.where(seen[:, None], q - self._rest - np.tensordot(wg[wg != 0], self._basis[wg != 0], axes=1), 0.0)
         w_local = np.empty((m, n_s))
         beta = np.full(m, self.local_prior)
-        K.local_fits(resid, seen, self._basis, self._a["nb_off"], self._a["nb_idx"], col_off, flat, wg, beta,
-                     K.OWN_WEIGHT, w_local)
+        fits = K.local_fits_serial if self._serial else K.local_fits
+        fits(resid, seen, self._basis, self._a["nb_off"], self._a["nb_idx"], col_off, flat, wg, beta, K.OWN_WEIGHT,
+             w_local)
         local_score = self._misfits(q, seen, w_local, todo)
         # The simplex candidate's weights as a full vector, to compare like with like.
         w_simplex = np.zeros((m, n_s + 1))
@@ -565,6 +571,9 @@ class LGISolver:
         if self.rig is not None:
             K.skin_points(x, self._skin_w, np.ascontiguousarray(jaw_matrix(jaw, self.rig.pivot)[:3]), x)
         return x
+
+    def _add_correction(self, *args) -> None:
+        (K.add_correction_serial if self._serial else K.add_correction)(*args)
 
     def _blend_w_sum(self) -> np.ndarray:
         """(V,) each vertex's total natural-neighbour weight (1 where bundles reach, 0 elsewhere)."""
@@ -641,7 +650,7 @@ class LGISolver:
             return
         a = self._a
         y = np.zeros_like(x)
-        K.add_correction(y, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, d[fix])
+        self._add_correction(y, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, d[fix])
         x += t[:, None] * y
 
     def blend_frame(self, sel: FrameResult, shapes: np.ndarray, weights: np.ndarray,
@@ -730,10 +739,9 @@ class LGISolver:
         """:meth:`solve_sequence` of a shot already prepared (:meth:`prepare_shot`, :meth:`denoise`)."""
         if jaw is not None and len(jaw) != len(pos):
             raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
-        if self.noise > 0 and smooth <= 1 and (jaw_smooth is None or jaw_smooth <= 1 or self.rig is None):
-            # Noisy bundles: the choice is the global fit alone, which runs no parallel kernel of its own, so it
-            # can run beside the blend's under any numba threading layer (the exact path's simplex search
-            # would launch parallel kernels from two threads, which the "workqueue" layer does not allow).
+        if smooth <= 1 and (jaw_smooth is None or jaw_smooth <= 1 or self.rig is None):
+            # Without smoothing each frame can be blended as soon as it is chosen: the choice of the next frame
+            # runs beside it, each thread with the one-thread kernels.
             return self._select_and_finish(fit_pos, pos, frames, bridged, jaw, show_progress)
         sels = self.select_sequence(fit_pos, frames, jaw, show_progress)
         return self.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth, show_progress, fit_pos)
@@ -859,9 +867,9 @@ class LGISolver:
     def _select_and_finish(self, fit_pos: np.ndarray, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
                            jaw: np.ndarray | None, show_progress: bool) -> SequenceResult:
         """:meth:`select_sequence` then :meth:`finish_sequence` without temporal smoothing, on two threads: the
-        choice of frame f + 1 (the global fit, compiled without the GIL) runs while frame f is blended. Each
-        frame's choice still follows the previous one's in order, so the result is the one the two calls in
-        turn give (tested); only the wall time changes (8 instead of 11 ms per frame at 500 ICT shapes)."""
+        choice of frame f + 1 (its kernels compiled without the GIL) runs while frame f is blended. Each frame's
+        choice still follows the previous one's in order, and the one-thread kernels give the parallel ones'
+        bits, so the result is the one the two calls in turn give (tested); only the wall time changes."""
         import queue
         import threading
 
@@ -895,6 +903,7 @@ class LGISolver:
         worker = threading.Thread(target=produce, name="lgi-select", daemon=True)
         fin = _Finisher(self, pos, fit_pos)
         sels: list[FrameResult] = []
+        self._serial = True
         worker.start()
         try:
             for _ in progress(range(len(pos)), "reconstructing", disable=not show_progress):
@@ -906,6 +915,7 @@ class LGISolver:
         finally:
             stop.set()
             worker.join()
+            self._serial = False
         thetas = None if self.rig is None else np.stack([s.jaw for s in sels]).astype(np.float64)
         diag = self._diagnostics(sels, frames, bridged, fin.before, fin.r_final, thetas)
         return SequenceResult(np.asarray(frames), fin.out, diag, thetas, self.noise, 1, fin.before, fin.r_final)
