@@ -1,8 +1,9 @@
-"""Speed of ``lgi reconstruct`` on realistic frames, end to end, as whole processes (issue 13).
+"""Speed of ``lgi reconstruct`` on a continuous shot, end to end, as whole processes, beside the bounded
+blendshape fit of the same frames.
 
     python benchmarks/bench_speed.py [--work DIR] [--shapes 100,500,2000] [--frames 1000] [--repeat 3]
-                                     [--stage-config 500,rig,noisy] [--jaw-motion] [--cold] [--cprofile N]
-                                     [--kinds clean,noisy] [--given-noise] [--blas-threads N]
+                                     [--stage-config 500,rig,clean] [--cold] [--cprofile N] [--kinds clean,noisy]
+                                     [--given-noise] [--blas-threads N] [--doc docs/speed.md]
 
 1. Test material, built in ``--work`` (default: a temporary directory, removed at the end) through the
    ``lgi`` command line, and reused when it is already there (a second run with the same ``--work`` only
@@ -15,31 +16,27 @@
    - a jaw rig, ``lgi rig ict --jaw-vertices 19247:21450 --shapes 'jawOpen*'``;
    - an index per dataset with and without the rig, ``lgi build DS --markers data/markers_ict.csv
      [--jaw-rig rig.npz]``: wall time and peak memory of the build process;
-   - test frames that are not dataset points: ``lgi augment ict --linear --budget F+margin --seed 9``
-     (the first F of those combinations are the ones ``--budget F`` gives), the combinations that are also
-     in-betweens of the largest dataset dropped, the first F left evaluated by ``lgi bundles --shapes
-     <their names>``. The frames follow the order in which ``lgi augment`` drew the combinations:
-     consecutive frames are unrelated poses, not a performance. A copy with Gaussian noise (``--noise-mm``,
-     0.3 mm per coordinate, converted to the dataset's units) is written with pandas in the format of
-     ``lgi bundles``; the first S frames (``--short``, 100) of each file are a second, short shot.
-   - with ``--jaw-motion``, the same mixes with the jaw rotated by the rig (opening 12.5 (1 - cos(2 pi f /
-     90)) deg, 0-25 deg over 90 frames; yaw, roll and slide 0), clean and noisy, evaluated from the
-     skinned meshes with ``MarkerLayout.evaluate``.
+   - a continuous shot of F frames (``--frames``): F/10 + 1 key poses, held-out 2-3 shape mixes
+     (``lgi augment ict --linear --budget K+margin --seed 9``, the combinations that are also in-betweens of the
+     largest dataset dropped, evaluated by ``lgi bundles``), 10 frames apart and eased into each other
+     (smoothstep in time: a hold at every key pose, the fastest motion half-way). The bundles are linear in
+     the shape weights, so every frame is the bundles of a mix of the dataset's shapes that is not itself in
+     the dataset. A copy with Gaussian noise (``--noise-mm``, 0.3 mm per coordinate) is written with pandas
+     in the format of ``lgi bundles``; the first S frames (``--short``, 100) of each file are a second shot.
 2. ``python -m lgi reconstruct INDEX --bundles FRAMES --out OUT -q`` as whole processes, for the short and
    the long shot, ``--repeat`` times each (interleaved), for every shapes x {no rig, rig} x bundles kind:
-   median wall time, frames/s and ms per frame of the long shot, cost per extra frame
-   ``(t_F - t_S) / (F - S)``, peak resident memory of the process (``os.wait4``), and what the process
-   said about the bundles (share contained; share fitted as measurements, where noisy bundles skip the
-   simplex search; how noise was treated: with the default ``--noise auto`` the
-   unrelated poses may be judged exact even when noisy; ``--given-noise`` passes ``--noise MM`` for the
-   noisy copies). One untimed process first (a changed ``lgi/_kernels.py`` is compiled by the first
-   process that uses it).
+   median wall time, cost per extra frame ``(t_F - t_S) / (F - S)``, start-up ``t_S - S x that``, peak
+   resident memory of the process (``os.wait4``) and what the process said about the bundles. Beside it, in
+   the same run and the same way, the bounded blendshape fit of the same frames (``FIT_CHILD``: the same
+   shot preparation, so the noisy copies' smoothed bundles; per frame :class:`~lgi.solve.globalfit.GlobalFit`
+   with the jaw, the compiled blend of its weights and the skinning; ``meshes.npz`` written). One untimed
+   process first (changed kernels are compiled by the first process that uses them).
 3. Per-stage time for one configuration (``--stage-config``): ``lgi.cli.main(["reconstruct", ...])`` in
    one process, once on the short shot (imports, numba cache load) and then, with timers around the
    library calls it makes, on the long shot; ms per frame per stage. ``--cprofile N`` adds a cProfile
-   run (top N functions by own time). ``--cold``: one process with an empty numba cache
-   (``NUMBA_CACHE_DIR`` set to a new directory for that process only, so the shared cache in
-   ``lgi/__pycache__`` that other processes use is not deleted) against one with the cache.
+   run (top N functions by own time). ``--cold``: the short shot in one process with an empty numba cache
+   (``NUMBA_CACHE_DIR`` set to a new directory for that process only): the first run after an install.
+4. ``--doc FILE`` rewrites the table between ``<!-- table:speed -->`` and ``<!-- /table -->`` in FILE.
 
 The children inherit this process's environment as a user's shell would give it; the thread variables
 seen (``OPENBLAS_NUM_THREADS`` etc.) are printed. ``--blas-threads N`` sets ``OPENBLAS_NUM_THREADS`` and
@@ -70,15 +67,12 @@ from lgi.paths import REPO_ROOT, shared_data, shipped
 ICT_SHAPES = 57
 JAW_VERTICES = "19247:21450"
 MIX_SEED = 9
-JAW_PERIOD = 90  # frames per jaw opening cycle with --jaw-motion
-JAW_MAX_DEG = 25.0
+STEP = 10  # frames from one key pose to the next
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 KINDS = {
     "clean": "clean",
     "noisy": "{noise} mm Gaussian noise per coordinate",
-    "jaw": "jaw rotating 0-25 deg (rig skinning), clean",
-    "jaw-noisy": "jaw rotating 0-25 deg (rig skinning), {noise} mm Gaussian noise per coordinate",
 }
 
 # In-process stage timers: (depth, label, module, qualified name). Functions that are absent (renamed by
@@ -90,22 +84,27 @@ STAGES = [
     (0, "prepare_shot (align, noise estimate, gaps)", "lgi.solve.solver", "LGISolver.prepare_shot"),
     (0, "denoise (trajectory smoothing)", "lgi.solve.solver", "LGISolver.denoise"),
     (0, "solve (Shot.run -> LGISolver.solve_prepared)", "lgi.solve.solver", "LGISolver.solve_prepared"),
-    (1, "select_sequence (noisy shots: on a second thread)", "lgi.solve.solver", "LGISolver.select_sequence"),
+    (1, "select_sequence (without smoothing: on a second thread)", "lgi.solve.solver", "LGISolver.select_sequence"),
     (2, "select_frame", "lgi.solve.solver", "LGISolver.select_frame"),
     (3, "global fit (GlobalFit.solve)", "lgi.solve.globalfit", "GlobalFit.solve"),
     (3, "select (simplex search)", "lgi.solve.solver", "LGISolver.select"),
     (4, "_kernels.solve_bundles", "lgi._kernels", "solve_bundles"),
+    (4, "_kernels.solve_bundles_serial", "lgi._kernels", "solve_bundles_serial"),
     (4, "_kernels.agreement", "lgi._kernels", "agreement"),
     (3, "_local (local refits)", "lgi.solve.solver", "LGISolver._local"),
     (4, "_kernels.local_fits", "lgi._kernels", "local_fits"),
+    (4, "_kernels.local_fits_serial", "lgi._kernels", "local_fits_serial"),
+    (3, "far_shares (far field)", "lgi.solve.solver", "LGISolver.far_shares"),
     (3, "_global (global weights, noisy bundles)", "lgi.solve.solver", "LGISolver._global"),
     (1, "finish_sequence (smoothing; exact shots)", "lgi.solve.solver", "LGISolver.finish_sequence"),
     (1, "blend, skin, correct a frame (_Finisher.frame)", "lgi.solve.solver", "_Finisher.frame"),
     (2, "surface (blend, skin)", "lgi.solve.solver", "LGISolver.surface"),
     (3, "_kernels.blend", "lgi._kernels", "blend"),
     (3, "_kernels.blend_uniform", "lgi._kernels", "blend_uniform"),
+    (3, "_kernels.blend_on_base", "lgi._kernels", "blend_on_base"),
     (2, "correct (residual correction)", "lgi.solve.solver", "LGISolver.correct"),
     (3, "_kernels.add_correction", "lgi._kernels", "add_correction"),
+    (3, "_kernels.add_correction_serial", "lgi._kernels", "add_correction_serial"),
     (1, "diagnostics table (_diagnostics)", "lgi.solve.solver", "LGISolver._diagnostics"),
     (0, "write outputs (write_reconstruction)", "lgi.jobs.reconstruct", "write_reconstruction"),
     (1, "meshes.npz (save_npz)", "lgi.io.npz", "save_npz"),
@@ -279,27 +278,21 @@ def first_frames(src: Path, dst: Path, n: int) -> None:
     df[frames.isin(keep).to_numpy()].to_csv(dst, index=False)
 
 
-def jaw_frames(mixes: Path, names: list[str], rig_path: Path, markers: Path, out: Path) -> None:
-    """Bundles of the named mixes with the jaw rotated by the rig, opening 0-25 deg varying smoothly."""
-    from lgi.capture.bundles import Bundles, write_bundles
-    from lgi.dataset.markers import read_layout
-    from lgi.dataset.shapes import ShapeDataset
-    from lgi.solve.jaw import JawRig
-
-    ds = ShapeDataset.load(mixes, mmap=True)
-    layout = read_layout(markers, ds.triangles)
-    rig = JawRig.load(rig_path, ds.n_vertices)
-    row = {n: i for i, n in enumerate(ds.names)}
-    corners = np.asarray(layout.vertices)  # (M, 3): the markers' triangle corners; skinning them is exact
-    w = rig.weights[corners].ravel()
-    x0 = ds.neutral[corners]
-    pos = np.empty((len(names), len(layout), 3))
-    for f, name in enumerate(names):
-        x = x0 + np.asarray(ds.deltas[row[name]], np.float64)[corners]
-        theta = np.array([JAW_MAX_DEG / 2 * (1 - np.cos(2 * np.pi * f / JAW_PERIOD)), 0.0, 0.0, 0.0])
-        skinned = rig.skin(x.reshape(-1, 3), theta, w).reshape(x.shape)
-        pos[f] = np.einsum("mkd,mk->md", skinned, layout.weights)
-    write_bundles(out, Bundles(frames=np.arange(len(names)), markers=list(layout.names), positions=pos))
+def eased_shot(keys: Path, dst: Path, step: int) -> int:
+    """A continuous shot from key poses (a bundles CSV, one frame per pose): ``step`` frames from each pose to
+    the next, eased in time (smoothstep), the last pose not repeated. Returns the number of frames."""
+    df = pd.read_csv(keys)
+    names = df.loc[df["frame"] == df["frame"].iloc[0], "marker"].tolist()
+    pos = df[["x", "y", "z"]].to_numpy().reshape(-1, len(names), 3)
+    t = np.arange(step) / step
+    ease = t * t * (3 - 2 * t)
+    shot = ((1 - ease)[None, :, None, None] * pos[:-1, None] + ease[None, :, None, None] * pos[1:, None])
+    shot = shot.reshape(-1, len(names), 3)
+    n_f = len(shot)
+    pd.DataFrame({"frame": np.repeat(np.arange(n_f), len(names)), "marker": np.tile(names, n_f),
+                  "x": shot[..., 0].ravel(), "y": shot[..., 1].ravel(), "z": shot[..., 2].ravel()}
+                 ).to_csv(dst, index=False, float_format="%.7g")
+    return n_f
 
 
 def escape(name: str) -> str:
@@ -363,9 +356,10 @@ def build_material(work: Path, ict_dir: Path, shapes: list[int], frames: int, sh
                 records.put(f"build/{idx.name}", {"wall_s": r.wall_s, "peak_mib": r.peak_mib})
             indexes[(n, with_rig)] = idx
 
-    # Held-out frames: combinations drawn with another seed, minus any that are in-betweens of a dataset.
-    margin = max(20, frames // 10)
-    budget = frames + margin
+    # Key poses: combinations drawn with another seed, minus any that are in-betweens of a dataset.
+    n_keys = frames // STEP + 1
+    margin = max(20, n_keys // 10)
+    budget = n_keys + margin
     mixes = work / f"mixes-b{budget}-s{MIX_SEED}"
     if not (mixes / "manifest.json").is_file():
         log(f"lgi augment ict --out {mixes.name} --linear --budget {budget} --seed {MIX_SEED}")
@@ -377,45 +371,35 @@ def build_material(work: Path, ict_dir: Path, shapes: list[int], frames: int, sh
             taken |= {c for _, c in combos(datasets[n])}
     candidates = combos(mixes)
     held = [name for name, c in candidates if c not in taken]
-    excluded = sum(1 for _, c in candidates[:frames] if c in taken)
-    if len(held) < frames:
+    excluded = sum(1 for _, c in candidates[:n_keys] if c in taken)
+    if len(held) < n_keys:
         log(f"warning: only {len(held)} held-out mixes; using them all")
-    held = held[:frames]
-    frames = len(held)
-    short = short if short < frames else max(1, frames // 5)
-    fdir = work / f"frames-F{frames}-vs{max(shapes)}"
+    held = held[:n_keys]
+    fdir = work / f"shot-K{len(held)}-vs{max(shapes)}"
     fdir.mkdir(exist_ok=True)
     (fdir / "names.txt").write_text("\n".join(held) + "\n")
-    files = {}
-    clean = fdir / f"clean-{frames}.csv"
-    if not clean.is_file():
+    keys = fdir / "keys.csv"
+    if not keys.is_file():
         pattern = ",".join(escape(n) for n in held)
         if len(pattern) > 120_000:  # one argument may not exceed 128 KiB (Linux MAX_ARG_STRLEN)
             raise SystemExit(f"--frames {frames}: the list of shape names is too long for one argument")
-        log(f"lgi bundles {mixes.name} --markers {markers.name} --out {clean.name} --shapes <{frames} held-out names>")
-        run_lgi("bundles", str(mixes), "--markers", str(markers), "--out", str(clean), "--shapes", pattern)
+        log(f"lgi bundles {mixes.name} --markers {markers.name} --out {keys.name} --shapes <{len(held)} key poses>")
+        run_lgi("bundles", str(mixes), "--markers", str(markers), "--out", str(keys), "--shapes", pattern)
+    files = {}
+    clean = fdir / "clean.csv"
+    frames = eased_shot(keys, clean, STEP)
+    short = short if short < frames else max(1, frames // 5)
     files[("clean", frames)] = clean
     sigma = noise_mm / MM_PER_UNIT[units]
-    if "jaw" in kinds or "jaw-noisy" in kinds:
-        jaw = fdir / f"jaw-{frames}.csv"
-        if not jaw.is_file():
-            log(f"jaw-motion frames -> {jaw.name}")
-            order = pd.read_csv(clean.with_name(clean.stem + ".shapes.csv"))["shape"].tolist()
-            jaw_frames(mixes, order, rig, markers, jaw)
-        files[("jaw", frames)] = jaw
-    for kind in kinds:
-        if kind.endswith("noisy"):
-            base = files[("clean" if kind == "noisy" else "jaw", frames)]
-            dst = fdir / f"{kind}{noise_mm:g}mm-{frames}.csv"
-            if not dst.is_file():
-                log(f"{noise_mm:g} mm noise ({sigma:g} {units}) -> {dst.name}")
-                add_noise(base, dst, sigma, seed=1)
-            files[(kind, frames)] = dst
+    if "noisy" in kinds:
+        dst = fdir / f"noisy{noise_mm:g}mm.csv"
+        log(f"{noise_mm:g} mm noise ({sigma:g} {units}) -> {dst.name}")
+        add_noise(clean, dst, sigma, seed=1)
+        files[("noisy", frames)] = dst
     for kind in kinds:
         long = files[(kind, frames)]
         dst = long.with_name(f"{long.stem}-first{short}.csv")
-        if not dst.is_file():
-            first_frames(long, dst, short)
+        first_frames(long, dst, short)
         files[(kind, short)] = dst
     aug = manifest(datasets[max(shapes)])["info"].get("augmented", {}) if max(shapes) > ICT_SHAPES else {}
     how = ", ".join(f"{k} {','.join(f'{v:g}' for v in aug[k])}" for k in ("levels", "orders") if k in aug)
@@ -427,7 +411,7 @@ def summary(stdout: str) -> dict:
     out = {}
     m = re.search(r"([\d.]+) % contained", stdout)
     out["contained"] = float(m.group(1)) if m else float("nan")
-    m = re.search(r"([\d.]+) % fitted as measurements", stdout)
+    m = re.search(r"([\d.]+) % (fitted as measurements|met by the global fit)", stdout)
     out["fitted"] = float(m.group(1)) if m else 0.0
     m = re.search(r"bundles treated as (exact|measurements with ([\d.]+) mm noise)", stdout)
     out["noise"] = "?" if not m else ("exact" if m.group(1) == "exact" else f"{m.group(2)} mm")
@@ -470,6 +454,60 @@ def time_config(mat: Material, index: Path, kind: str, repeat: int, env: dict[st
     return {"failed": False, "t_short": ts, "t_long": tl, "peak_mib": max(peaks[mat.frames]),
             "walls_long": walls[mat.frames], "extra_ms": (tl - ts) / max(mat.frames - mat.short, 1) * 1e3,
             **summary(last)}
+
+
+FIT_CHILD = r"""
+import sys, time
+import numpy as np
+from lgi import _kernels as K
+from lgi.jobs.reconstruct import ReconstructOptions, Shot
+from lgi.solve.jaw import jaw_matrix
+from lgi.threads import one_blas_thread
+
+index, bundles, out = sys.argv[1:4]
+shot = Shot(index, bundles, ReconstructOptions())  # the same reading, checks, noise estimate and smoothing
+sol = shot.solver
+fit, x0, deltas = sol.global_fit, sol._x0.reshape(-1), sol._deltas_flat
+ones = np.ones(len(sol._x0))
+skin_w = sol._skin_w if sol.rig is not None else None
+
+
+@one_blas_thread
+def run(pos):
+    verts = np.empty((len(pos), len(sol._x0), 3), np.float32)
+    prev = None
+    x = np.empty_like(sol._x0)
+    for f in range(len(pos)):
+        prev = fit.solve(pos[f], init=prev)
+        nz = np.flatnonzero(prev.weights > 0)
+        K.blend_uniform(x0, deltas, ones, (nz + 1).astype(np.int64), prev.weights[nz], x.reshape(-1))
+        if skin_w is not None:
+            K.skin_points(x, skin_w, np.ascontiguousarray(jaw_matrix(prev.jaw, sol.rig.pivot)[:3]), x)
+        verts[f] = x
+    return verts
+
+
+verts = run(shot.fit_pos)
+np.savez(out, vertices=verts)
+"""
+
+
+def time_fit(mat: Material, index: Path, kind: str, repeat: int, env: dict[str, str], scratch: Path) -> dict:
+    """Median wall times of the blendshape fit (``FIT_CHILD``) on the short and the long shot, as
+    :func:`time_config` times LGI."""
+    walls = {mat.short: [], mat.frames: []}
+    for _ in range(repeat):
+        for n in (mat.short, mat.frames):
+            out = scratch / "fit.npz"
+            r = run_process([sys.executable, "-c", FIT_CHILD, str(index), str(mat.files[(kind, n)]), str(out)], env)
+            out.unlink(missing_ok=True)
+            if r.returncode != 0:
+                log(f"blendshape fit failed ({index.name}, {kind}, {n} frames):\n{r.stderr[-3000:]}")
+                return {"failed": True}
+            walls[n].append(r.wall_s)
+    ts, tl = statistics.median(walls[mat.short]), statistics.median(walls[mat.frames])
+    return {"failed": False, "t_short": ts, "t_long": tl,
+            "extra_ms": (tl - ts) / max(mat.frames - mat.short, 1) * 1e3}
 
 
 def stage_breakdown(index: Path, warm: Path, bundles: Path, frames: int, env: dict[str, str], scratch: Path,
@@ -517,8 +555,8 @@ def stage_breakdown(index: Path, warm: Path, bundles: Path, frames: int, env: di
             row(d, lab, "", secs)
     top = sum(timers[label][0] for d, label, _, _ in STAGES if d == 0 and res["found"].get(label))
     row(0, "(rest of lgi reconstruct: arguments, prints)", "", total - top)
-    print("\nWith noisy bundles and no smoothing, `select_sequence` runs on a second thread while the main thread "
-          "blends the frames already chosen (`_Finisher.frame`), so the stages under `solve_sequence` add up to "
+    print("\nWithout smoothing, `select_sequence` runs on a second thread while the main thread "
+          "blends the frames already chosen (`_Finisher.frame`), so the stages under `solve_prepared` add up to "
           "more than its wall time. `(rest of _Finisher.frame)` is marker evaluation and residuals; "
           "`(rest of select_frame)` includes unskinning the bundles with a rig.")
     if res["profile"]:
@@ -567,13 +605,13 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=1000, help="frames of the long shot (1000)")
     ap.add_argument("--short", type=int, default=100, help="frames of the short shot (100; F/5 if >= F)")
     ap.add_argument("--repeat", type=int, default=3, help="runs per shot and configuration; medians (3)")
-    ap.add_argument("--kinds", default=None, help="bundles kinds: clean,noisy (with --jaw-motion also jaw,jaw-noisy)")
-    ap.add_argument("--jaw-motion", action="store_true", help="also frames whose jaw rotates (rig skinning)")
+    ap.add_argument("--kinds", default=None, help="bundles kinds: clean,noisy (both)")
+    ap.add_argument("--doc", type=Path, default=None, help="rewrite the speed table of this Markdown file")
     ap.add_argument("--noise-mm", type=float, default=0.3, help="noise per coordinate of the noisy copies (0.3)")
     ap.add_argument("--given-noise", action="store_true", help="pass --noise MM to lgi reconstruct for the noisy "
                     "copies (default: --noise auto, which may call unrelated poses exact)")
-    ap.add_argument("--stage-config", default="500,rig,noisy", help="SHAPES,rig|norig,KIND for the per-stage "
-                    "breakdown, or 'none' (500,rig,noisy)")
+    ap.add_argument("--stage-config", default="500,rig,clean", help="SHAPES,rig|norig,KIND for the per-stage "
+                    "breakdown, or 'none' (500,rig,clean)")
     ap.add_argument("--cprofile", type=int, default=0, metavar="N", help="also cProfile the stage run: top N")
     ap.add_argument("--cold", action="store_true", help="also one run with an empty numba cache")
     ap.add_argument("--blas-threads", type=int, default=None, help="set OPENBLAS_NUM_THREADS/OMP_NUM_THREADS for "
@@ -587,11 +625,10 @@ def main() -> int:
     shapes = sorted({int(s) for s in args.shapes.split(",") if s.strip()})
     if not shapes or shapes[0] < ICT_SHAPES:
         raise SystemExit(f"--shapes: every size must be at least ICT's {ICT_SHAPES} shapes")
-    kinds = (args.kinds.split(",") if args.kinds else
-             ["clean", "noisy", *(["jaw", "jaw-noisy"] if args.jaw_motion else [])])
-    bad = [k for k in kinds if k not in KINDS or (k.startswith("jaw") and not args.jaw_motion)]
+    kinds = args.kinds.split(",") if args.kinds else ["clean", "noisy"]
+    bad = [k for k in kinds if k not in KINDS]
     if bad:
-        raise SystemExit(f"--kinds: unknown {bad} (jaw kinds need --jaw-motion)")
+        raise SystemExit(f"--kinds: unknown {bad}")
     env = dict(os.environ)
     if args.blas_threads is not None:
         env["OPENBLAS_NUM_THREADS"] = env["OMP_NUM_THREADS"] = str(args.blas_threads)
@@ -627,46 +664,73 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
                                          scratch / "recon", []), env)
     shutil.rmtree(scratch / "recon", ignore_errors=True)
     load0 = os.getloadavg()[0]
-    results = {}
+    results, fits = {}, {}
     for kind in kinds:
         for n in shapes:
             for with_rig in (False, True):
                 log(f"timing {n} shapes, {'rig' if with_rig else 'no rig'}, {kind}: {args.repeat} x "
-                    f"({mat.short} + {mat.frames} frames)")
-                results[(kind, n, with_rig)] = time_config(mat, mat.indexes[(n, with_rig)], kind, args.repeat, env,
-                                                           scratch, noise_args(kind, args))
+                    f"({mat.short} + {mat.frames} frames), LGI and the blendshape fit")
+                idx = mat.indexes[(n, with_rig)]
+                results[(kind, n, with_rig)] = time_config(mat, idx, kind, args.repeat, env, scratch,
+                                                           noise_args(kind, args))
+                fits[(kind, n, with_rig)] = time_fit(mat, idx, kind, args.repeat, env, scratch)
 
     print(f"# lgi reconstruct speed ({os.cpu_count()} cores; 1-minute load average {load0:.2f} before the timed "
           f"runs, {os.getloadavg()[0]:.2f} after; {threads})\n")
+    frames_text = (f"a continuous {mat.frames}-frame shot: {mat.frames // STEP + 1} held-out 2-3 shape mixes of ICT "
+                   f"shapes (not in the dataset) as key poses {STEP} frames apart, eased into each other")
     print(f"Datasets: ICT FaceKit ({ICT_SHAPES} shapes, 26,719 vertices, {mat.units}) plus `lgi augment --linear "
-          f"--budget N-{ICT_SHAPES}` ({mat.augment or 'no in-betweens'}). Test frames: `lgi augment --linear --budget "
-          f"{mat.budget} --seed {MIX_SEED}` of the 57 ICT shapes, the combinations that are in-betweens of the "
-          f"{max(shapes)}-shape dataset removed ({mat.excluded} of the first {mat.frames}), the first {mat.frames} "
-          f"left; in the order drawn, so consecutive frames are unrelated poses (not a performance). Short shot: "
-          f"their first {mat.short} frames. Every `lgi reconstruct` is a whole process (`python -m lgi reconstruct "
-          f"INDEX --bundles FRAMES --out OUT -q`{given}, defaults otherwise), median of {args.repeat}; "
-          f"ms/extra frame = (t{mat.frames} - t{mat.short}) / {mat.frames - mat.short}. The first process "
-          f"(untimed) took {first.wall_s:.1f} s for {mat.short} frames.\n")
+          f"--budget N-{ICT_SHAPES}` ({mat.augment or 'no in-betweens'}). Frames: {frames_text} (`lgi augment "
+          f"--linear --budget {mat.budget} --seed {MIX_SEED}`, the combinations that are in-betweens of the "
+          f"{max(shapes)}-shape dataset removed: {mat.excluded}). Short shot: its first {mat.short} frames. Every "
+          f"run is a whole process (`python -m lgi reconstruct INDEX --bundles FRAMES --out OUT -q`{given}, "
+          f"defaults otherwise), median of {args.repeat}; ms/extra frame = (t{mat.frames} - t{mat.short}) / "
+          f"{mat.frames - mat.short}; start-up = t{mat.short} - {mat.short} x ms/extra frame. The blendshape fit: "
+          "the same shot preparation, then per frame the bounded fit with the jaw (the global fit LGI starts "
+          "from), the compiled blend and skinning (`FIT_CHILD`). The first process (untimed) took "
+          f"{first.wall_s:.1f} s for {mat.short} frames.\n")
+    rows = []
     for kind in kinds:
-        what = KINDS[kind].format(noise=f"{args.noise_mm:g}")
-        print(f"## {mat.frames} held-out 2-3 shape linear mixes of ICT shapes (not in the dataset), {what}\n")
-        print(f"| shapes | rig | bundles | build s | build peak MiB | {mat.short} frames s | {mat.frames} frames s | "
-              f"frames/s ({mat.frames}) | ms/frame ({mat.frames}) | ms/extra frame | peak MiB | contained % | "
-              "fitted % | noise treated as |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+        for n in shapes:
+            for with_rig in (False, True):
+                r, f = results[(kind, n, with_rig)], fits[(kind, n, with_rig)]
+                head = f"| {n} | {'rig' if with_rig else 'none'} | {kind} |"
+                if r["failed"] or f["failed"]:
+                    rows.append(f"{head} failed | | | | | | |")
+                    continue
+                start = r["t_short"] - mat.short * r["extra_ms"] / 1e3
+                rows.append(f"{head} {r['extra_ms']:.1f} | {1e3 / r['extra_ms']:.0f} | {f['extra_ms']:.1f} | "
+                            f"{r['extra_ms'] / f['extra_ms']:.2f} | {start:.2f} | {r['t_long']:.1f} | "
+                            f"{r['peak_mib']:.0f} |")
+    table = "\n".join([
+        f"Frames: {frames_text}; clean, and with {args.noise_mm:g} mm Gaussian noise per coordinate. "
+        f"{os.cpu_count()} cores, whole processes, medians of {args.repeat}.\n",
+        "| shapes | rig | bundles | LGI ms per extra frame | LGI frames/s | fit ms per extra frame | LGI / fit | "
+        f"start-up s | {mat.frames} frames s | peak MiB |",
+        "|---|---|---|---|---|---|---|---|---|---|", *rows])
+    print(table + "\n")
+    if args.doc is not None:
+        text = args.doc.read_text()
+        new, n_sub = re.subn(r"<!-- table:speed -->\n.*?<!-- /table -->",
+                             lambda m: f"<!-- table:speed -->\n{table}\n<!-- /table -->", text, flags=re.S)
+        if n_sub:
+            args.doc.write_text(new)
+            log(f"wrote the speed table into {args.doc}")
+        else:
+            log(f"{args.doc} has no <!-- table:speed --> marker; nothing written")
+    for kind in kinds:
+        print(f"| shapes | rig | bundles | build s | build peak MiB | {mat.short} frames s | {mat.frames} frames s "
+              "| contained % | fitted % | noise treated as |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
         for n in shapes:
             for with_rig in (False, True):
                 idx = mat.indexes[(n, with_rig)]
                 b = records.data.get(f"build/{idx.name}", {})
-                bs = f"{b['wall_s']:.1f}" if b else "?"
-                bm = f"{b['peak_mib']:.0f}" if b else "?"
                 r = results[(kind, n, with_rig)]
-                head = f"| {n} | {'rig' if with_rig else 'none'} | {kind} | {bs} | {bm} |"
                 if r["failed"]:
-                    print(f"{head} failed | | | | | | | | |")
                     continue
-                print(f"{head} {r['t_short']:.2f} | {r['t_long']:.2f} | {mat.frames / r['t_long']:.1f} | "
-                      f"{r['t_long'] / mat.frames * 1e3:.2f} | {r['extra_ms']:.2f} | {r['peak_mib']:.0f} | "
+                print(f"| {n} | {'rig' if with_rig else 'none'} | {kind} | {b.get('wall_s', float('nan')):.1f} | "
+                      f"{b.get('peak_mib', float('nan')):.0f} | {r['t_short']:.2f} | {r['t_long']:.2f} | "
                       f"{r['contained']:.1f} | {r['fitted']:.1f} | {r['noise']} |")
         print()
     print("| index | shapes | rig | simplices | on disk MiB |")
@@ -680,13 +744,12 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
     if args.stage_config != "none":
         n, with_rig, kind = parse_config(args.stage_config, shapes, kinds)
         what = KINDS[kind].format(noise=f"{args.noise_mm:g}")
-        print(f"## Per stage: {n} shapes, {'rig' if with_rig else 'no rig'}, {mat.frames} held-out 2-3 shape linear "
-              f"mixes of ICT shapes (not in the dataset), {what}\n")
+        print(f"## Per stage: {n} shapes, {'rig' if with_rig else 'no rig'}, {frames_text}, {what}\n")
         log(f"stage breakdown: {n} shapes, {'rig' if with_rig else 'no rig'}, {kind}")
         stage_breakdown(mat.indexes[(n, with_rig)], mat.files[(kind, mat.short)], mat.files[(kind, mat.frames)],
                         mat.frames, env, scratch, args.cprofile, noise_args(kind, args))
     if args.cold:
-        n, with_rig, kind = parse_config(args.stage_config if args.stage_config != "none" else "500,rig,noisy",
+        n, with_rig, kind = parse_config(args.stage_config if args.stage_config != "none" else "500,rig,clean",
                                          shapes, kinds)
         log("cold run (empty numba cache)")
         print()
