@@ -319,8 +319,9 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
         shapes[0] = pt_shape[pt_off[i]]
         apt[0] = pt_off[i]
         lam[0] = 1.0
-        _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off, alias_shape,
-                  alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
+        # np.int64(1), not 1: a literal argument is a type of its own, compiled again (first run after an install).
+        _consider(i, shapes, lam, np.int64(1), p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off,
+                  alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
         found = 1
     else:
         if cand_in[i, 0] >= -1:
@@ -404,8 +405,8 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
             shapes[0] = pt_shape[a]
             apt[0] = a
             lam[0] = 1.0
-            if _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off, alias_shape,
-                         alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last):
+            if _consider(i, shapes, lam, np.int64(1), p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off,
+                         alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last):
                 snapped = dd
     n_contain[i] = found
     if snapped >= 0:
@@ -474,7 +475,7 @@ def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off,
             shapes[0] = pt_shape[bestp]
             apt[0] = bestp
             lam[0] = 1.0
-            _consider(i, shapes, lam, 1, p, seen, ptab, nb_off, nb_idx, off2 + bd + 1e-300, apt, alias_off,
+            _consider(i, shapes, lam, np.int64(1), p, seen, ptab, nb_off, nb_idx, off2 + bd + 1e-300, apt, alias_off,
                       class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
             best_proj = bd
         status[i] = PROJECTED
@@ -961,7 +962,7 @@ def _local_fit_one(i, resid, seen, basis, nb_off, nb_idx, col_off, cols, w_globa
         wk = w_global[cols[a0 + a]]
         lo[a] = -wk
         hi[a] = 1.0 - wk
-    box_qp(h, g, lo, hi, x)
+    box_qp(h, g, lo, hi, x, np.int64(0), 1e-13, 0.0)
     for a in range(n):
         out[i, cols[a0 + a]] = w_global[cols[a0 + a]] + x[a]
 
@@ -1248,12 +1249,17 @@ def _gf_gradient(basis, seen_idx, rot, bw, jaw_rows, nj, r, dz, z, reg, damp, ro
 
 @nb.njit(cache=True)
 def _gf_top(score, cand, count, work):  # pragma: no cover - compiled
-    """Mark in ``work`` the ``count`` variables of ``cand`` with the largest ``score``."""
-    if cand.shape[0] == 0:
-        return
-    order = np.argsort(-score[cand], kind="mergesort")
-    for a in range(min(count, cand.shape[0])):
-        work[cand[order[a]]] = True
+    """Mark in ``work`` the ``count`` variables of ``cand`` with the largest ``score`` (ties: the first in
+    ``cand``, as a stable sort would take them). Picked one at a time, O(count x len(cand)) for 16 of a few
+    hundred: a sort costs nothing more per call but compiles for 13 s on the first run after an install."""
+    taken = np.zeros(cand.shape[0], np.bool_)
+    for _ in range(min(count, cand.shape[0])):
+        best = -1
+        for a in range(cand.shape[0]):
+            if not taken[a] and (best < 0 or score[cand[a]] > score[cand[best]]):
+                best = a
+        taken[best] = True
+        work[cand[best]] = True
 
 
 @nb.njit(cache=True)
@@ -1333,7 +1339,7 @@ def working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, damp, co
             h[a, a] += reg[ws[a]] + damp
         sub = dz[ws]  # warm start: the last round's solution, zero for the newcomers
         # The QP's objective is half of this one: the same gain threshold for releasing a bound.
-        box_qp(h, rhs, lo[ws], hi[ws], sub, 0, 1e-13, 0.5 * gain)
+        box_qp(h, rhs, lo[ws], hi[ws], sub, np.int64(0), 1e-13, 0.5 * gain)
         dz[:] = 0.0
         for a in range(nw):
             dz[ws[a]] = sub[a]
@@ -1461,6 +1467,8 @@ def global_fit_frame(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_
     if with_jaw:
         w1 = w_out.copy()
         th1 = theta_out.copy()
-        steps += global_gauss_newton(rest, basis, prod, seen_idx, p, w1, th1, pivot, bw, has_rig, False, l2, gain,
-                                     theta_scale, max_iter, grow, w_out, theta_out, r_out)
+        # ``not with_jaw`` (False) rather than the literal: a literal argument is a type of its own, and numba
+        # would compile the whole fit a second time for it.
+        steps += global_gauss_newton(rest, basis, prod, seen_idx, p, w1, th1, pivot, bw, has_rig, not with_jaw, l2,
+                                     gain, theta_scale, max_iter, grow, w_out, theta_out, r_out)
     return steps
