@@ -36,7 +36,7 @@ blendshape fit of the same frames.
    library calls it makes, on the long shot; ms per frame per stage. ``--cprofile N`` adds a cProfile
    run (top N functions by own time). ``--cold``: the short shot in one process with an empty numba cache
    (``NUMBA_CACHE_DIR`` set to a new directory for that process only): the first run after an install.
-4. ``--doc FILE`` rewrites the table between ``<!-- table:speed -->`` and ``<!-- /table -->`` in FILE.
+4. ``--doc FILE`` (repeatable) rewrites the table between ``<!-- table:speed -->`` and ``<!-- /table -->`` in FILE.
 
 The children inherit this process's environment as a user's shell would give it; the thread variables
 seen (``OPENBLAS_NUM_THREADS`` etc.) are printed. ``--blas-threads N`` sets ``OPENBLAS_NUM_THREADS`` and
@@ -606,7 +606,8 @@ def main() -> int:
     ap.add_argument("--short", type=int, default=100, help="frames of the short shot (100; F/5 if >= F)")
     ap.add_argument("--repeat", type=int, default=3, help="runs per shot and configuration; medians (3)")
     ap.add_argument("--kinds", default=None, help="bundles kinds: clean,noisy (both)")
-    ap.add_argument("--doc", type=Path, default=None, help="rewrite the speed table of this Markdown file")
+    ap.add_argument("--doc", type=Path, action="append", default=[], help="rewrite the speed table of this Markdown "
+                    "file (repeatable: docs/benchmarks.md and README.md)")
     ap.add_argument("--noise-mm", type=float, default=0.3, help="noise per coordinate of the noisy copies (0.3)")
     ap.add_argument("--given-noise", action="store_true", help="pass --noise MM to lgi reconstruct for the noisy "
                     "copies (default: --noise auto, which may call unrelated poses exact)")
@@ -709,15 +710,15 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
         f"start-up s | {mat.frames} frames s | peak MiB |",
         "|---|---|---|---|---|---|---|---|---|---|", *rows])
     print(table + "\n")
-    if args.doc is not None:
-        text = args.doc.read_text()
+    for doc in args.doc:
+        text = doc.read_text()
         new, n_sub = re.subn(r"<!-- table:speed -->\n.*?<!-- /table -->",
                              lambda m: f"<!-- table:speed -->\n{table}\n<!-- /table -->", text, flags=re.S)
         if n_sub:
-            args.doc.write_text(new)
-            log(f"wrote the speed table into {args.doc}")
+            doc.write_text(new)
+            log(f"wrote the speed table into {doc}")
         else:
-            log(f"{args.doc} has no <!-- table:speed --> marker; nothing written")
+            log(f"{doc} has no <!-- table:speed --> marker; nothing written")
     for kind in kinds:
         print(f"| shapes | rig | bundles | build s | build peak MiB | {mat.short} frames s | {mat.frames} frames s "
               "| contained % | fitted % | noise treated as |")
