@@ -1,9 +1,10 @@
 """Post-process constraints on the synthetic HMC shot: markers seen by one camera as rays (LGI 7.4).
 
-    python benchmarks/bench_constraints.py [--frames 300] [--work DIR]
+    python benchmarks/bench_constraints.py [--frames 300] [--work DIR] [--slip smooth|jolts] [--head-pose joint|stable]
 
-The shot: `lgi synth --hmc` (fisheye pair, 1280x1024, 0.3 px paint offset per dot and camera, helmet slip),
-`lgi calibrate` on its board images, `lgi track`, `lgi build --jaw-rig`; then `lgi reconstruct` from the
+The shot: `lgi synth --hmc --slip SLIP` (fisheye pair, 1280x1024, 0.3 px paint offset per dot and camera),
+`lgi calibrate` on its board images, `lgi build --jaw-rig`, `lgi track` (with `--index`: the head pose solved with
+the face, unless `--head-pose stable`); then `lgi reconstruct` from the
 tracked bundles alone and with `--observations` (the tracks table's one-camera observations as rays), each
 with the bundle noise estimated (the default) and with `--noise 0` (exact bundles); and from the true bundles.
 Vertex error against the true meshes (mm): the whole face, the lip region (|y - mouth| < 1 cm, |x| < 2.9 cm on
@@ -49,13 +50,14 @@ def kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return r, cb - r @ ca
 
 
-def write_oracles(shot: Path) -> None:
-    """Write `oracle_lips.csv` (lip markers true, tracked head frame) and `oracle_pose.csv` (posed by truth)."""
+def write_oracles(shot: Path, tracked: Path) -> None:
+    """Write `oracle_lips_TRACKED.csv` (lip markers true, tracked head frame) and `oracle_pose_TRACKED.csv` (posed
+    by truth)."""
     import pandas as pd
 
     from lgi.synthetic.actor import MOUTH_HALF_WIDTH, MOUTH_Y
 
-    m = pd.read_csv(shot / "tracked.csv").merge(pd.read_csv(shot / "bundles.csv"), on=["frame", "marker"],
+    m = pd.read_csv(tracked).merge(pd.read_csv(shot / "bundles.csv"), on=["frame", "marker"],
                                                   suffixes=("", "_t"))
     lip = ((np.abs(m.y_t - MOUTH_Y) < 1.2) & (np.abs(m.x_t) < MOUTH_HALF_WIDTH + 0.6)).to_numpy()
     lips, pose = m.copy(), m.copy()
@@ -66,27 +68,31 @@ def write_oracles(shot: Path) -> None:
         lips.loc[g.index[k], ["x", "y", "z"]] = ((t - tr) @ r)[k]
         pose.loc[g.index, ["x", "y", "z"]] = p @ r.T + tr
     for name, d in (("lips", lips), ("pose", pose)):
-        d[["frame", "marker", "x", "y", "z"]].to_csv(shot / f"oracle_{name}.csv", index=False)
+        d[["frame", "marker", "x", "y", "z"]].to_csv(shot / f"oracle_{name}_{tracked.stem}.csv", index=False)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--work", type=Path, default=None)
+    ap.add_argument("--slip", choices=["smooth", "jolts"], default="smooth", help="the helmet's slip (lgi synth)")
+    ap.add_argument("--head-pose", choices=["joint", "stable"], default="joint",
+                    help="track with the head pose solved with the face (lgi track --index; default) or the "
+                         "stable-marker fit")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="lgi-bench-constraints-"))
     shot = work / "shot"
     if not (shot / "hmc" / "lip_contours.csv").exists():
-        lgi("synth", "--out", str(shot), "--frames", str(args.frames), "--hmc", "-q")
-    calib, tracked = shot / "calib.json", shot / "tracked.csv"
+        lgi("synth", "--out", str(shot), "--frames", str(args.frames), "--hmc", "--slip", args.slip, "-q")
+    calib, tracked = shot / "calib.json", shot / f"tracked-{args.head_pose}.csv"
     if not calib.exists():
         lgi("calibrate", str(shot / "hmc" / "calib"), "--board", "chessboard:9x6:12", "--fisheye", "--out", str(calib))
-    if not tracked.exists():
-        lgi("track", str(shot / "hmc"), "--calib", str(calib), "--markers", str(shot / "markers.csv"),
-            "--out", str(tracked))
     if not (shot / "index" / "manifest.json").exists():
         lgi("build", str(shot / "dataset"), "--markers", str(shot / "markers.csv"), "--jaw-rig",
             str(shot / "jaw_rig.npz"), "--out", str(shot / "index"), "-q")
+    if not tracked.exists():
+        lgi("track", str(shot / "hmc"), "--calib", str(calib), "--markers", str(shot / "markers.csv"),
+            "--out", str(tracked), *(["--index", str(shot / "index")] if args.head_pose == "joint" else []))
     from lgi.capture.bundles import read_bundles
     from lgi.capture.observations import read_rays
     from lgi.index.build import LGIIndex
@@ -94,7 +100,7 @@ def main() -> None:
 
     index = LGIIndex.load(shot / "index")
     tb = read_bundles(tracked, index.marker_names)
-    rays = read_rays(shot / "tracked.tracks.parquet", index.marker_names, tb.frames, tb.seen)
+    rays = read_rays(tracked.with_name(tracked.stem + ".tracks.parquet"), index.marker_names, tb.frames, tb.seen)
     truth = np.load(shot / "truth.npz")["vertices"]
     neutral = index.arrays["neutral"]
     lips = (np.abs(neutral[:, 1] - MOUTH_Y) < 1.0) & (np.abs(neutral[:, 0]) < MOUTH_HALF_WIDTH + 0.5)
@@ -114,7 +120,7 @@ def main() -> None:
     rng = np.random.default_rng(1)
     noisy[["x", "y"]] += rng.normal(0.0, 1.0, (len(noisy), 2))
     noisy.to_csv(shot / "lip_contours_1px.csv", index=False)
-    obs = ["--observations", "tracked.tracks.parquet"]
+    obs = ["--observations", tracked.stem + ".tracks.parquet"]
     runs = [("tracked", "auto", []), ("tracked + rays", "auto", obs),
             ("tracked + rays + contours", "auto", [*obs, "--contours", "hmc/lip_contours.csv"]),
             ("tracked + rays + contours 1 px", "auto", [*obs, "--contours", "lip_contours_1px.csv"]),
@@ -122,12 +128,12 @@ def main() -> None:
             ("tracked + rays + contours", "0", [*obs, "--contours", "hmc/lip_contours.csv"]),
             ("true", "auto", []),
             ("oracle: lip markers exact", "auto", []), ("oracle: head pose exact", "auto", [])]
-    write_oracles(shot)
-    sources = {"true": "bundles.csv", "oracle: lip markers exact": "oracle_lips.csv",
-               "oracle: head pose exact": "oracle_pose.csv"}
+    write_oracles(shot, tracked)
+    sources = {"true": "bundles.csv", "oracle: lip markers exact": f"oracle_lips_{tracked.stem}.csv",
+               "oracle: head pose exact": f"oracle_pose_{tracked.stem}.csv"}
     for label, noise, extra in runs:
-        out = work / f"rec_{label.replace(' + ', '_').replace(': ', '_').replace(' ', '_')}_{noise}"
-        bundles = shot / sources.get(label, "tracked.csv")
+        out = work / f"rec_{args.head_pose}_{label.replace(' + ', '_').replace(': ', '_').replace(' ', '_')}_{noise}"
+        bundles = shot / sources.get(label, tracked.name)
         lgi("reconstruct", str(shot / "index"), "--bundles", str(bundles), "--out", str(out), "--noise", noise,
             "-q", *[str(shot / e) if e.endswith((".parquet", ".csv")) else e for e in extra])
         v = np.load(out / "meshes.npz")["vertices"]

@@ -45,7 +45,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
     opts = SynthOptions(vertices=args.vertices, frames=args.frames, seed=args.seed, hmc=args.hmc, lens=args.lens,
                         image_size=args.image_size, dot_noise=args.dot_noise, board_views=args.board_views,
-                        rig_flex=args.rig_flex, contour_noise=args.contour_noise, actor=args.actor)
+                        rig_flex=args.rig_flex, contour_noise=args.contour_noise, actor=args.actor,
+                        slip=args.slip)
     for line in synth_report(write_synthetic(args.out, opts, show_progress=not args.quiet), opts):
         print(line)
     return 0
@@ -56,7 +57,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
     opts = TrackFootageOptions(tracks=args.tracks, dataset=args.dataset, units=args.units, labels=args.labels,
                                reference_frame=args.reference_frame, helmet=args.helmet, gate=args.gate,
-                               dot_size=args.dot_size)
+                               dot_size=args.dot_size, index=args.index)
     for line in track_report(track(args.footage_dir, args.calib, args.markers, args.out, opts)):
         print(line)
     return 0
@@ -281,6 +282,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="turn camera 1 by this angle during the shot, after calibration (0; see lgi track --helmet)")
     s.add_argument("--contour-noise", type=float, default=0.0, metavar="PX",
                    help="Gaussian noise of the true lip contours in DIR/hmc/lip_contours.csv, px (0)")
+    s.add_argument("--slip", choices=["smooth", "jolts"], default="smooth",
+                   help="how the helmet moves on the head during the shot: smooth (a slow drift of up to 1 deg and "
+                        "1.5 mm) or jolts (that drift plus sudden shifts of 0.5-1.5 deg and 1-3 mm over 1-3 frames, "
+                        "each then held, and a vibration of about 0.02 deg / 0.03 mm) (default: smooth)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_synth)
 
@@ -293,6 +298,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--markers", required=True, metavar="CSV",
                    help="marker layout; its x,y,z columns give the neutral positions unless --dataset is given")
     s.add_argument("--out", required=True, metavar="BUNDLES", help="bundles file (.csv or .parquet)")
+    s.add_argument("--index", metavar="INDEX_DIR", default=None,
+                   help="the actor's LGI index (lgi build): solve each frame's head pose with the face (the jaw and "
+                        "the shape weights) instead of assuming the least-moving markers rigid; the bundles are then "
+                        "in the index's head frame (default: none, the stable-marker fit)")
     s.add_argument("--dataset", metavar="DIR", help="dataset whose neutral places the markers (and sets the units)")
     s.add_argument("--units", default="cm", choices=["mm", "cm", "m"],
                    help="units of the marker file's positions without --dataset (cm); the bundles are written "

@@ -55,10 +55,11 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
     # A sanity bound, not an accuracy figure: 640x480 images, a fisheye calibration from 8 board views, 4 frames
     # (the README's tracking table is the measurement).
     assert rms_mm < 3.0, rms_mm
-    # One implementation per job: the command line from the session's calibration writes the same meshes.
+    # One implementation per job: the command line from the session's calibration writes the same meshes (the
+    # session solves the head pose with the face of the index it is given: lgi track --index).
     cli = tmp_path / "cli"
     assert main(["track", str(shots / "a_good"), "--calib", str(out / "calibration.json"), "--markers",
-                 str(h / "markers.csv"), "--out", str(cli / "bundles.csv")]) == 0
+                 str(h / "markers.csv"), "--out", str(cli / "bundles.csv"), "--index", str(tmp_path / "idx")]) == 0
     # The session passes the tracking's table (its one-camera observations become rays) and the footage's lip
     # contours (the synthetic footage traces them).
     assert main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(cli / "bundles.csv"), "--out",

@@ -242,3 +242,57 @@ def test_track_from_a_label_file(hmc_shot: Path, tmp_path: Path) -> None:
     idx = [truth.markers.index(m) for m in tracked.markers]
     err_mm = 10 * np.linalg.norm(tracked.positions - truth.positions[:, idx], axis=2)
     assert np.sqrt(np.nanmean(err_mm**2)) < 0.5 and np.isfinite(err_mm).mean() > 0.95
+
+
+def test_track_with_the_index_solves_the_head_pose_with_the_face(hmc_shot: Path, tmp_path: Path, capsys) -> None:
+    """``lgi track --index``: every frame's pose is solved with the face, the tracks table says so, and the bundles
+    land nearer the true markers than with the stable-marker fit (the expression no longer moves the head)."""
+    from lgi.capture.bundles import read_bundles
+
+    calib = hmc_shot / "hmc" / "cameras_true.json"
+    index = tmp_path / "index"
+    assert main(["build", str(hmc_shot / "dataset"), "--markers", str(hmc_shot / "markers.csv"), "--jaw-rig",
+                 str(hmc_shot / "jaw_rig.npz"), "--out", str(index), "-q"]) == 0
+    truth = read_bundles(hmc_shot / "bundles.csv")
+    rms = {}
+    for how in ("stable", "joint"):
+        out = tmp_path / f"{how}.csv"
+        extra = ["--index", str(index)] if how == "joint" else []
+        capsys.readouterr()
+        assert main(["track", str(hmc_shot / "hmc"), "--calib", str(calib), "--markers", str(hmc_shot / "markers.csv"),
+                     "--out", str(out), "--helmet", str(hmc_shot / "hmc" / "helmet.csv"), *extra]) == 0
+        text = capsys.readouterr().out
+        table = pd.read_parquet(tmp_path / f"{how}.tracks.parquet")
+        if how == "joint":
+            assert "head pose: solved with the face in 30 of 30 frames" in text, text
+            assert set(table["head_pose"]) == {"joint"}
+            assert table["head_pose_rms_mm"].between(0.0, 1.0).all()
+        else:
+            assert set(table["head_pose"]) == {"stable markers"} and table["head_pose_rms_mm"].isna().all()
+        tracked = read_bundles(out)
+        idx = [truth.markers.index(m) for m in tracked.markers]
+        # The rigid part of each frame's error (what a pose error leaves): the rotation (deg) that best carries the
+        # tracked markers onto the true ones; the markers' own noise does not rotate them all one way.
+        turn = []
+        for f in range(len(tracked.frames)):
+            ok = np.all(np.isfinite(tracked.positions[f]), axis=1)
+            a, b = tracked.positions[f, ok], truth.positions[f, idx][ok]
+            u, _, vt = np.linalg.svd((a - a.mean(0)).T @ (b - b.mean(0)))
+            r = vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
+            turn.append(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+        rms[how] = float(np.median(turn))
+    assert rms["joint"] < 0.6 * rms["stable"], rms
+
+
+def test_track_index_of_another_layout_is_refused(hmc_shot: Path, tmp_path: Path, small_index) -> None:
+    from lgi.index.build import LGIIndex
+
+    _, _, _, index, _ = small_index
+    other = tmp_path / "other-index"
+    renamed = LGIIndex(dict(index.manifest, markers=[f"x{k}" for k in range(index.n_markers)]), index.arrays,
+                       index.deltas)
+    renamed.save(other)
+    out = tmp_path / "t.csv"
+    assert main(["track", str(hmc_shot / "hmc"), "--calib", str(hmc_shot / "hmc" / "cameras_true.json"),
+                 "--markers", str(hmc_shot / "markers.csv"), "--out", str(out), "--index", str(other)]) == 2
+    assert not out.exists()

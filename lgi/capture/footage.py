@@ -7,6 +7,7 @@ camera is an error (it would shift every later frame's number).
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 import warnings
@@ -21,6 +22,9 @@ from lgi.capture.camera import StereoRig
 from lgi.capture.dots import DotOptions, Dots, detect_dots
 from lgi.capture.tracking import Tracker, TrackOptions, Tracks, thumbnail
 from lgi.errors import InputError
+from lgi.units import MM_PER_CM
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -37,6 +41,8 @@ class ShotTracks:
     n_detections: np.ndarray  # (F, 2)
     seconds: dict[str, float]
     rig: StereoRig | None = None  # the rig the tracks were triangulated with (refined by helmet dots, if any)
+    head_source: np.ndarray | None = None  # (F,) how each frame's pose was found (lgi.capture.headpose)
+    head_rms_mm: np.ndarray | None = None  # (F,) the joint fit's inlier RMS, mm (NaN without it)
 
 
 def _detect(path: Path, frame: int, size: tuple[int, int] | None, options: DotOptions) -> tuple[Dots, np.ndarray]:
@@ -158,11 +164,13 @@ def refine_rig(rig: StereoRig, helmet: np.ndarray, dots: list[tuple[Dots, Dots]]
 def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.ndarray, names: list[str],
                   labels: str | os.PathLike[str] | None = None, reference: int = 0,
                   options: TrackOptions | None = None, dot_options: DotOptions | None = None,
-                  workers: int = 2, helmet: np.ndarray | None = None) -> ShotTracks:
+                  workers: int = 2, helmet: np.ndarray | None = None, pose_model=None) -> ShotTracks:
     """Footage -> labelled tracks -> triangulated, head-stabilised bundles (mm). See :mod:`lgi.capture.tracking`.
 
     With ``helmet`` (H, 3) marker positions (mm, calibration frame), the rig's extrinsics are first
-    refined from those markers as seen in this shot (:func:`refine_rig`).
+    refined from those markers as seen in this shot (:func:`refine_rig`). With ``pose_model`` (a
+    :class:`~lgi.capture.headpose.HeadPoseSolver` and, per tracked marker, its row in the model or -1), each
+    frame's head pose is solved with the face, starting from the stable-marker pose.
     """
     from lgi.capture.headstab import stabilise_bundles
 
@@ -186,10 +194,21 @@ def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.
         raise InputError(str(e), path=folder, frame=reference) from e
     t2 = time.perf_counter()
     head, R, t, w = stabilise_bundles(tracks.X, layout_mm)
+    source = rms = None
+    if pose_model is not None:
+        solver, rows = pose_model
+        X = np.full((len(frames), solver.n_markers, 3), np.nan)
+        known = rows >= 0
+        X[:, rows[known]] = tracks.X[:, known]
+        from lgi.capture.headpose import triangulation_information
+
+        poses = solver.solve(X, R, t, triangulation_information(X, rig.cameras))
+        R, t, source, rms = poses.R, poses.t, poses.source, poses.rms_mm
+        head = np.einsum("fmi,fij->fmj", tracks.X - t[:, None], R)  # R^T (x - t)
     t3 = time.perf_counter()
     n_det = np.array([[len(d0), len(d1)] for d0, d1 in dots])
     return ShotTracks(names, frames, tracks, head, R, t, w, n_det,
-                      {"detect": t1 - t0, "track": t2 - t1, "stabilise": t3 - t2}, rig)
+                      {"detect": t1 - t0, "track": t2 - t1, "stabilise": t3 - t2}, rig, source, rms)
 
 
 #: Parquet schema metadata key of the tracks table: the rig the tracks were triangulated with (JSON).
@@ -201,7 +220,9 @@ def tracks_table(shot: ShotTracks) -> pd.DataFrame:
     """Long table of every 2D observation: frame, marker, camera, x, y, reprojection error (px),
     source (forward/backward/anchor), triangulated (False: seen by this camera only), and the frame's head
     pose that stabilised the bundles: ``head_qx..qw`` (unit quaternion) and ``head_tx..tz`` (mm), mapping the
-    head frame (the bundles') to the rig's frame (NaN where the frame had too few markers to fit it)."""
+    head frame (the bundles') to the rig's frame (NaN where the frame had too few markers to fit it), with
+    ``head_pose`` saying how it was found (``joint``: with the face, ``stable markers``, ``none``) and
+    ``head_pose_rms_mm`` the joint fit's residual (NaN without it)."""
     from scipy.spatial.transform import Rotation
 
     tr = shot.tracks
@@ -212,11 +233,15 @@ def tracks_table(shot: ShotTracks) -> pd.DataFrame:
     if ok.any():
         quat[ok] = Rotation.from_matrix(shot.head_R[ok]).as_quat()
     pose = np.column_stack([quat, shot.head_t])[f]
+    how = shot.head_source if shot.head_source is not None else np.where(ok, "stable markers", "none")
+    how = np.asarray(how, dtype=object)
+    pose_rms = shot.head_rms_mm if shot.head_rms_mm is not None else np.full(len(ok), np.nan)
     return pd.DataFrame({
         "frame": f.astype(np.int64), "marker": np.asarray(shot.names)[m], "camera": c.astype(np.int8),
         "x": tr.uv[f, m, c, 0], "y": tr.uv[f, m, c, 1], "reprojection_px": tr.error[f, m, c],
         "source": src[tr.source[f, m, c]], "triangulated": np.isfinite(tr.X[f, m, 0]),
         **{name: pose[:, k] for k, name in enumerate(HEAD_POSE_COLUMNS)},
+        "head_pose": how[f], "head_pose_rms_mm": pose_rms[f],
     })
 
 
@@ -258,28 +283,70 @@ def neutral_layout(markers: str | os.PathLike[str], dataset: str | os.PathLike[s
     return layout.names, df[["x", "y", "z"]].to_numpy(np.float64), units
 
 
+def head_pose_model(index: str | os.PathLike[str], names: list[str], neutral_mm: np.ndarray,
+                    markers: str | os.PathLike[str]):
+    """The joint head-pose solver of an index and, per tracked marker, its row in the index (-1: not in it);
+    with the tracking layout's neutral positions replaced by the index's (the head frame the bundles are
+    written in, mm) where the index has the marker."""
+    from lgi.capture.headpose import MIN_MARKERS, HeadPoseSolver
+    from lgi.index.build import LGIIndex
+
+    idx = LGIIndex.load(index)
+    where = {n: k for k, n in enumerate(idx.marker_names)}
+    rows = np.array([where.get(n, -1) for n in names], np.int64)
+    if (rows >= 0).sum() < MIN_MARKERS:
+        raise InputError(f"only {(rows >= 0).sum()} of the marker file's {len(names)} markers are in the index "
+                         f"(at least {MIN_MARKERS} are needed to solve the head pose with the face): is it this "
+                         "actor's index and layout?", path=markers)
+    missing = [n for n, r in zip(names, rows, strict=True) if r < 0]
+    if missing:
+        log.warning(
+            "%d markers are not in the index and do not inform the head pose: %s", len(missing),
+            ", ".join(missing[:10]) + (" ..." if len(missing) > 10 else ""))
+    neutral_mm = neutral_mm.copy()
+    neutral_mm[rows >= 0] = idx.arrays["ptab"][0][rows[rows >= 0]] * MM_PER_CM
+    return (HeadPoseSolver.from_index(idx), rows), neutral_mm
+
+
+def head_pose_counts(shot: ShotTracks) -> dict:
+    """Frames per head-pose source and the joint fit's median residual (mm), for the summary."""
+    from lgi.capture.headpose import JOINT, NONE, STABLE
+
+    ok = np.all(np.isfinite(shot.head_R), axis=(1, 2))
+    how = shot.head_source if shot.head_source is not None else np.where(ok, STABLE, NONE)
+    rms = shot.head_rms_mm if shot.head_rms_mm is not None else np.full(len(ok), np.nan)
+    joint = np.asarray(how) == JOINT
+    return {"joint": int(joint.sum()), "stable": int((np.asarray(how) == STABLE).sum()),
+            "none": int((np.asarray(how) == NONE).sum()),
+            "joint_rms_median_mm": float(np.median(rms[joint])) if joint.any() else float("nan")}
+
+
 def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str], markers: str | os.PathLike[str],
                    out: str | os.PathLike[str], tracks: str | os.PathLike[str] | None = None,
                    dataset: str | os.PathLike[str] | None = None, units: str = "cm",
                    labels: str | os.PathLike[str] | None = None, reference: int = 0,
-                   helmet: str | os.PathLike[str] | None = None, gate_px: float = 12.0, dot_size: float = 9.0
-                   ) -> tuple[ShotTracks, dict]:
+                   helmet: str | os.PathLike[str] | None = None, gate_px: float = 12.0, dot_size: float = 9.0,
+                   index: str | os.PathLike[str] | None = None) -> tuple[ShotTracks, dict]:
     """``lgi track``: footage to the bundles file (cm, the library's unit, whatever ``units`` the marker file's
-    positions are in) and the 2D tracks table (Parquet).
+    positions are in) and the 2D tracks table (Parquet). With ``index`` (the actor's LGI index), the head pose
+    is solved with the face (:mod:`lgi.capture.headpose`) and the layout's neutral positions are the index's.
 
     Returns the tracks and a summary (counts, reprojection error, anchors, rejections, speed, paths).
     """
     from lgi.capture.bundles import Bundles, write_bundles
     from lgi.io.atomic import atomic_file
-    from lgi.units import MM_PER_CM, check_units
+    from lgi.units import check_units
 
     rig = StereoRig.load(calib)
     names, neutral, units = neutral_layout(markers, dataset, units)
     neutral_mm = neutral * check_units(units, "--units") * MM_PER_CM  # the cameras are calibrated in mm
+    pose_model = None
+    if index is not None:
+        pose_model, neutral_mm = head_pose_model(index, names, neutral_mm, markers)
     t0 = time.perf_counter()
     shot = track_footage(footage, rig, neutral_mm, names, labels=labels, reference=reference,
                          options=TrackOptions(gate_px=gate_px), helmet=read_helmet(helmet) if helmet else None,
-                         dot_options=DotOptions.for_size(dot_size))
+                         dot_options=DotOptions.for_size(dot_size), pose_model=pose_model)
     dt = time.perf_counter() - t0
     out = Path(out)
     tracks_out = Path(tracks) if tracks else out.with_name(out.stem + ".tracks.parquet")
@@ -301,6 +368,7 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
         "rejected_epipolar": int((tr.rejected == 1).sum()), "rejected_neighbour": int((tr.rejected == 2).sum()),
         "stable_markers": [n for n, w in zip(names, shot.stable_weights, strict=True) if w > 0.5],
         "frames_per_second": F / dt, "seconds": shot.seconds, "units": "cm",
+        "head_pose": head_pose_counts(shot),
         "bundles": str(out.resolve()), "tracks": str(tracks_out.resolve()),
     }
     return shot, summary

@@ -80,6 +80,7 @@ class TrackFootageOptions:
     helmet: str | None = None
     gate: float = 12.0
     dot_size: float = 9.0
+    index: str | None = None
 
     def __post_init__(self) -> None:
         from lgi.units import check_units
@@ -110,10 +111,10 @@ def track(footage_dir: str | Path, calib: str | Path, markers: str | Path, out: 
     tracks = o.tracks or out.with_name(out.stem + ".tracks.parquet")
     check_distinct({"--out": out, "--tracks": tracks})
     for path in (out, tracks):
-        check_output(path, "file", inputs=[footage_dir, calib, markers, o.dataset, o.labels, o.helmet,
+        check_output(path, "file", inputs=[footage_dir, calib, markers, o.dataset, o.labels, o.helmet, o.index,
                                            *files_in(footage_dir, IMAGES, recursive=True)])
     _, r = track_to_files(footage_dir, calib, markers, out, o.tracks, o.dataset, o.units, o.labels,
-                          o.reference_frame, o.helmet, o.gate, o.dot_size)
+                          o.reference_frame, o.helmet, o.gate, o.dot_size, o.index)
     r["rig_may_have_moved"] = bool(r["reprojection_median_px"] > MOVED_RIG_PX)
     r["helmet"] = bool(o.helmet)
     if r["rig_may_have_moved"]:
@@ -131,6 +132,17 @@ def track_report(r: dict[str, Any]) -> list[str]:
             f"reprojection error: median {r['reprojection_median_px']:.3f} px, p95 {r['reprojection_p95_px']:.3f} px; "
             f"rejected {r['rejected_epipolar']} epipolar, {r['rejected_neighbour']} neighbour inconsistencies",
             f"stable markers for head stabilisation: {', '.join(r['stable_markers'])}",
+            head_pose_line(r["head_pose"]),
             f"{r['frames_per_second']:.1f} frames/s (detect {sec['detect']:.2f} s, track {sec['track']:.2f} s, "
             f"stabilise {sec['stabilise']:.2f} s)",
             f"bundles ({r['units']}): {r['bundles']}", f"2D tracks: {r['tracks']}"]
+
+
+def head_pose_line(h: dict[str, Any]) -> str:
+    """The summary's head-pose line: how many frames' poses were solved with the face."""
+    n = h["joint"] + h["stable"] + h["none"]
+    if not h["joint"]:
+        return f"head pose: stable markers in {h['stable']} of {n} frames, none in {h['none']} (--index solves it " \
+               "with the face)"
+    return (f"head pose: solved with the face in {h['joint']} of {n} frames (median residual "
+            f"{h['joint_rms_median_mm']:.3f} mm), stable markers in {h['stable']}, none in {h['none']}")

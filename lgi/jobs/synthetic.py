@@ -39,14 +39,14 @@ def parse_size(text: str) -> tuple[int, int]:
     return int(m[1]), int(m[2])
 
 
-_HMC_ONLY = ("lens", "image_size", "dot_noise", "board_views", "rig_flex", "contour_noise")
+_HMC_ONLY = ("lens", "image_size", "dot_noise", "board_views", "rig_flex", "contour_noise", "slip")
 
 
 @dataclass(frozen=True)
 class SynthOptions:
     """Options of ``lgi synth`` (see its ``--help``): mesh size, performance length and seed, and with ``hmc``
-    the head-mounted camera footage's lens, image size, dot noise (px), board views, rig flex (deg) and the pixel
-    noise of the lip contours it traces (px)."""
+    the head-mounted camera footage's lens, image size, dot noise (px), board views, rig flex (deg), the pixel
+    noise of the lip contours it traces (px) and how the helmet slips on the head (``smooth`` or ``jolts``)."""
 
     vertices: int = 20000
     frames: int = 240
@@ -59,6 +59,7 @@ class SynthOptions:
     rig_flex: float = 0.0
     contour_noise: float = 0.0
     actor: int = 0
+    slip: str = "smooth"
 
     def __post_init__(self) -> None:
         for name, least, most in (("vertices", 1, 2_000_000), ("frames", 1, 1_000_000), ("seed", 0, 2**32 - 1),
@@ -73,6 +74,10 @@ class SynthOptions:
             raise InputError(f"--vertices {self.vertices} x --frames {self.frames}: the true meshes need about "
                              f"{need / 2**30:.1f} GiB of memory, more than half of this machine's "
                              f"{have / 2**30:.1f} GiB; use fewer vertices or frames")
+        from lgi.synthetic.hmc import SLIPS
+
+        if self.slip not in SLIPS:
+            raise InputError(f"--slip takes {' or '.join(SLIPS)}, not {self.slip!r}")
         if self.lens not in ("fisheye", "pinhole"):
             raise InputError(f"--lens takes fisheye or pinhole, not {self.lens!r}")
         for name in ("dot_noise", "rig_flex", "contour_noise"):
@@ -92,7 +97,8 @@ class SynthOptions:
         if not self.hmc:
             return None
         return {"model": self.lens, "size": parse_size(self.image_size), "dot_noise_px": self.dot_noise,
-                "board_views": self.board_views, "flex_deg": self.rig_flex, "contour_noise_px": self.contour_noise}
+                "board_views": self.board_views, "flex_deg": self.rig_flex, "contour_noise_px": self.contour_noise,
+                "slip": self.slip}
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

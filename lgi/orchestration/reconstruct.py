@@ -32,13 +32,14 @@ _T = {"cache_policy": NO_CACHE, "persist_result": False}
 
 @task(name="track-footage", **_T)
 def track_footage(footage: str, calib: str, markers: str, bundles: str, dataset: str | None = None,
-                  units: str = "cm", helmet: str | None = None, labels: str | None = None, reference: int = 0) -> dict:
-    """Stereo footage to the bundles file and the 2D tracks table (see :func:`lgi.capture.footage.track_to_files`)."""
-    from lgi.capture.footage import track_to_files
+                  units: str = "cm", helmet: str | None = None, labels: str | None = None, reference: int = 0,
+                  index: str | None = None) -> dict:
+    """Stereo footage to the bundles file and the 2D tracks table: ``lgi track``'s job
+    (:func:`lgi.jobs.capture.track`); with ``index``, the head pose solved with the face."""
+    from lgi.jobs.capture import TrackFootageOptions, track
 
-    _, summary = track_to_files(footage, calib, markers, bundles, dataset=dataset, units=units, labels=labels,
-                                reference=reference, helmet=helmet)
-    return summary
+    return track(footage, calib, markers, bundles, TrackFootageOptions(
+        dataset=dataset, units=units, labels=labels, reference_frame=reference, helmet=helmet, index=index))
 
 
 _STOP = ".stopped"
@@ -162,7 +163,8 @@ def reconstruct_shot(
                            contours))
     tracking = None
     if footage:
-        tracking = track_footage(footage, calib, markers, bundles, helmet=helmet)
+        # The actor's index is at hand: the head pose is solved with the face (lgi track --index).
+        tracking = track_footage(footage, calib, markers, bundles, helmet=helmet, index=index_dir)
         create_table_artifact(table=[{k: v for k, v in tracking.items() if not isinstance(v, (list, dict))}],
                               key=artifact_key("shot-tracking", out),
                               description="footage to bundles: tracking summary")

@@ -15,7 +15,7 @@ Layout written by :func:`write_footage` (``OUT/hmc``)::
     calib/left01.png, right01.png ...   board views for ``lgi calibrate``
     cameras_true.json       the true rig in the calibration format (camera 0 frame, mm) plus the head frame
     helmet.csv              the helmet dots (name,x,y,z; mm, calibration frame)
-    truth.npz               per frame: head motion, true 2D dot centres and visibility per camera
+    truth.npz               per frame: head motion (and the jolt frames), true 2D dot centres and visibility per camera
 """
 
 from __future__ import annotations
@@ -100,6 +100,77 @@ def head_motion(n_frames: int, seed: int = 0, max_deg: float = 1.0, max_mm: floa
             sig = sum(np.sin(2 * np.pi * fi * t + p) - np.sin(p) for fi, p in zip(f, ph, strict=True))
             out[:, k] = amp * sig / 2
     return Rotation.from_rotvec(rv).as_matrix(), tr
+
+
+#: Helmet jolts: angle (deg) and shift (mm) ranges of one jolt, the frames it takes, and the frames between jolts.
+JOLT_DEG = (0.5, 1.5)
+JOLT_MM = (1.0, 3.0)
+JOLT_FRAMES = (1, 3)
+JOLT_GAP = (30, 90)
+#: Helmet vibration on top of the jolts: amplitude (deg, mm) and frequency range (Hz at 30 frames/s).
+VIBRATION_DEG = 0.02
+VIBRATION_MM = 0.03
+VIBRATION_HZ = (6.0, 12.0)
+
+
+def helmet_jolts(n_frames: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sudden helmet shifts, each then held, with a little vibration: what a helmet does when the actor
+    turns or lands a jump.
+
+    A jolt turns the helmet by 0.5-1.5 deg about a random axis through the head and shifts it 1-3 mm, over 1-3
+    frames (smoothstep), every 30-90 frames; the helmet then sits in its new place. A vibration of a few
+    hundredths of a degree and millimetre (6-12 Hz sinusoids) rides on top.
+
+    Returns
+    -------
+    R : (F, 3, 3) float64, t : (F, 3) float64 (mm): the motion to compose with :func:`head_motion`'s
+    jolting : (F,) bool: frames during a jolt (its ramp)
+    """
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed + 303)
+    rv = np.zeros((n_frames, 3))
+    tr = np.zeros((n_frames, 3))
+    jolting = np.zeros(n_frames, bool)
+    f0 = int(rng.integers(*JOLT_GAP))
+    while f0 < n_frames:
+        axis = rng.normal(size=3)
+        step_rv = np.radians(rng.uniform(*JOLT_DEG)) * axis / np.linalg.norm(axis)
+        d = rng.normal(size=3)
+        step_t = rng.uniform(*JOLT_MM) * d / np.linalg.norm(d)
+        n = int(rng.integers(JOLT_FRAMES[0], JOLT_FRAMES[1] + 1))
+        ramp = np.ones(n_frames - f0)
+        k = np.arange(1, n + 1) / n
+        ramp[:n] = k * k * (3 - 2 * k)
+        rv[f0:] += ramp[:, None] * step_rv  # small angles: rotation vectors add to first order, exact enough here
+        tr[f0:] += ramp[:, None] * step_t
+        jolting[f0:f0 + n] = True
+        f0 += n + int(rng.integers(*JOLT_GAP))
+    t = np.arange(n_frames) / 30.0
+    for k in range(3):
+        for amp, out in ((np.radians(VIBRATION_DEG), rv), (VIBRATION_MM, tr)):
+            out[:, k] += amp * np.sin(2 * np.pi * rng.uniform(*VIBRATION_HZ) * t + rng.uniform(0, 2 * np.pi))
+    rv -= rv[0]
+    tr -= tr[0]
+    return Rotation.from_rotvec(rv).as_matrix(), tr, jolting
+
+
+#: The helmet slips ``lgi synth --hmc --slip`` knows.
+SLIPS = ("smooth", "jolts")
+
+
+def helmet_slip(n_frames: int, seed: int = 0, slip: str = "smooth", max_deg: float = 1.0, max_mm: float = 1.5
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The helmet's motion on the head over the shot: ``smooth`` (:func:`head_motion`) or ``jolts`` (the smooth
+    slip with :func:`helmet_jolts` on top). Returns R (F, 3, 3), t (F, 3) mm and the jolt frames (F,) bool."""
+    R, t = head_motion(n_frames, seed, max_deg, max_mm)
+    if slip == "smooth":
+        return R, t, np.zeros(n_frames, bool)
+    if slip != "jolts":
+        raise ValueError(f"unknown slip {slip!r}: {', '.join(SLIPS)}")
+    Rj, tj, jolting = helmet_jolts(n_frames, seed)
+    # The jolt moves the helmet on the head, then the slow slip carries both.
+    return np.einsum("fij,fjk->fik", R, Rj), np.einsum("fij,fj->fi", R, tj) + t, jolting
 
 
 @dataclass
@@ -374,10 +445,11 @@ def write_json(path: str | os.PathLike[str], doc: dict) -> None:
 def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.ndarray, model: str = "fisheye",
                   size: tuple[int, int] = (1280, 1024), seed: int = 0, dot_noise_px: float = 0.3,
                   board_views: int = 15, slip_deg: float = 1.0, slip_mm: float = 1.5, flex_deg: float = 0.0,
-                  contour_noise_px: float = 0.0, show_progress: bool = True) -> dict:
+                  contour_noise_px: float = 0.0, show_progress: bool = True, slip: str = "smooth") -> dict:
     """Render the performance (activations (F, C)) and board views into ``out`` (see the module docstring).
 
-    ``flex_deg``: the rig flexed since its calibration: during the shot camera 1 is turned by this angle
+    ``slip``: how the helmet moves on the head (:func:`helmet_slip`: ``smooth`` or ``jolts``). ``flex_deg``: the
+    rig flexed since its calibration: during the shot camera 1 is turned by this angle
     (the board views are rendered with the calibrated rig). ``helmet.csv`` gives the helmet dots in the
     calibration's frame, for ``lgi track --helmet``. ``lip_contours.csv`` gives the lips' inner contours as
     each camera sees them (:func:`contour_rows`), with ``contour_noise_px`` Gaussian pixel noise per point.
@@ -404,7 +476,7 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     rng = np.random.default_rng(seed + 11)
     renderer = Renderer(actor.triangles, actor.neutral, layout.vertices, layout.weights, seed=seed)
     F, D = len(activations), len(layout)
-    R, t = head_motion(F, seed, slip_deg, slip_mm)
+    R, t, jolting = helmet_slip(F, seed, slip, slip_deg, slip_mm)
     centers = np.full((F, 2, D, 2), np.nan)
     visible = np.zeros((F, 2, D), bool)
     png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
@@ -439,8 +511,9 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     table.to_csv(out / "lip_contours.csv", index=False, float_format="%.4f")
     from lgi.io.npz import save_npz
 
-    save_npz(out / "truth.npz", head_rotation=R, head_translation=t, centers=centers.astype(np.float32),
-             visible=visible, markers=np.asarray(layout.names), units=np.asarray("mm"))
+    save_npz(out / "truth.npz", head_rotation=R, head_translation=t, jolting=jolting, slip=np.asarray(slip),
+             centers=centers.astype(np.float32), visible=visible, markers=np.asarray(layout.names),
+             units=np.asarray("mm"))
     seen = {k: float(table[table.curve == k].shape[0] / (2 * F * len(ids))) for k, ids in lips.items()}
     return {"rig": rig, "shot_rig": shot_rig, "visible": visible, "frames": F, "board": board.spec(),
             "lip_contour_visible": seen}
