@@ -88,23 +88,23 @@ STAGES = [
     (2, "select_frame", "lgi.solve.solver", "LGISolver.select_frame"),
     (3, "global fit (GlobalFit.solve)", "lgi.solve.globalfit", "GlobalFit.solve"),
     (3, "select (simplex search)", "lgi.solve.solver", "LGISolver.select"),
-    (4, "_kernels.solve_bundles", "lgi._kernels", "solve_bundles"),
-    (4, "_kernels.solve_bundles_serial", "lgi._kernels", "solve_bundles_serial"),
-    (4, "_kernels.agreement", "lgi._kernels", "agreement"),
+    (4, "_kernels.solve_bundles", "lgi.solve.solver", "solve_bundles"),
+    (4, "_kernels.solve_bundles_serial", "lgi.solve.solver", "solve_bundles_serial"),
+    (4, "_kernels.agreement", "lgi.solve.solver", "agreement"),
     (3, "_local (local refits)", "lgi.solve.solver", "LGISolver._local"),
-    (4, "_kernels.local_fits", "lgi._kernels", "local_fits"),
-    (4, "_kernels.local_fits_serial", "lgi._kernels", "local_fits_serial"),
+    (4, "_kernels.local_fits", "lgi.solve.solver", "local_fits"),
+    (4, "_kernels.local_fits_serial", "lgi.solve.solver", "local_fits_serial"),
     (3, "far_shares (far field)", "lgi.solve.solver", "LGISolver.far_shares"),
     (3, "_global (global weights, noisy bundles)", "lgi.solve.solver", "LGISolver._global"),
     (1, "finish_sequence (smoothing; exact shots)", "lgi.solve.solver", "LGISolver.finish_sequence"),
     (1, "blend, skin, correct a frame (_Finisher.frame)", "lgi.solve.solver", "_Finisher.frame"),
     (2, "surface (blend, skin)", "lgi.solve.solver", "LGISolver.surface"),
-    (3, "_kernels.blend", "lgi._kernels", "blend"),
-    (3, "_kernels.blend_uniform", "lgi._kernels", "blend_uniform"),
-    (3, "_kernels.blend_on_base", "lgi._kernels", "blend_on_base"),
+    (3, "_kernels.blend", "lgi.solve.solver", "blend"),
+    (3, "_kernels.blend_uniform", "lgi.solve.solver", "blend_uniform"),
+    (3, "_kernels.blend_on_base", "lgi.solve.solver", "blend_on_base"),
     (2, "correct (residual correction)", "lgi.solve.solver", "LGISolver.correct"),
-    (3, "_kernels.add_correction", "lgi._kernels", "add_correction"),
-    (3, "_kernels.add_correction_serial", "lgi._kernels", "add_correction_serial"),
+    (3, "_kernels.add_correction", "lgi.solve.solver", "add_correction"),
+    (3, "_kernels.add_correction_serial", "lgi.solve.solver", "add_correction_serial"),
     (1, "diagnostics table (_diagnostics)", "lgi.solve.solver", "LGISolver._diagnostics"),
     (0, "write outputs (write_reconstruction)", "lgi.jobs.reconstruct", "write_reconstruction"),
     (1, "meshes.npz (save_npz)", "lgi.io.npz", "save_npz"),
@@ -459,7 +459,8 @@ def time_config(mat: Material, index: Path, kind: str, repeat: int, env: dict[st
 FIT_CHILD = r"""
 import sys, time
 import numpy as np
-from lgi import _kernels as K
+from lgi.solve import _blend_kernels as K
+from lgi.solve import _jaw_kernels as J
 from lgi.jobs.reconstruct import ReconstructOptions, Shot
 from lgi.solve.jaw import jaw_matrix
 from lgi.threads import one_blas_thread
@@ -482,7 +483,7 @@ def run(pos):
         nz = np.flatnonzero(prev.weights > 0)
         K.blend_uniform(x0, deltas, ones, (nz + 1).astype(np.int64), prev.weights[nz], x.reshape(-1))
         if skin_w is not None:
-            K.skin_points(x, skin_w, np.ascontiguousarray(jaw_matrix(prev.jaw, sol.rig.pivot)[:3]), x)
+            J.skin_points(x, skin_w, np.ascontiguousarray(jaw_matrix(prev.jaw, sol.rig.pivot)[:3]), x)
         verts[f] = x
     return verts
 
@@ -660,7 +661,7 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
     scratch.mkdir(exist_ok=True)
     given = f" plus `--noise {args.noise_mm:g}` for the noisy copies" if args.given_noise else ""
     threads = ", ".join(f"{v}={env.get(v, 'unset')}" for v in THREAD_VARS)
-    log("one untimed process first (compiles the kernels if lgi/_kernels.py changed)")
+    log("one untimed process first (compiles the kernels whose modules changed)")
     first = run_process(reconstruct_argv(mat.indexes[(shapes[0], True)], mat.files[(kinds[0], mat.short)],
                                          scratch / "recon", []), env)
     shutil.rmtree(scratch / "recon", ignore_errors=True)

@@ -24,11 +24,24 @@ import numpy as np
 import pandas as pd
 import scipy.sparse
 
-from lgi import _kernels as K
 from lgi.capture.bundles import Bundles
 from lgi.errors import InputError
 from lgi.index.build import LGIIndex
 from lgi.progress import progress
+from lgi.solve._blend_kernels import add_correction, add_correction_serial, blend, blend_on_base, blend_uniform
+from lgi.solve._jaw_kernels import skin_points
+from lgi.solve._select_kernels import (
+    BORROWED,
+    CONTAINED,
+    MISSING,
+    OWN_WEIGHT,
+    PROJECTED,
+    agreement,
+    local_fits,
+    local_fits_serial,
+    solve_bundles,
+    solve_bundles_serial,
+)
 from lgi.solve.globalfit import GlobalFit, GlobalFitResult, join_gain
 from lgi.solve.jaw import PARAM_NAMES, jaw_matrix, smooth_parameters
 from lgi.solve.temporal import NoiseEstimate, denoise_trajectories, estimate_noise, sg_matrix
@@ -56,7 +69,7 @@ log = logging.getLogger(__name__)
 # to the noise), or an exact one that the global fit already meets with its natural neighbours (within
 # LOCAL_MIN_MISFIT). The search is the costliest step of a frame.
 FITTED = 4
-STATUS = {K.CONTAINED: "contained", K.PROJECTED: "projected", K.MISSING: "missing", K.BORROWED: "neighbour",
+STATUS = {CONTAINED: "contained", PROJECTED: "projected", MISSING: "missing", BORROWED: "neighbour",
           FITTED: "fitted"}
 
 
@@ -237,7 +250,7 @@ class LGISolver:
         # two threads (the "workqueue" threading layer aborts on that) or competes for the two cores.
         self._serial = False
         # The natural-neighbour weights by bundle (CSC), for blending each bundle's own weights over the vertices
-        # it reaches (:func:`lgi._kernels.blend_on_base`).
+        # it reaches (:func:`lgi.solve._blend_kernels.blend_on_base`).
         csc = scipy.sparse.csr_matrix((a["w_data"], a["w_indices"], a["w_indptr"]),
                                       shape=(len(self._x0), index.n_markers)).tocsc()
         csc.sort_indices()
@@ -267,7 +280,7 @@ class LGISolver:
         counts = np.diff(nb_off)
         self._pair_i = np.concatenate([np.arange(index.n_markers), np.repeat(np.arange(index.n_markers), counts)])
         self._pair_j = np.concatenate([np.arange(index.n_markers), nb_idx]).astype(np.int64)
-        self._pair_w = np.concatenate([np.full(index.n_markers, K.OWN_WEIGHT), np.ones(len(nb_idx))])
+        self._pair_w = np.concatenate([np.full(index.n_markers, OWN_WEIGHT), np.ones(len(nb_idx))])
         own = np.repeat(np.arange(index.n_markers), counts)
         self._nb_pairs = np.stack([own, nb_idx], 1)[own < nb_idx]
         # Each bundle's second ring of natural neighbours: where its own weights are tried beyond the bundles
@@ -321,13 +334,13 @@ class LGISolver:
             needed[self._pair_j[(needed & ~seen)[self._pair_i]]] = True
             first = needed.copy()
             first[self._pair_j[needed[self._pair_i]]] = True
-        search = K.solve_bundles_serial if self._serial else K.solve_bundles
+        search = solve_bundles_serial if self._serial else solve_bundles
         shapes, lam, pts, n_contain, status, proj, score, cand, cand_score = search(
             *args, self._no_agree, 0.0, self._no_shapes, self._no_lam, *tail, self._scan, self._no_scores,
             self._no_first, first)
         if self.spatial_weight > 0:
             # Second pass: break near-ties toward the shapes the neighbours and the frame agree on.
-            agree = K.agreement(pts, lam, seen, a["alias_off"], a["class_off"], a["alias_shape"], a["nb_off"],
+            agree = agreement(pts, lam, seen, a["alias_off"], a["class_off"], a["alias_shape"], a["nb_off"],
                                 a["nb_idx"], self._n_ext)
             # Bundles with no containing simplex in the first pass scan again (their projection).
             cand[cand[:, 0] < 0] = -2
@@ -393,7 +406,7 @@ class LGISolver:
             m = len(p)
             shapes, lam, score, source, fallback = self._global(q, seen, fit)
             return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, np.full(m, -1, np.int64),
-                               np.where(seen, FITTED, K.MISSING).astype(np.int64), np.full(m, np.nan), score,
+                               np.where(seen, FITTED, MISSING).astype(np.int64), np.full(m, np.nan), score,
                                np.where(seen, 0.0, np.nan), fallback, theta, p, None, source, fit,
                                np.zeros((m, 4), np.int64), np.zeros((m, 4)))
         prev_simplex = None
@@ -507,8 +520,8 @@ class LGISolver:
         resid = np.where(seen[:, None], q - self._rest - np.tensordot(wg[wg != 0], self._basis[wg != 0], axes=1), 0.0)
         w_local = np.empty((m, n_s))
         beta = np.full(m, self.local_prior)
-        fits = K.local_fits_serial if self._serial else K.local_fits
-        fits(resid, seen, self._basis, self._a["nb_off"], self._a["nb_idx"], col_off, flat, wg, beta, K.OWN_WEIGHT,
+        fits = local_fits_serial if self._serial else local_fits
+        fits(resid, seen, self._basis, self._a["nb_off"], self._a["nb_idx"], col_off, flat, wg, beta, OWN_WEIGHT,
              w_local)
         local_score = self._misfits(q, seen, w_local, todo)
         # The simplex candidate's weights as a full vector, to compare like with like.
@@ -548,7 +561,7 @@ class LGISolver:
         x = np.empty_like(self._x0)
         if (shapes == shapes[0]).all() and (weights == weights[0]).all():
             # Every bundle has the same weights (noisy bundles: the global fit's): no per-vertex mixing.
-            K.blend_uniform(self._x0.reshape(-1), self._deltas_flat, self._blend_w_sum(),
+            blend_uniform(self._x0.reshape(-1), self._deltas_flat, self._blend_w_sum(),
                             shapes[0], weights[0], x.reshape(-1))
         elif len(shapes) == self.index.n_markers + 1:
             # The last row is the global fit's, which the far field blends toward. Most bundles of an exact
@@ -562,18 +575,18 @@ class LGISolver:
                 ramp, share = self._no_ramp, np.zeros(m)
             d_shapes, d_lam = _differences(shapes, weights)
             rows = np.flatnonzero(d_lam[:m, 0] != 0)
-            K.blend_on_base(self._x0.reshape(-1), self._deltas_flat, shapes[-1], weights[-1], self._blend_w_sum(),
+            blend_on_base(self._x0.reshape(-1), self._deltas_flat, shapes[-1], weights[-1], self._blend_w_sum(),
                             self._csc_ptr, self._csc_vert, self._csc_w, ramp, share, rows, d_shapes, d_lam,
                             x.reshape(-1))
         else:
-            K.blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes[:self.index.n_markers],
+            blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes[:self.index.n_markers],
                     weights[:self.index.n_markers], x)
         if self.rig is not None:
-            K.skin_points(x, self._skin_w, np.ascontiguousarray(jaw_matrix(jaw, self.rig.pivot)[:3]), x)
+            skin_points(x, self._skin_w, np.ascontiguousarray(jaw_matrix(jaw, self.rig.pivot)[:3]), x)
         return x
 
     def _add_correction(self, *args) -> None:
-        (K.add_correction_serial if self._serial else K.add_correction)(*args)
+        (add_correction_serial if self._serial else add_correction)(*args)
 
     def _blend_w_sum(self) -> np.ndarray:
         """(V,) each vertex's total natural-neighbour weight (1 where bundles reach, 0 elsewhere)."""
@@ -1184,7 +1197,7 @@ class _FarField:
     1 from ``far_field[1]``, a smoothstep between, and 0 on every bundle's own triangle (the surface passes
     through the bundles) and where no bundle's weights reach. Per frame, given each bundle's far share s (M,),
     the vertex keeps ``N_vb (1 - r_v s_b)`` of bundle b's weights and gives ``t_v = r_v sum_b N_vb s_b`` to
-    the frame's global fit (:meth:`global_share`; :func:`lgi._kernels.blend_on_base` blends them).
+    the frame's global fit (:meth:`global_share`; :func:`lgi.solve._blend_kernels.blend_on_base` blends them).
     """
 
     def __init__(self, arrays, n_markers: int, far_field: tuple[float, float] | None) -> None:
