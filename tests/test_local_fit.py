@@ -159,14 +159,14 @@ def test_sequence_on_two_threads_equals_the_two_passes(synth_set, noise) -> None
 def test_a_failing_blend_stops_the_choosing_thread(synth_set, monkeypatch) -> None:
     import threading
 
-    import lgi.solve.solver as solver_mod
+    import lgi.solve.finish as finish_mod
 
     bs, index = synth_set
 
     def boom(*args, **kwargs):
         raise RuntimeError("blend failed")
 
-    monkeypatch.setattr(solver_mod._Finisher, "frame", boom)
+    monkeypatch.setattr(finish_mod._Finisher, "frame", boom)
     with pytest.raises(RuntimeError, match="blend failed"):
         LGISolver(index).solve_sequence(bs.noisy, noise=0.3)
     # The worker was blocked on a full queue (60 frames, 16 places): it must have given up, not hang.
