@@ -111,7 +111,8 @@ def update_doc(path: Path, table) -> list[str]:
 
 
 def main() -> int:
-    from lgi.evaluation import benchsets
+    from common import ict_dir_or_none, load_sets, needs_ict
+
     from lgi.evaluation.accuracy import accuracy_benchmark
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -129,15 +130,15 @@ def main() -> int:
         print("tables written:", ", ".join(update_doc(Path(args.doc), table)) if args.doc else "none (no --doc)")
         return 0
     names = [n for n in args.sets.split(",") if n]
-    ict = benchsets.ict_dir_or_none()
+    ict = ict_dir_or_none()
     if ict is None:
-        dropped = [n for n in names if benchsets.needs_ict(n)]
+        dropped = [n for n in names if needs_ict(n)]
         if dropped:
             print(f"ICT FaceKit not found (../shared/data/ict-facekit or $LGI_SHARED_DATA): {', '.join(dropped)} "
                   "skipped")
-        names = [n for n in names if not benchsets.needs_ict(n)]
+        names = [n for n in names if not needs_ict(n)]
     t0 = time.perf_counter()
-    sets = benchsets.load_sets(names, ict)
+    sets = load_sets(names, ict)
     table, _ = accuracy_benchmark(sets, args.frames, log=lambda s: print(s, flush=True))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,6 @@ second thread beside the choice when nothing is smoothed), and the per-bundle di
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -15,9 +14,6 @@ from lgi.solve.results import STATUS, FrameResult, SequenceResult
 from lgi.solve.surface import _append_rows, _stack_slots
 from lgi.threads import one_blas_thread
 from lgi.units import MM_PER_CM
-
-if TYPE_CHECKING:
-    from lgi.solve.solver import LGISolver
 
 
 class Finishing:
@@ -187,9 +183,10 @@ class Finishing:
 
 class _Finisher:
     """Blend, skin and correct frames of a sequence into ``out`` (F, V, 3) float32, keeping each bundle's
-    distance before (``before``) and after (``r_final``) the correction (F, M), cm."""
+    distance before (``before``) and after (``r_final``) the correction (F, M), cm. ``solver`` is the
+    :class:`~lgi.solve.solver.LGISolver` whose :class:`Finishing` stage runs it."""
 
-    def __init__(self, solver: LGISolver, pos: np.ndarray, fit_pos: np.ndarray) -> None:
+    def __init__(self, solver: Finishing, pos: np.ndarray, fit_pos: np.ndarray) -> None:
         self.solver, self.pos, self.fit_pos = solver, pos, fit_pos
         n_f, n_m = len(pos), solver.index.n_markers
         self.out = np.empty((n_f, solver.index.n_vertices, 3), np.float32)

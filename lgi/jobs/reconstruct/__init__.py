@@ -13,8 +13,8 @@ Results do not depend on the schedule: any chunk size, task runner or ``--flow``
 (tested).
 
 The package's modules follow the job: :mod:`~lgi.jobs.reconstruct.options` (the flags and their checks),
-:mod:`~lgi.jobs.reconstruct.shot` (a prepared shot and its stages), :mod:`~lgi.jobs.reconstruct.rays` (markers
-seen by one camera), :mod:`~lgi.jobs.reconstruct.stages` (the flow's chunk stages),
+:mod:`~lgi.jobs.reconstruct.shot` (a prepared shot and its stages), :mod:`~lgi.jobs.reconstruct.rays` (the
+bundles file of markers seen by one camera), :mod:`~lgi.jobs.reconstruct.stages` (the flow's chunk stages),
 :mod:`~lgi.jobs.reconstruct.outputs` (the writer), :mod:`~lgi.jobs.reconstruct.summary` and
 :mod:`~lgi.jobs.reconstruct.run` (the whole job in this process).
 """
@@ -28,9 +28,9 @@ from lgi.jobs.reconstruct.outputs import (
                                           plot_per_frame,
                                           write_reconstruction,
 )
-from lgi.jobs.reconstruct.rays import CONSTRAINED, RAY_COLUMNS, constrain_to_rays, read_constraints
+from lgi.jobs.reconstruct.rays import CONSTRAINED, RAY_COLUMNS, read_constraints
 from lgi.jobs.reconstruct.run import reconstruct
-from lgi.jobs.reconstruct.shot import Shot, chunk_needs
+from lgi.jobs.reconstruct.shot import Shot, chunk_needs, constrain_to_rays
 from lgi.jobs.reconstruct.stages import (
                                           assemble,
                                           choose_chunk,

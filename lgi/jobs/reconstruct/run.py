@@ -10,8 +10,8 @@ from typing import Any
 
 from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.jobs.reconstruct.outputs import check_output, write_reconstruction
-from lgi.jobs.reconstruct.rays import CONSTRAINED, constrain_to_rays
-from lgi.jobs.reconstruct.shot import Shot
+from lgi.jobs.reconstruct.rays import CONSTRAINED
+from lgi.jobs.reconstruct.shot import Shot, constrain_to_rays
 from lgi.jobs.reconstruct.summary import summarise
 
 

@@ -1,17 +1,20 @@
 """A shot prepared for reconstruction (:class:`Shot`): the solver on the index, the bundles read, bridged and
 denoised, the given jaw; the stages it runs (choose, finish, the whole shot) and the corrections after them
-(rays, lip contours)."""
+(rays, lip contours); and the bundles file of a second pass, with markers seen by one camera put on their rays
+(:func:`constrain_to_rays`)."""
 
 from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from lgi.errors import InputError
 from lgi.jobs.reconstruct.options import ReconstructOptions, read_jaw_file
-from lgi.jobs.reconstruct.rays import read_constraints
+from lgi.jobs.reconstruct.rays import RAY_COLUMNS, read_constraints
 from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
@@ -205,3 +208,46 @@ class Shot:
                         "traced curves (first: frame %d)", len(unmatched), self.contours.gate_px, unmatched[0])
         res.diagnostics["contour_px_before"] = np.repeat(px[0], n_m)
         res.diagnostics["contour_px_after"] = np.repeat(px[1], n_m)
+
+
+def constrain_to_rays(shot: Shot, vertices: np.ndarray, out: str | Path) -> dict[str, Any]:
+    """Put each marker seen by one camera (``shot.options.observations``) on its viewing ray, at the ray's point
+    closest to where ``vertices`` (a reconstruction of the shot without it, (F, V, 3) float32, cm) put the
+    marker; write the shot's bundles as given plus those points to ``out`` (Parquet, with a ``constraint``
+    column: "bundle" or "ray"), the bundles file a second reconstruction reads. Returns counts."""
+    from lgi.capture.bundles import COLUMNS
+    from lgi.capture.observations import points_on_rays, read_rays
+    from lgi.io.atomic import atomic_file
+
+    o = shot.options
+    seen = np.all(np.isfinite(shot.given), axis=2)
+    rays = read_rays(o.observations, shot.index.marker_names, shot.frames, seen, o.calib)
+    pos = shot.given.copy()
+    layout = shot.index.layout()
+    before = np.zeros(len(rays))
+    if len(rays):
+        rows = np.unique(rays.frame)
+        at = np.searchsorted(rows, rays.frame)
+        surface = layout.evaluate(np.asarray(vertices[rows], np.float64))[at, rays.marker]
+        before = rays.distance(surface)
+        pos[rays.frame, rays.marker] = points_on_rays(rays, surface)
+    geo = np.full((2, *pos.shape), np.nan)
+    geo[0, rays.frame, rays.marker] = rays.origin
+    geo[1, rays.frame, rays.marker] = rays.direction
+    f, m = np.nonzero(np.all(np.isfinite(pos), axis=2))
+    kind = np.where(seen[f, m], "bundle", "ray")
+    names = np.asarray(shot.index.marker_names, object)
+    table = pd.DataFrame({"frame": np.asarray(shot.frames, np.int64)[f], "marker": names[m],
+                          "x": pos[f, m, 0], "y": pos[f, m, 1], "z": pos[f, m, 2], "constraint": kind,
+                          **{c: geo[k // 3, f, m, k % 3] for k, c in enumerate(RAY_COLUMNS)}})
+    with atomic_file(out, suffix=".parquet", durable=False) as tmp:
+        table[[*COLUMNS, "constraint", *RAY_COLUMNS]].to_parquet(tmp, index=False)
+    if len(rays):
+        log.info("%d markers seen by one camera put on their rays (%d frames); the first reconstruction was "
+                 "%.3f mm from them (median, max %.3f mm)", len(rays), len(np.unique(rays.frame)),
+                 float(np.median(before)) * MM_PER_CM, float(before.max()) * MM_PER_CM)
+    else:
+        log.warning("%s: no marker is seen by one camera alone where the shot lacks its bundle: no ray constraint",
+                    o.observations)
+    return {"rays": len(rays), "ray_frames": int(len(np.unique(rays.frame))),
+            "ray_offset_before_mm": float(np.median(before) * MM_PER_CM) if len(rays) else 0.0}
