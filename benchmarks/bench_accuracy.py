@@ -3,7 +3,7 @@
     python benchmarks/bench_accuracy.py [--sets synthetic,ict_jaw,ict_heldout,ict_combination,session_0,session_150,
                                                 session_400,ict_session] [--frames F] [--out DIR]
 
-Sets (lgi/evaluation/benchsets.py), each with clean bundles and with tracking noise (0.3 mm per coordinate, 5 % of
+Sets (lgi/evaluation/benchsets/), each with clean bundles and with tracking noise (0.3 mm per coordinate, 5 % of
 marker-frames missing in runs of 1-6 frames): (a) the synthetic actor's 300-frame held-out performance;
 (b) an ICT actor whose jaw rotates about a fitted hinge (200 frames of 1-4 expressions, linear blends);
 (c) held-out ICT shapes and mixes involving them (66 independent poses, dataset built without them);

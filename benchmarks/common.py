@@ -4,7 +4,7 @@ and time whole ``lgi`` processes.
 Every script in ``benchmarks/`` runs as ``python benchmarks/SCRIPT.py`` and imports this module beside it
 (``from common import ...``). The benchmark sets themselves (the frames and truth each accuracy figure is
 measured on) are :mod:`lgi.evaluation.benchsets`, which ``lgi bench`` and the tests use too; what the scripts
-take from it comes through here.
+take from it comes through here (ICT as the sets import it: ``ict_dataset``, ``ict_layout``).
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from lgi.evaluation.benchsets import (
     synthetic_set,
     tracking_noise,
 )
-from lgi.evaluation.benchsets import _ict as ict_dataset
-from lgi.evaluation.benchsets import _ict_layout as ict_layout
+from lgi.evaluation.benchsets.ict import _ict as ict_dataset
+from lgi.evaluation.benchsets.ict import _ict_layout as ict_layout
 from lgi.paths import REPO_ROOT, shared_data, shipped
 
 __all__ = ["ICT_DIR", "ICT_FACE_VERTICES", "ICT_JAW_VERTICES", "ICT_MARKERS", "ICT_NOT_PERFORMED", "Run", "add_noise",
