@@ -3,7 +3,7 @@
     python benchmarks/bench_accuracy.py [--sets synthetic,ict_jaw,ict_heldout,ict_combination,session_0,session_150,
                                                 session_400,ict_session] [--frames F] [--out DIR]
 
-Sets (lgi/evaluation/benchsets.py), each with clean bundles and with tracking noise (0.3 mm per coordinate, 5 % of
+Sets (lgi/evaluation/benchsets/), each with clean bundles and with tracking noise (0.3 mm per coordinate, 5 % of
 marker-frames missing in runs of 1-6 frames): (a) the synthetic actor's 300-frame held-out performance;
 (b) an ICT actor whose jaw rotates about a fitted hinge (200 frames of 1-4 expressions, linear blends);
 (c) held-out ICT shapes and mixes involving them (66 independent poses, dataset built without them);
@@ -111,7 +111,8 @@ def update_doc(path: Path, table) -> list[str]:
 
 
 def main() -> int:
-    from lgi.evaluation import benchsets
+    from common import ict_dir_or_none, load_sets, needs_ict
+
     from lgi.evaluation.accuracy import accuracy_benchmark
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -129,15 +130,15 @@ def main() -> int:
         print("tables written:", ", ".join(update_doc(Path(args.doc), table)) if args.doc else "none (no --doc)")
         return 0
     names = [n for n in args.sets.split(",") if n]
-    ict = benchsets.ict_dir_or_none()
+    ict = ict_dir_or_none()
     if ict is None:
-        dropped = [n for n in names if benchsets.needs_ict(n)]
+        dropped = [n for n in names if needs_ict(n)]
         if dropped:
             print(f"ICT FaceKit not found (../shared/data/ict-facekit or $LGI_SHARED_DATA): {', '.join(dropped)} "
                   "skipped")
-        names = [n for n in names if not benchsets.needs_ict(n)]
+        names = [n for n in names if not needs_ict(n)]
     t0 = time.perf_counter()
-    sets = benchsets.load_sets(names, ict)
+    sets = load_sets(names, ict)
     table, _ = accuracy_benchmark(sets, args.frames, log=lambda s: print(s, flush=True))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -22,11 +22,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+from common import ICT_DIR, has_ict, synthetic_actor
 
 from lgi.augment.combinations import Blender, linear_combinations, pick_combinations, simulated_combinations
 from lgi.augment.flesh import FleshModel
 from lgi.index.build import build_index
-from lgi.paths import shared_data
 from lgi.solve.solver import LGISolver
 from lgi.synthetic import actor as synth
 
@@ -103,7 +103,7 @@ def effect_table(actor, ds, rig, layout, frames: int, seed: int, budget: int) ->
 
 
 def ict_speed(folder: Path) -> None:
-    if not (folder / "generic_neutral_mesh.obj").is_file():
+    if not has_ict(folder):
         print(f"ICT speed: skipped, ICT FaceKit not found at {folder}")
         return
     from lgi.dataset.importing import import_obj_folder
@@ -131,14 +131,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--budget", type=int, default=100)
-    ap.add_argument("--ict", type=Path, default=shared_data("ict-facekit"))
+    ap.add_argument("--ict", type=Path, default=ICT_DIR)
     ap.add_argument("--skip", default="", help="comma-separated sections to skip: volume,effect,ict")
     args = ap.parse_args()
     skip = set(args.skip.split(","))
-    actor = synth.make_actor()
-    ds = synth.make_dataset(actor)
+    actor, ds, layout = synthetic_actor()
     rig = synth.jaw_rig(actor)
-    layout, _ = synth.default_layout(actor)
     if "ict" not in skip:
         ict_speed(args.ict)
     if "volume" not in skip:

@@ -22,19 +22,11 @@ and with 1 px Gaussian noise added here (as `lgi synth --contour-noise 1` would)
 from __future__ import annotations
 
 import argparse
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
-
-
-def lgi(*args: str) -> str:
-    r = subprocess.run([sys.executable, "-m", "lgi", *args], capture_output=True, text=True)
-    if r.returncode != 0:
-        raise SystemExit(f"lgi {' '.join(args)} failed:\n{r.stdout}\n{r.stderr}")
-    return r.stdout
+from common import lgi
 
 
 def stats(e: np.ndarray) -> str:

@@ -14,16 +14,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from lgi.paths import shared_data
+from common import ICT_DIR, ICT_MARKERS, has_ict
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=200)
-    ap.add_argument("--ict", type=Path, default=shared_data("ict-facekit"))
+    ap.add_argument("--ict", type=Path, default=ICT_DIR)
     args = ap.parse_args()
-    if not (args.ict / "generic_neutral_mesh.obj").is_file():
+    if not has_ict(args.ict):
         print(f"skipped: ICT FaceKit not found at {args.ict}")
         return
     from pxr import Usd, UsdGeom
@@ -33,11 +32,10 @@ def main() -> None:
     from lgi.dataset.markers import read_layout
     from lgi.export.formats import displacement_map, write_exr, write_usd
     from lgi.index.build import build_index
-    from lgi.paths import shipped
     from lgi.solve.solver import LGISolver
 
     ds = import_obj_folder(args.ict, rigid_vertices="none", show_progress=False)
-    layout = read_layout(shipped("markers_ict.csv"), ds.triangles)
+    layout = read_layout(ICT_MARKERS, ds.triangles)
     index, _ = build_index(linear_combinations(ds, 450, seed=0), layout, show_progress=False)
     rng = np.random.default_rng(0)
     keys = rng.uniform(0, 0.6, (args.frames // 20 + 2, ds.n_shapes)) * (rng.random((args.frames // 20 + 2,

@@ -17,20 +17,12 @@
 from __future__ import annotations
 
 import argparse
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
-
-
-def lgi(*args: str) -> str:
-    r = subprocess.run([sys.executable, "-m", "lgi", *args], capture_output=True, text=True)
-    if r.returncode != 0:
-        raise SystemExit(f"lgi {' '.join(args)} failed:\n{r.stdout}\n{r.stderr}")
-    return r.stdout
+from common import lgi
 
 
 def synthetic_calibration() -> None:

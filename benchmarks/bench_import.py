@@ -16,7 +16,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from lgi.paths import shared_data
+from common import ICT_DIR, has_ict
 
 CHILD = r"""
 import json, resource, sys, time
@@ -34,9 +34,9 @@ print(json.dumps({"import_s": t2 - t1, "startup_s": t1 - t0, "shapes": ds.n_shap
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=5)
-    ap.add_argument("--ict", type=Path, default=shared_data("ict-facekit"))
+    ap.add_argument("--ict", type=Path, default=ICT_DIR)
     args = ap.parse_args()
-    if not (args.ict / "generic_neutral_mesh.obj").is_file():
+    if not has_ict(args.ict):
         print(f"skipped: ICT FaceKit not found at {args.ict}")
         return
     rigid_file = str(args.ict / "vertex_indices.json")

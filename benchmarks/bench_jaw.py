@@ -15,6 +15,7 @@ import argparse
 import time
 
 import numpy as np
+from common import synthetic_actor
 
 from lgi.evaluation.metrics import vertex_errors
 from lgi.index.build import build_index
@@ -41,9 +42,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--seed", type=int, default=2)
     args = ap.parse_args()
-    actor = synth.make_actor()
-    ds = synth.make_dataset(actor)
-    layout, _ = synth.default_layout(actor)
+    actor, ds, layout = synthetic_actor()
     acts = jaw_performance(args.frames, args.seed)
     truth = actor.evaluate_many(acts).astype(np.float64)
     bundles = layout.evaluate(truth)

@@ -75,8 +75,8 @@ def performance(actor, ds, shipped, counts: list[int], frames: int) -> None:
     marker-frames missing in runs of up to 6 frames: lgi bench's noisy sets), solved as a sequence with the noise
     estimated, as lgi reconstruct does."""
     import numpy as np
+    from common import tracking_noise
 
-    from lgi.evaluation.benchsets import tracking_noise
     from lgi.index.build import build_index
     from lgi.solve.solver import LGISolver
     from lgi.synthetic import actor as synth
@@ -132,14 +132,14 @@ def main() -> None:
 
     if args.no_ict or args.performance_only:
         return
-    from lgi.evaluation.benchsets import _ict, _ict_layout, ict_dir_or_none
+    from common import ict_dataset, ict_dir_or_none, ict_layout
 
     ict_dir = ict_dir_or_none()
     if ict_dir is None:
         print("\n== ICT FaceKit: skipped (data not found; set LGI_SHARED_DATA to the shared data folder)")
         return
-    ds = _ict(ict_dir)
-    compare("ICT FaceKit", ds, _ict_layout(ds.triangles), fractions)
+    ds = ict_dataset(ict_dir)
+    compare("ICT FaceKit", ds, ict_layout(ds.triangles), fractions)
     t0 = time.perf_counter()
     _, res, _, _ = design_dataset(ds, DesignOptions(count=110))
     print(f"\nICT, N = 110 (all {ds.n_shapes} shapes): HiGHS {res.info['solve_s']:.1f} s "

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from common import ICT_DIR, ICT_MARKERS, has_ict, synthetic_actor
 
 CHILD = r"""
 import json, resource, sys, time
@@ -80,9 +81,7 @@ def synthetic_heldout(frames: int) -> None:
     from lgi.solve.solver import LGISolver
     from lgi.synthetic import actor as synth
 
-    actor = synth.make_actor()
-    ds = synth.make_dataset(actor)
-    layout, _ = synth.default_layout(actor)
+    actor, ds, layout = synthetic_actor()
     t = time.perf_counter()
     index, _ = build_index(ds, layout, show_progress=False)
     build_s = time.perf_counter() - t
@@ -115,11 +114,10 @@ def ict_checks(ict: Path) -> None:
     from lgi.dataset.markers import read_layout
     from lgi.evaluation.verify import verify_index
     from lgi.index.build import build_index
-    from lgi.paths import shipped
     from lgi.solve.solver import LGISolver
 
     base = import_obj_folder(ict, rigid_vertices="none", show_progress=False)
-    layout = read_layout(shipped("markers_ict.csv"), base.triangles)
+    layout = read_layout(ICT_MARKERS, base.triangles)
     index, _ = build_index(base, layout, show_progress=False)
     table = verify_index(index)
     print(f"\n== ICT FaceKit ({base.n_vertices} vertices, {len(layout)} markers) ==")
@@ -166,13 +164,11 @@ def scaling(ict: Path | None, quick: bool) -> None:
 
 
 def main() -> None:
-    from lgi.paths import shared_data
-
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fewer frames and sizes")
-    ap.add_argument("--ict", type=Path, default=shared_data("ict-facekit"))
+    ap.add_argument("--ict", type=Path, default=ICT_DIR)
     args = ap.parse_args()
-    ict = args.ict if (args.ict / "generic_neutral_mesh.obj").is_file() else None
+    ict = args.ict if has_ict(args.ict) else None
     synthetic_heldout(120 if args.quick else 300)
     if ict is None:
         print(f"\nICT FaceKit not found at {args.ict}: ICT checks and ICT scaling skipped")

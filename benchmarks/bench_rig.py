@@ -105,8 +105,9 @@ def synthetic(n_vertices: int, seed: int) -> list[str]:
 
 
 def ict(ict_dir) -> list[str]:
+    from common import ICT_NOT_PERFORMED, ict_layout
+
     from lgi.dataset.importing import import_obj_folder
-    from lgi.evaluation.benchsets import ICT_NOT_PERFORMED, _ict_layout
     from lgi.index.build import build_index
     from lgi.retarget.template import TemplateTransfer
     from lgi.solve.solver import LGISolver
@@ -114,14 +115,14 @@ def ict(ict_dir) -> list[str]:
     template = import_obj_folder(ict_dir, rigid_vertices="none", show_progress=False)
     weights = {"identity000": 1.5, "identity003": -1.0, "identity004": 1.0}
     actor = import_obj_folder(ict_dir, rigid_vertices="none", show_progress=False, identity_weights=weights)
-    layout = _ict_layout(actor.triangles)
+    layout = ict_layout(actor.triangles)
     t0 = time.perf_counter()
     index, _ = build_index(actor, layout, show_progress=False)
     build_s = time.perf_counter() - t0
     solver = LGISolver(index)
     controls = [n for n in template.names if n not in ICT_NOT_PERFORMED]
     face = np.zeros(actor.n_vertices, bool)
-    from lgi.evaluation.benchsets import ICT_FACE_VERTICES
+    from common import ICT_FACE_VERTICES
 
     face[:ICT_FACE_VERTICES] = True
     rows = []
@@ -159,7 +160,7 @@ def main() -> None:
             print(row, flush=True)
     if args.no_ict:
         return
-    from lgi.evaluation.benchsets import ict_dir_or_none
+    from common import ict_dir_or_none
 
     d = ict_dir_or_none()
     if d is None:

@@ -51,21 +51,31 @@ import os
 import re
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-import pandas as pd
-from bench_hmc import lgi as run_lgi  # python -m lgi ARGS, exits with its output on failure
-
-from lgi.paths import REPO_ROOT, shared_data, shipped
+from common import (
+    ICT_DIR,
+    ICT_JAW_VERTICES,
+    ICT_MARKERS,
+    add_noise,
+    combos,
+    dir_mib,
+    eased_shot,
+    escape,
+    first_frames,
+    has_ict,
+    lgi_timed,
+    log,
+    manifest,
+    run_process,
+)
+from common import lgi as run_lgi  # python -m lgi ARGS, exits with its output on failure
 
 ICT_SHAPES = 57
-JAW_VERTICES = "19247:21450"
 MIX_SEED = 9
 STEP = 10  # frames from one key pose to the next
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
@@ -88,28 +98,28 @@ STAGES = [
     (2, "select_frame", "lgi.solve.solver", "LGISolver.select_frame"),
     (3, "global fit (GlobalFit.solve)", "lgi.solve.globalfit", "GlobalFit.solve"),
     (3, "select (simplex search)", "lgi.solve.solver", "LGISolver.select"),
-    (4, "_kernels.solve_bundles", "lgi._kernels", "solve_bundles"),
-    (4, "_kernels.solve_bundles_serial", "lgi._kernels", "solve_bundles_serial"),
-    (4, "_kernels.agreement", "lgi._kernels", "agreement"),
+    (4, "solve_bundles", "lgi.solve.selection", "solve_bundles"),
+    (4, "solve_bundles_serial", "lgi.solve.selection", "solve_bundles_serial"),
+    (4, "agreement", "lgi.solve.selection", "agreement"),
     (3, "_local (local refits)", "lgi.solve.solver", "LGISolver._local"),
-    (4, "_kernels.local_fits", "lgi._kernels", "local_fits"),
-    (4, "_kernels.local_fits_serial", "lgi._kernels", "local_fits_serial"),
+    (4, "local_fits", "lgi.solve.selection", "local_fits"),
+    (4, "local_fits_serial", "lgi.solve.selection", "local_fits_serial"),
     (3, "far_shares (far field)", "lgi.solve.solver", "LGISolver.far_shares"),
     (3, "_global (global weights, noisy bundles)", "lgi.solve.solver", "LGISolver._global"),
     (1, "finish_sequence (smoothing; exact shots)", "lgi.solve.solver", "LGISolver.finish_sequence"),
-    (1, "blend, skin, correct a frame (_Finisher.frame)", "lgi.solve.solver", "_Finisher.frame"),
+    (1, "blend, skin, correct a frame (_Finisher.frame)", "lgi.solve.finish", "_Finisher.frame"),
     (2, "surface (blend, skin)", "lgi.solve.solver", "LGISolver.surface"),
-    (3, "_kernels.blend", "lgi._kernels", "blend"),
-    (3, "_kernels.blend_uniform", "lgi._kernels", "blend_uniform"),
-    (3, "_kernels.blend_on_base", "lgi._kernels", "blend_on_base"),
+    (3, "blend", "lgi.solve.surface", "blend"),
+    (3, "blend_uniform", "lgi.solve.surface", "blend_uniform"),
+    (3, "blend_on_base", "lgi.solve.surface", "blend_on_base"),
     (2, "correct (residual correction)", "lgi.solve.solver", "LGISolver.correct"),
-    (3, "_kernels.add_correction", "lgi._kernels", "add_correction"),
-    (3, "_kernels.add_correction_serial", "lgi._kernels", "add_correction_serial"),
+    (3, "add_correction", "lgi.solve.surface", "add_correction"),
+    (3, "add_correction_serial", "lgi.solve.surface", "add_correction_serial"),
     (1, "diagnostics table (_diagnostics)", "lgi.solve.solver", "LGISolver._diagnostics"),
-    (0, "write outputs (write_reconstruction)", "lgi.jobs.reconstruct", "write_reconstruction"),
+    (0, "write outputs (write_reconstruction)", "lgi.jobs.reconstruct.run", "write_reconstruction"),
     (1, "meshes.npz (save_npz)", "lgi.io.npz", "save_npz"),
     (1, "diagnostics.csv (write_csv)", "lgi.io.csvio", "write_csv"),
-    (1, "per_frame.csv (per_frame_table)", "lgi.jobs.reconstruct", "per_frame_table"),
+    (1, "per_frame.csv (per_frame_table)", "lgi.jobs.reconstruct.outputs", "per_frame_table"),
 ]
 
 STAGE_CHILD = r"""
@@ -177,57 +187,6 @@ print(json.dumps({"import_s": t_import, "first_s": first, "total_s": total, "tim
 """
 
 
-@dataclass
-class Run:
-    """One finished child process."""
-
-    wall_s: float
-    peak_mib: float
-    returncode: int
-    stdout: str
-    stderr: str
-
-
-def run_process(argv: list[str], env: dict[str, str] | None = None) -> Run:
-    """Run ``argv`` to completion; wall time and the peak resident set size of that process alone.
-
-    Parameters
-    ----------
-    argv
-        Command line.
-    env
-        Environment of the child (default: this process's).
-
-    Returns
-    -------
-    Run
-        ``peak_mib`` from ``os.wait4`` (the child's own ``ru_maxrss``, not the maximum over all children).
-    """
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        t = time.perf_counter()
-        p = subprocess.Popen(argv, stdout=out, stderr=err, env=env, cwd=REPO_ROOT)
-        _, status, usage = os.wait4(p.pid, 0)
-        wall = time.perf_counter() - t
-        p.returncode = os.waitstatus_to_exitcode(status)
-        out.seek(0)
-        err.seek(0)
-        return Run(wall, usage.ru_maxrss / 1024, p.returncode, out.read().decode(errors="replace"),
-                   err.read().decode(errors="replace"))
-
-
-def lgi_timed(*args: str, env: dict[str, str] | None = None) -> Run:
-    """``python -m lgi ARGS`` as a timed process; exits with its output if it fails."""
-    r = run_process([sys.executable, "-m", "lgi", *args], env)
-    if r.returncode != 0:
-        raise SystemExit(f"lgi {' '.join(args)} failed (status {r.returncode}):\n{r.stdout}\n{r.stderr}")
-    return r
-
-
-def log(msg: str) -> None:
-    """Progress line on stderr (the tables go to stdout)."""
-    print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
-
-
 class Records:
     """Figures of the build steps kept in ``WORK/records.json``, so a run that reuses the material still
     reports how long the build took when it was made."""
@@ -239,65 +198,6 @@ class Records:
     def put(self, key: str, value: dict) -> None:
         self.data[key] = value
         self.path.write_text(json.dumps(self.data, indent=1))
-
-
-def manifest(directory: Path) -> dict:
-    """A dataset's or index's ``manifest.json``."""
-    return json.loads((directory / "manifest.json").read_text())
-
-
-def combos(directory: Path) -> list[tuple[str, frozenset]]:
-    """``(name, sources)`` of a dataset's in-betweens, read from its manifest (no arrays loaded)."""
-    out = []
-    for s in manifest(directory)["shapes"]:
-        src = (s.get("extra") or {}).get("sources")
-        if src:
-            out.append((s["name"], frozenset((k, float(v)) for k, v in src.items())))
-    return out
-
-
-def dir_mib(path: Path) -> float:
-    """Size on disk of a directory's files, MiB."""
-    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2**20
-
-
-def add_noise(src: Path, dst: Path, sigma: float, seed: int) -> None:
-    """Copy of a bundles CSV with Gaussian noise ``sigma`` (file units) on every coordinate, written in the
-    format ``lgi bundles`` writes (``frame, marker, x, y, z``, ``%.9g``)."""
-    df = pd.read_csv(src)
-    rng = np.random.default_rng(seed)
-    df[["x", "y", "z"]] = df[["x", "y", "z"]].to_numpy(np.float64) + rng.normal(0.0, sigma, (len(df), 3))
-    df.to_csv(dst, index=False, float_format="%.9g")
-
-
-def first_frames(src: Path, dst: Path, n: int) -> None:
-    """The first ``n`` frames of a bundles CSV, rows unchanged."""
-    df = pd.read_csv(src, dtype={"marker": str, "frame": str, "x": str, "y": str, "z": str}, keep_default_na=False)
-    frames = pd.to_numeric(df["frame"])
-    keep = np.sort(frames.unique())[:n]
-    df[frames.isin(keep).to_numpy()].to_csv(dst, index=False)
-
-
-def eased_shot(keys: Path, dst: Path, step: int) -> int:
-    """A continuous shot from key poses (a bundles CSV, one frame per pose): ``step`` frames from each pose to
-    the next, eased in time (smoothstep), the last pose not repeated. Returns the number of frames."""
-    df = pd.read_csv(keys)
-    names = df.loc[df["frame"] == df["frame"].iloc[0], "marker"].tolist()
-    pos = df[["x", "y", "z"]].to_numpy().reshape(-1, len(names), 3)
-    t = np.arange(step) / step
-    ease = t * t * (3 - 2 * t)
-    shot = ((1 - ease)[None, :, None, None] * pos[:-1, None] + ease[None, :, None, None] * pos[1:, None])
-    shot = shot.reshape(-1, len(names), 3)
-    n_f = len(shot)
-    pd.DataFrame({"frame": np.repeat(np.arange(n_f), len(names)), "marker": np.tile(names, n_f),
-                  "x": shot[..., 0].ravel(), "y": shot[..., 1].ravel(), "z": shot[..., 2].ravel()}
-                 ).to_csv(dst, index=False, float_format="%.7g")
-    return n_f
-
-
-def escape(name: str) -> str:
-    """A shape name as a shell pattern matching only itself (``*`` in in-between names is literal)."""
-    return "".join(f"[{c}]" if c in "*?[" else c for c in name)
 
 
 @dataclass
@@ -321,7 +221,7 @@ class Material:
 def build_material(work: Path, ict_dir: Path, shapes: list[int], frames: int, short: int, kinds: list[str],
                    noise_mm: float, records: Records) -> Material:
     """Import, augment, rig, index and test frames in ``work``; what exists there is reused."""
-    markers = shipped("markers_ict.csv")
+    markers = ICT_MARKERS
     ict = work / "ict"
     if not (ict / "manifest.json").is_file():
         log(f"lgi import {ict_dir} --out {ict} --rigid-vertices none")
@@ -342,8 +242,8 @@ def build_material(work: Path, ict_dir: Path, shapes: list[int], frames: int, sh
         datasets[n] = d
     rig = work / "rig.npz"
     if not rig.is_file():
-        log(f"lgi rig ict --jaw-vertices {JAW_VERTICES} --shapes 'jawOpen*' --out rig.npz")
-        run_lgi("rig", str(ict), "--jaw-vertices", JAW_VERTICES, "--shapes", "jawOpen*", "--out", str(rig))
+        log(f"lgi rig ict --jaw-vertices {ICT_JAW_VERTICES} --shapes 'jawOpen*' --out rig.npz")
+        run_lgi("rig", str(ict), "--jaw-vertices", ICT_JAW_VERTICES, "--shapes", "jawOpen*", "--out", str(rig))
     indexes = {}
     for n in shapes:
         for with_rig in (False, True):
@@ -459,7 +359,8 @@ def time_config(mat: Material, index: Path, kind: str, repeat: int, env: dict[st
 FIT_CHILD = r"""
 import sys, time
 import numpy as np
-from lgi import _kernels as K
+from lgi.solve import _blend_kernels as K
+from lgi.solve import _jaw_kernels as J
 from lgi.jobs.reconstruct import ReconstructOptions, Shot
 from lgi.solve.jaw import jaw_matrix
 from lgi.threads import one_blas_thread
@@ -482,7 +383,7 @@ def run(pos):
         nz = np.flatnonzero(prev.weights > 0)
         K.blend_uniform(x0, deltas, ones, (nz + 1).astype(np.int64), prev.weights[nz], x.reshape(-1))
         if skin_w is not None:
-            K.skin_points(x, skin_w, np.ascontiguousarray(jaw_matrix(prev.jaw, sol.rig.pivot)[:3]), x)
+            J.skin_points(x, skin_w, np.ascontiguousarray(jaw_matrix(prev.jaw, sol.rig.pivot)[:3]), x)
         verts[f] = x
     return verts
 
@@ -617,9 +518,9 @@ def main() -> int:
     ap.add_argument("--cold", action="store_true", help="also one run with an empty numba cache")
     ap.add_argument("--blas-threads", type=int, default=None, help="set OPENBLAS_NUM_THREADS/OMP_NUM_THREADS for "
                     "the children (default: inherit)")
-    ap.add_argument("--ict", type=Path, default=shared_data("ict-facekit"))
+    ap.add_argument("--ict", type=Path, default=ICT_DIR)
     args = ap.parse_args()
-    if not (args.ict / "generic_neutral_mesh.obj").is_file():
+    if not has_ict(args.ict):
         print(f"skipped: ICT FaceKit not found at {args.ict} (put it in ../shared/data/ict-facekit or set "
               "$LGI_SHARED_DATA)")
         return 0
@@ -660,7 +561,7 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
     scratch.mkdir(exist_ok=True)
     given = f" plus `--noise {args.noise_mm:g}` for the noisy copies" if args.given_noise else ""
     threads = ", ".join(f"{v}={env.get(v, 'unset')}" for v in THREAD_VARS)
-    log("one untimed process first (compiles the kernels if lgi/_kernels.py changed)")
+    log("one untimed process first (compiles the kernels whose modules changed)")
     first = run_process(reconstruct_argv(mat.indexes[(shapes[0], True)], mat.files[(kinds[0], mat.short)],
                                          scratch / "recon", []), env)
     shutil.rmtree(scratch / "recon", ignore_errors=True)

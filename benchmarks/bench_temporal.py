@@ -16,6 +16,7 @@ import argparse
 import time
 
 import numpy as np
+from common import synthetic_actor
 
 from lgi.evaluation.metrics import jitter, vertex_errors
 from lgi.index.build import build_index
@@ -29,9 +30,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
-    actor = synth.make_actor()
-    ds = synth.make_dataset(actor)
-    layout, _ = synth.default_layout(actor)
+    actor, ds, layout = synthetic_actor()
     index, _ = build_index(ds, layout, show_progress=False, jaw_rig=synth.jaw_rig(actor))
     truth = actor.evaluate_many(synth.random_performance(args.frames, seed=args.seed)).astype(np.float64)
     clean = layout.evaluate(truth)

@@ -21,9 +21,9 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
+from common import synthetic_set
 from scipy.optimize import lsq_linear
 
-from lgi.evaluation import benchsets
 from lgi.evaluation.accuracy import LGI_DEFAULTS, build_set_index
 from lgi.evaluation.baselines import RiggedBlendshapeSolver
 from lgi.solve.solver import LGISolver
@@ -38,7 +38,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--step", type=int, default=5)
     args = ap.parse_args()
-    bs = benchsets.synthetic_set()
+    bs = synthetic_set()
     index = build_set_index(bs)
     rig = index.jaw_rig()
     x0 = index.arrays["neutral"].astype(np.float64)

@@ -94,7 +94,7 @@ FAULTS = [
     # --- the reconstruction -----------------------------------------------------------------------------------
     Fault("mesh-before-correction", "the mesh is kept from before the correction through the bundles, while the "
           "residuals are those after it (the correction works on a copy)",
-          "lgi/solve/solver.py",
+          "lgi/solve/surface.py",
           "        a = self._a\n        resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)\n",
           "        a = self._a\n        x = x.copy()\n"
           "        resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)\n",
@@ -110,7 +110,7 @@ FAULTS = [
           "    w_region[np.arange(len(w_region)), owner[queries]] = 1.0\n",
           ("tests/test_natural.py", "tests/test_lgi.py::test_heldout_performance_passes_through_bundles")),
     Fault("jaw-file-held-at-rest", "a jaw file given with --jaw read as the jaw at rest",
-          "lgi/jobs/reconstruct.py",
+          "lgi/jobs/reconstruct/options.py",
           "        raise InputError(\"non-finite jaw parameter\", path=p, frame=int(frames[r]))\n    return vals\n",
           "        raise InputError(\"non-finite jaw parameter\", path=p, frame=int(frames[r]))\n"
           "    return np.zeros_like(vals)\n",

@@ -1,4 +1,4 @@
-"""The compiled global fit (lgi._kernels global_*): its pieces against direct numpy expressions and its
+"""The compiled global fit (lgi.solve._globalfit_kernels global_*): its pieces against direct numpy expressions and its
 solution against a dense bounded least-squares solve."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from lgi import _kernels as K
+from lgi.solve import _globalfit_kernels as K
 from lgi.solve.globalfit import EXACT_GAIN, THETA_SCALE, GlobalFit
 from lgi.solve.jaw import JawRig, jaw_matrix
 

@@ -7,9 +7,7 @@ import logging
 
 import numpy as np
 import pytest
-from scipy.optimize import lsq_linear
 
-from lgi import _kernels as K
 from lgi.errors import InputError
 from lgi.evaluation.accuracy import build_set_index
 from lgi.evaluation.baselines import RiggedBlendshapeSolver
@@ -28,41 +26,6 @@ def synth_set():
 def _rms(recon: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
     e = np.linalg.norm(np.asarray(recon, np.float64) - truth, axis=2)[:, mask] * 10
     return float(np.sqrt(np.mean(e**2)))
-
-
-def test_box_qp_matches_bounded_least_squares() -> None:
-    rng = np.random.default_rng(0)
-    for n in (3, 12, 40):
-        a = rng.normal(size=(21, n))
-        b = rng.normal(size=21)
-        lo, hi = -rng.uniform(0, 1, n), rng.uniform(0, 1, n)
-        x = np.zeros(n)
-        K.box_qp(a.T @ a + 1e-6 * np.eye(n), a.T @ b, lo, hi, x)
-        ref = lsq_linear(np.vstack([a, 1e-3 * np.eye(n)]), np.r_[b, np.zeros(n)], bounds=(lo, hi), method="bvls").x
-        assert np.abs(x - ref).max() < 1e-8
-
-
-def test_box_qp_on_redundant_columns_from_warm_starts() -> None:
-    # In-betweens are exact combinations of other shapes: with a ridge of 1e-6 the normal matrix has a
-    # condition of ~1e8, where a plain active-set method cycles on rounding (the case of the global fit).
-    rng = np.random.default_rng(1)
-    for trial in range(20):
-        base = rng.normal(size=(90, 12))
-        mix = rng.uniform(0, 1, (12, 60)) * (rng.uniform(size=(12, 60)) < 0.2)
-        a = np.hstack([base, base @ mix])
-        n = a.shape[1]
-        b = a @ (rng.uniform(0, 1, n) * (rng.uniform(size=n) < 0.1)) + rng.normal(0, 0.05, 90)
-        h = a.T @ a + 1e-6 * np.eye(n)
-        ref = lsq_linear(np.vstack([a, 1e-3 * np.eye(n)]), np.r_[b, np.zeros(n)], bounds=(0, 1), method="bvls").x
-        g = a.T @ b
-        for start in (np.zeros(n), rng.uniform(0, 1, n), np.clip(ref + rng.normal(0, 0.05, n), 0, 1)):
-            x = start.copy()
-            its = K.box_qp(h, g, np.zeros(n), np.ones(n), x)
-            assert 0 <= its < 10 * n + 10, trial
-            assert np.all((x >= 0) & (x <= 1))
-            # Redundant columns: the objective, not the weights, is unique up to the ridge.
-            f_x, f_ref = 0.5 * x @ h @ x - g @ x, 0.5 * ref @ h @ ref - g @ ref
-            assert f_x <= f_ref + 1e-9 * (1 + abs(f_ref)), trial
 
 
 def test_jaw_estimated_with_the_shapes_on_the_synthetic_actor(synth_set) -> None:
@@ -103,12 +66,12 @@ def test_noise_is_estimated_and_handled(synth_set) -> None:
     assert set(d.status) <= {"fitted", "missing"} and (d.status == "fitted").mean() > 0.9
     assert (d.n_containing == -1).all() and d.projection_mm.isna().all()
     # With every bundle on the same weights the single-combination blend equals the per-vertex one.
-    import lgi._kernels as K
+    from lgi.solve._blend_kernels import blend
 
     sel = sol.select_frame(bs.noisy[5])
     a = index.arrays
     x = np.empty_like(sol._x0)
-    K.blend(sol._x0, sol._deltas, a["w_indptr"], a["w_indices"], a["w_data"], sel.shapes, sel.weights, x)
+    blend(sol._x0, sol._deltas, a["w_indptr"], a["w_indices"], a["w_data"], sel.shapes, sel.weights, x)
     assert np.abs(sol.surface(sel.shapes, sel.weights, sel.jaw) - sol.rig.skin(x, sel.jaw)).max() < 1e-9
     fit = RiggedBlendshapeSolver(index).solve_sequence(bs.noisy)
     assert _rms(res.vertices, bs.truth, bs.mask) < _rms(fit, bs.truth, bs.mask)
@@ -196,14 +159,14 @@ def test_sequence_on_two_threads_equals_the_two_passes(synth_set, noise) -> None
 def test_a_failing_blend_stops_the_choosing_thread(synth_set, monkeypatch) -> None:
     import threading
 
-    import lgi.solve.solver as solver_mod
+    import lgi.solve.finish as finish_mod
 
     bs, index = synth_set
 
     def boom(*args, **kwargs):
         raise RuntimeError("blend failed")
 
-    monkeypatch.setattr(solver_mod._Finisher, "frame", boom)
+    monkeypatch.setattr(finish_mod._Finisher, "frame", boom)
     with pytest.raises(RuntimeError, match="blend failed"):
         LGISolver(index).solve_sequence(bs.noisy, noise=0.3)
     # The worker was blocked on a full queue (60 frames, 16 places): it must have given up, not hang.

@@ -26,11 +26,11 @@ import scipy.sparse as sp
 from scipy.optimize import lsq_linear
 from scipy.spatial import cKDTree
 
-from lgi import _kernels as K
 from lgi.dataset.markers import MarkerLayout
 from lgi.dataset.shapes import ShapeDataset
 from lgi.index.build import LGIIndex
 from lgi.index.smooth import SmoothInterpolator
+from lgi.solve._blend_kernels import blend
 from lgi.solve.globalfit import GlobalFit, GlobalFitResult
 from lgi.solve.jaw import JawRig
 from lgi.solve.solver import LGISolver
@@ -191,7 +191,7 @@ class RBFSolver(_SequenceMixin):
         prev_sel = None if previous is None else previous.fit
         sel = self.lgi.select_frame(bundles, prev_sel)  # LGI's shapes and weights per bundle (and the jaw)
         x = np.empty_like(self.x0)
-        K.blend(self.x0, self.lgi._deltas, self._indptr, self._indices, self._data, sel.shapes, sel.weights, x)
+        blend(self.x0, self.lgi._deltas, self._indptr, self._indices, self._data, sel.shapes, sel.weights, x)
         if self.lgi.rig is not None:
             x = self.lgi.rig.skin(x, sel.jaw)
         seen = np.all(np.isfinite(sel.bundles), axis=1)

@@ -24,10 +24,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
-from lgi import _kernels as K
 from lgi.dataset.markers import MarkerLayout
 from lgi.dataset.shapes import ShapeDataset
 from lgi.errors import InputError
+from lgi.index._grid_kernels import build_grids
 from lgi.index.cloud import BundleCloud, CloudOptions, barycentric_inverse, build_cloud
 from lgi.io.atomic import atomic_dir
 from lgi.io.npz import save_npz
@@ -428,7 +428,7 @@ def clouds_stage(dataset: ShapeDataset, layout: MarkerLayout, opts: IndexOptions
     nb_off, nb_idx = natural["nb_off"], natural["nb_idx"]
     neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(len(layout))]
     flat = _flatten(clouds, tab, neighbours, opts.class_tol)
-    lo, h, dims, cell_off, cell_start, items = K.build_grids(
+    lo, h, dims, cell_off, cell_start, items = build_grids(
         flat["pts"], flat["pt_off"], flat["sx"], flat["sx_off"], flat["dim"], float(opts.grid_target),
         opts.grid_max_cells)
     arrays = {**flat, "grid_lo": lo, "grid_h": h, "grid_dims": dims, "cell_off": cell_off, "cell_start": cell_start,

@@ -116,9 +116,20 @@ def import_dataset(shapes_dir: str | Path, out: str | Path, options: ImportOptio
     return dataset_summary(ds, out, time.perf_counter() - t0)
 
 
-#: The folders the rebuild publishes in its OUT, and their kinds (:func:`lgi.pipeline.stages.published`).
+#: The folders the rebuild publishes in its OUT, and their kinds (:func:`published`).
 REBUILD_OUTPUTS = {"dataset": "dataset", "rig": "rig", "dataset_augmented": "dataset", "index": "index",
                    "verification": "verification"}
+
+
+def published(kind: str) -> tuple[tuple[str, ...], str]:
+    """What a published result of ``kind`` ("dataset", "index", "verification", "rig") holds, and its name: a folder
+    holding anything else is not replaced (:func:`lgi.io.atomic.check_output`)."""
+    from lgi.dataset.shapes import ENTRIES as DATASET
+    from lgi.index.build import ENTRIES as INDEX
+
+    return {"dataset": (DATASET, "lgi dataset"), "index": (INDEX, "lgi index"),
+            "verification": (("verification.csv", "summary.json", "*.png", ".complete"), "lgi verification"),
+            "rig": (("jaw_rig.npz", "rig.json", ".complete"), "lgi jaw rig")}[kind]
 
 
 def check_rebuild(shapes_dir: str | Path, out: str | Path, options: ImportOptions, markers: str | Path | None = None,
@@ -127,7 +138,6 @@ def check_rebuild(shapes_dir: str | Path, out: str | Path, options: ImportOption
     folders it publishes there (``dataset``, ``dataset_augmented``, ``index``, ``verification``) can be written
     and replace none of the inputs, and the marker file parses."""
     from lgi.io.atomic import check_output, files_in
-    from lgi.pipeline.stages import published
 
     inputs = [shapes_dir, options.neutral, options.identity, markers, jaw_rig, cache_dir]
     check_output(out, "dir")

@@ -33,7 +33,7 @@ from lgi.dataset.shapes import ShapeDataset
 from lgi.index.build import NATURAL_FIELDS, IndexOptions, assemble_index, clouds_stage, natural_stage
 from lgi.io.npz import save_npz
 from lgi.io.obj import PolyMesh
-from lgi.jobs.dataset import AugmentOptions, ImportOptions, augment, read_shapes, stabilise_shapes
+from lgi.jobs.dataset import AugmentOptions, ImportOptions, augment, published, read_shapes, stabilise_shapes
 from lgi.jobs.index import RigOptions, VerifyOptions, fit_jaw_rig, verify
 from lgi.pipeline.cache import StageCache, hash_file, hash_tree
 
@@ -204,17 +204,6 @@ def options_from(params: dict[str, Any] | None) -> IndexOptions:
         raise InputError(f"unknown index options {unknown}; known: {sorted(cloud_keys | index_keys)}")
     cloud = CloudOptions(**{k: params.pop(k) for k in list(params) if k in cloud_keys})
     return IndexOptions(cloud=cloud, **params)
-
-
-def published(kind: str) -> tuple[tuple[str, ...], str]:
-    """What a published result of ``kind`` ("dataset", "index", "verification") holds, and its name: a folder
-    holding anything else is not replaced (:func:`lgi.io.atomic.check_output`)."""
-    from lgi.dataset.shapes import ENTRIES as DATASET
-    from lgi.index.build import ENTRIES as INDEX
-
-    return {"dataset": (DATASET, "lgi dataset"), "index": (INDEX, "lgi index"),
-            "verification": (("verification.csv", "summary.json", "*.png", ".complete"), "lgi verification"),
-            "rig": (("jaw_rig.npz", "rig.json", ".complete"), "lgi jaw rig")}[kind]
 
 
 def publish(src: Path, dest: str | os.PathLike[str], kind: str) -> Path:

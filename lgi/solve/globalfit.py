@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lgi import _kernels as K
+from lgi.solve import _globalfit_kernels as K
 from lgi.solve.jaw import N_PARAMS, JawRig
 from lgi.units import MM_PER_CM
 

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from lgi import _kernels as K
 from lgi.errors import InputError
 from lgi.io.atomic import atomic_file
 from lgi.io.npz import save_npz
+from lgi.solve._jaw_kernels import jaw_map, jaw_map_derivatives, skin_points
 from lgi.units import MM_PER_CM
 
 N_PARAMS = 4
@@ -39,9 +39,9 @@ log = logging.getLogger(__name__)
 
 def jaw_matrix(params: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     """(4, 4) rigid jaw motion for ``(open, yaw, roll, forward)`` (deg, deg, deg, cm) about ``pivot`` (3,) cm:
-    ``R = R_yaw R_roll R_open`` about the pivot, then the slide along +z (:func:`lgi._kernels.jaw_map`)."""
+    ``R = R_yaw R_roll R_open`` about the pivot, then the slide along +z (:func:`lgi.solve._jaw_kernels.jaw_map`)."""
     m = np.eye(4)
-    K.jaw_map(np.asarray(params, np.float64).reshape(N_PARAMS), np.asarray(pivot, np.float64).reshape(3), m[:3])
+    jaw_map(np.asarray(params, np.float64).reshape(N_PARAMS), np.asarray(pivot, np.float64).reshape(3), m[:3])
     return m
 
 
@@ -49,7 +49,7 @@ def jaw_matrix_derivatives(params: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     """(4, 3, 4) derivatives of the top rows of :func:`jaw_matrix` in each parameter (per degree for the
     three angles, per cm for the slide)."""
     out = np.empty((N_PARAMS, 3, 4))
-    K.jaw_map_derivatives(np.asarray(params, np.float64).reshape(N_PARAMS), np.asarray(pivot, np.float64).reshape(3),
+    jaw_map_derivatives(np.asarray(params, np.float64).reshape(N_PARAMS), np.asarray(pivot, np.float64).reshape(3),
                           out)
     return out
 
@@ -75,7 +75,7 @@ class JawRig:
         if x.ndim != 2 or x.shape[1] != 3 or w.shape != (len(x),):
             raise ValueError(f"skin: positions {x.shape} and weights {w.shape} do not match (N, 3) and (N,)")
         out = np.empty_like(x)
-        K.skin_points(x, np.ascontiguousarray(w), np.ascontiguousarray(jaw_matrix(params, self.pivot)[:3]), out)
+        skin_points(x, np.ascontiguousarray(w), np.ascontiguousarray(jaw_matrix(params, self.pivot)[:3]), out)
         return out
 
     def unskin(self, x: np.ndarray, params: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:

@@ -251,14 +251,14 @@ def sg_matrix(window: int, order: int = 2) -> np.ndarray:
 def _sg_all(x: np.ndarray, window: int) -> np.ndarray:
     """Savitzky-Golay (quadratic) smoothing of every marker's trajectory (F, M, 3) with NaN rows; each run of
     seen frames is smoothed on its own (runs shorter than the window are left as they are)."""
-    from lgi import _kernels as K
+    from lgi.solve._temporal_kernels import sg_runs
 
     out = np.array(x, np.float64, copy=True)
     if window <= 1:
         return out
     mat = sg_matrix(window)
     h = window // 2
-    K.sg_runs(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(mat[:h]), np.ascontiguousarray(mat[h]),
+    sg_runs(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(mat[:h]), np.ascontiguousarray(mat[h]),
               np.ascontiguousarray(mat[window - h:]), out)
     return out
 

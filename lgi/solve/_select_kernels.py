@@ -1,0 +1,550 @@
+"""Compiled loops of the per-bundle choice (numba): the simplex search and candidate scoring of one frame
+(:func:`solve_bundles`), the neighbours' agreement for the second pass, and the local refits
+(:func:`local_fits`). Called by :mod:`lgi.solve.selection`.
+
+Arrays are the flattened index (see :mod:`lgi.index.build`): per-bundle blocks of points, simplices, hull
+facets and grid cells addressed through offset arrays. Local coordinates are padded to 3 components and
+simplices to 4 corners (-1 where unused); a bundle's dimension ``d`` says how many are real.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from lgi.index._grid_kernels import _bary, _cell, _closest_on_segment, _closest_on_triangle
+from lgi.solve.qp import box_qp
+
+# Status codes written to the diagnostics.
+CONTAINED, PROJECTED, MISSING, BORROWED = 0, 1, 2, 3
+# A candidate's own distance to the bundle counts as much as this many natural neighbours' misfits
+# (measured on held-out ICT and synthetic frames, see docs/indexing.md).
+OWN_WEIGHT = 4.0
+
+@nb.njit(cache=True)
+def _misfit(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2):  # pragma: no cover - compiled
+    """RMS distance (cm) of the natural neighbours, and of the bundle itself (``own2``, squared, weighted
+    OWN_WEIGHT), to where the candidate's blend of shapes puts them."""
+    tot = OWN_WEIGHT * own2
+    cnt = OWN_WEIGHT
+    for e in range(nb_off[i], nb_off[i + 1]):
+        j = nb_idx[e]
+        if not seen[j]:
+            continue
+        for k in range(3):
+            acc = -p[j, k]
+            for c in range(nz):
+                acc += lam[c] * ptab[shapes[c], j, k]
+            tot += acc * acc
+        cnt += 1
+    return np.sqrt(tot / cnt)
+
+
+@nb.njit(cache=True)
+def _penalty(i, shapes, lam, nz, prev, mu, agree, nu):  # pragma: no cover - compiled
+    """Temporal (shapes not shared with the previous frame) and agreement (shapes the frame's evidence
+    does not support) terms of the score, cm."""
+    out = 0.0
+    if mu > 0 and prev[i, 0] >= 0:
+        shared = 0
+        for c in range(nz):
+            for q in range(4):
+                if prev[i, q] == shapes[c]:
+                    shared += 1
+                    break
+        out += mu * (1.0 - shared / nz)
+    if nu > 0:
+        ag = 0.0
+        for c in range(nz):
+            ag += lam[c] * agree[i, shapes[c]]
+        out += nu * (1.0 - ag)
+    return out
+
+
+@nb.njit(cache=True)
+def _consider(i, shapes_in, lam_in, nz, p, seen, ptab, nb_off, nb_idx, own2, alias_pt, alias_off, class_off,
+              alias_shape, alias_min_w, prev, mu, agree, nu, best_shapes, best_lam, best_pts, best,
+              last):  # pragma: no cover
+    """Score one candidate and keep it if it is the best so far; returns True if it is.
+
+    Every corner with weight >= alias_min_w (heaviest first) tries the shapes merged into its cloud
+    point, one alias class at a time (a class: shapes that also coincide at all natural neighbours, so
+    they share one misfit); within a class the temporal and agreement terms pick the member.
+    """
+    shapes = shapes_in.copy()
+    lam = lam_in.copy()
+    done = np.zeros(4, np.bool_)
+    for _ in range(nz):
+        c = -1
+        for q in range(nz):
+            if not done[q] and (c < 0 or lam[q] > lam[c]):
+                c = q
+        done[c] = True
+        pt = alias_pt[c]
+        if pt < 0 or lam[c] < alias_min_w or alias_off[pt + 1] - alias_off[pt] <= 1 and \
+                class_off[alias_off[pt] + 1] - class_off[alias_off[pt]] <= 1:
+            continue
+        keep = shapes[c]
+        keep_sc = 1e300
+        for cls in range(alias_off[pt], alias_off[pt + 1]):
+            shapes[c] = alias_shape[class_off[cls]]
+            fit = _misfit(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2)
+            if fit >= keep_sc:
+                continue
+            member = shapes[c]
+            if (mu > 0 and prev[i, 0] >= 0) or nu > 0:
+                # Members differ only in this corner's temporal and agreement terms: take the best.
+                best_gain = -1.0
+                for o in range(class_off[cls], class_off[cls + 1]):
+                    m_ = alias_shape[o]
+                    gain = 0.0
+                    if nu > 0:
+                        gain += nu * lam[c] * agree[i, m_]
+                    if mu > 0 and prev[i, 0] >= 0:
+                        for q in range(4):
+                            if prev[i, q] == m_:
+                                gain += mu / nz
+                                break
+                    if gain > best_gain:
+                        best_gain = gain
+                        member = m_
+                shapes[c] = member
+            pen = _penalty(i, shapes, lam, nz, prev, mu, agree, nu)
+            if fit + pen < keep_sc:
+                keep_sc = fit + pen
+                keep = member
+        shapes[c] = keep
+    sc = _misfit(i, shapes, lam, nz, p, seen, ptab, nb_off, nb_idx, own2) + _penalty(i, shapes, lam, nz, prev, mu,
+                                                                                      agree, nu)
+    last[0] = sc
+    if sc < best[0]:
+        best[0] = sc
+        for c in range(4):
+            best_shapes[c] = shapes[c] if c < nz else 0
+            best_lam[c] = lam[c] if c < nz else 0.0
+            best_pts[c] = alias_pt[c] if c < nz else -1
+        return True
+    return False
+
+
+@nb.njit(cache=True)
+def _take_simplex(s, lam, sx, pt_shape, d, shapes, apt):  # pragma: no cover - compiled
+    """Clamp tiny negative weights, renormalise, and fill the candidate's shapes and cloud points."""
+    tot = 0.0
+    for c in range(d + 1):
+        lam[c] = max(lam[c], 0.0)
+        tot += lam[c]
+    for c in range(d + 1):
+        lam[c] /= tot
+        apt[c] = sx[s, c]
+        shapes[c] = pt_shape[sx[s, c]]
+
+
+@nb.njit(cache=True)
+def _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, tinv,
+               hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
+               agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k, cand_in,
+               cand_score_in, first_score, out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out,
+               cand_score_out):  # pragma: no cover
+    d = dim[i]
+    y = np.zeros(3)
+    q = np.zeros(3)
+    tmp = np.zeros(3)
+    lam = np.zeros(4)
+    shapes = np.zeros(4, np.int64)
+    apt = np.full(4, -1, np.int64)
+    best = np.full(1, 1e300)
+    bshapes = np.zeros(4, np.int64)
+    blam = np.zeros(4)
+    bpts = np.full(4, -1, np.int64)
+    last = np.zeros(1)
+    off2 = 0.0
+    for k in range(d):
+        acc = 0.0
+        for r in range(3):
+            acc += basis[i, r, k] * (p[i, r] - origin[i, r])
+        y[k] = acc
+    for r in range(3):
+        acc = p[i, r] - origin[i, r]
+        for k in range(d):
+            acc -= basis[i, r, k] * y[k]
+        off2 += acc * acc
+
+    found = 0
+    if d == 0:
+        shapes[0] = pt_shape[pt_off[i]]
+        apt[0] = pt_off[i]
+        lam[0] = 1.0
+        # np.int64(1), not 1: a literal argument is a type of its own, compiled again (first run after an install).
+        _consider(i, shapes, lam, np.int64(1), p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off,
+                  alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
+        found = 1
+    else:
+        if cand_in[i, 0] >= -1:
+            # Second pass: the first pass's distinct best containing simplices, no grid scan. The
+            # agreement term adds at most nu and the sweep only raises a first-pass score, so a
+            # candidate more than nu behind the first-pass winner cannot win: skip it.
+            for r in range(top_k):
+                s = cand_in[i, r]
+                if s < 0:
+                    break
+                found += 1
+                if cand_score_in[i, r] > first_score[i] + nu + 1e-15:
+                    continue
+                _bary(y, s, sx, tinv, pts, d, lam)
+                _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
+                _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off, class_off,
+                          alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
+        else:
+            cell = _cell(y, i, lo, h, dims, cell_off, d)
+            if cell >= 0:
+                n_items = cell_start[cell + 1] - cell_start[cell]
+                cand = np.empty(n_items, np.int64)
+                pre = np.empty(n_items)
+                for e in range(cell_start[cell], cell_start[cell + 1]):
+                    s = items[e]
+                    _bary(y, s, sx, tinv, pts, d, lam)
+                    inside = True
+                    for c in range(d + 1):
+                        if lam[c] < -tol:
+                            inside = False
+                    if not inside:
+                        continue
+                    _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
+                    cand[found] = s
+                    # Pre-screen with the points' representative shapes; only the best go on to the
+                    # full score (alias sweep, temporal and agreement terms).
+                    pre[found] = _misfit(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2)
+                    found += 1
+                order = np.argsort(pre[:found])
+                kept_lam = np.zeros((top_k, 4))
+                kept_shapes = np.zeros((top_k, 4), np.int64)
+                n_kept = 0
+                for r in range(found):
+                    if n_kept >= top_k:
+                        break
+                    s = cand[order[r]]
+                    _bary(y, s, sx, tinv, pts, d, lam)
+                    _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
+                    dup = False
+                    for u in range(n_kept):  # the same blend reached through another simplex
+                        same = True
+                        for c in range(d + 1):
+                            hit = False
+                            for c2 in range(d + 1):
+                                if kept_shapes[u, c2] == shapes[c] and abs(kept_lam[u, c2] - lam[c]) < 1e-12:
+                                    hit = True
+                            if lam[c] > 0 and not hit:
+                                same = False
+                        if same:
+                            dup = True
+                            break
+                    if dup:
+                        continue
+                    for c in range(d + 1):
+                        kept_shapes[n_kept, c] = shapes[c]
+                        kept_lam[n_kept, c] = lam[c]
+                    _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2, apt, alias_off,
+                              class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
+                    cand_out[i, n_kept] = s
+                    cand_score_out[i, n_kept] = last[0]
+                    n_kept += 1
+
+    # Points within the snap radius: their dropped and merged shapes lie there, so try each point
+    # alone (with its aliases), the bundle's own distance counted in the score.
+    snapped = -1.0
+    for a in range(pt_off[i], pt_off[i + 1]):
+        dd = off2
+        for k in range(d):
+            dd += (y[k] - pts[a, k]) ** 2
+        if dd <= snap_r[i] * snap_r[i]:
+            shapes[0] = pt_shape[a]
+            apt[0] = a
+            lam[0] = 1.0
+            if _consider(i, shapes, lam, np.int64(1), p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off,
+                         alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last):
+                snapped = dd
+    n_contain[i] = found
+    if snapped >= 0:
+        # On a dataset point (a pruned shape's position): inside the data, not a projection.
+        status[i] = CONTAINED
+        proj[i] = np.sqrt(snapped)
+    elif found > 0:
+        status[i] = CONTAINED if off2 <= dist_tol * dist_tol else PROJECTED
+        proj[i] = np.sqrt(off2)
+    else:
+        # Project onto the hull: the n_project nearest facets, then the simplices containing each
+        # projected point; scored with the bundle's own distance included.
+        nh = hull_off[i + 1] - hull_off[i]
+        dists = np.empty(nh)
+        for f in range(nh):
+            hf = hull_off[i] + f
+            if d == 3:
+                dists[f] = _closest_on_triangle(y, pts[hull[hf, 0]], pts[hull[hf, 1]], pts[hull[hf, 2]], tmp)
+            elif d == 2:
+                dists[f] = _closest_on_segment(y, pts[hull[hf, 0]], pts[hull[hf, 1]], d, tmp)
+            else:
+                dists[f] = (y[0] - pts[hull[hf, 0], 0]) ** 2
+        order = np.argsort(dists)
+        best_proj = 1e300
+        for rank in range(min(n_project, nh)):
+            hf = hull_off[i] + order[rank]
+            if d == 3:
+                d2 = _closest_on_triangle(y, pts[hull[hf, 0]], pts[hull[hf, 1]], pts[hull[hf, 2]], q)
+            elif d == 2:
+                d2 = _closest_on_segment(y, pts[hull[hf, 0]], pts[hull[hf, 1]], d, q)
+            else:
+                q[0] = pts[hull[hf, 0], 0]
+                d2 = (y[0] - q[0]) ** 2
+            cell = _cell(q, i, lo, h, dims, cell_off, d)
+            if cell < 0:
+                continue
+            tried = 0
+            for e in range(cell_start[cell], cell_start[cell + 1]):
+                if tried >= top_k:
+                    break
+                s = items[e]
+                _bary(q, s, sx, tinv, pts, d, lam)
+                inside = True
+                for c in range(d + 1):
+                    if lam[c] < -1e-6:
+                        inside = False
+                if not inside:
+                    continue
+                tried += 1
+                _take_simplex(s, lam, sx, pt_shape, d, shapes, apt)
+                if _consider(i, shapes, lam, d + 1, p, seen, ptab, nb_off, nb_idx, off2 + d2 + 1e-300, apt,
+                             alias_off, class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts,
+                             best, last):
+                    best_proj = d2
+        if best[0] >= 1e299:
+            # Numerically no simplex contains the hull point: fall back to the nearest point.
+            bestp = pt_off[i]
+            bd = 1e300
+            for a in range(pt_off[i], pt_off[i + 1]):
+                dd = 0.0
+                for k in range(d):
+                    dd += (y[k] - pts[a, k]) ** 2
+                if dd < bd:
+                    bd = dd
+                    bestp = a
+            shapes[0] = pt_shape[bestp]
+            apt[0] = bestp
+            lam[0] = 1.0
+            _consider(i, shapes, lam, np.int64(1), p, seen, ptab, nb_off, nb_idx, off2 + bd + 1e-300, apt, alias_off,
+                      class_off, alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last)
+            best_proj = bd
+        status[i] = PROJECTED
+        proj[i] = np.sqrt(off2 + best_proj)
+
+    # Second pass: a natural neighbour's first-pass mixture, scored with this bundle's own distance.
+    # A bundle that barely moves, or sits where its cloud has no combination of the shapes its
+    # neighbours show, cannot tell those shapes apart; its neighbours can.
+    if nu > 0:
+        for e in range(nb_off[i], nb_off[i + 1]):
+            j = nb_idx[e]
+            if not seen[j]:
+                continue
+            dd = 0.0
+            for k in range(3):
+                acc = -p[i, k]
+                for c in range(4):
+                    acc += first_lam[j, c] * ptab[first_shapes[j, c], i, k]
+                dd += acc * acc
+            nzj = 0
+            for c in range(4):
+                if first_lam[j, c] > 0:
+                    shapes[nzj] = first_shapes[j, c]
+                    lam[nzj] = first_lam[j, c]
+                    apt[nzj] = -1
+                    nzj += 1
+            if _consider(i, shapes, lam, nzj, p, seen, ptab, nb_off, nb_idx, dd, apt, alias_off, class_off,
+                         alias_shape, alias_min_w, prev, mu, agree, nu, bshapes, blam, bpts, best, last):
+                status[i] = BORROWED
+                proj[i] = np.sqrt(dd)
+    score[i] = best[0]
+    for c in range(4):
+        out_shapes[i, c] = bshapes[c]
+        out_lam[i, c] = blam[c]
+        out_pts[i, c] = bpts[c]
+
+
+@nb.njit(cache=True, nogil=True)
+def _solve_outputs(m, top_k):  # pragma: no cover - compiled
+    """:func:`solve_bundles`' outputs for m bundles, at their fill values (no shapes, status MISSING)."""
+    return (np.zeros((m, 4), np.int64), np.zeros((m, 4)), np.full((m, 4), -1, np.int64), np.zeros(m, np.int64),
+            np.full(m, MISSING, np.int64), np.zeros(m), np.full(m, np.nan), np.full((m, top_k), -1, np.int64),
+            np.full((m, top_k), np.inf))
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
+def solve_bundles(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx, tinv,
+                  hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r, prev, mu,
+                  agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
+                  cand_in, cand_score_in, first_score, active):  # pragma: no cover - compiled
+    """Choose every bundle's simplex and barycentric weights for one frame (bundles in parallel).
+
+    Only the seen bundles with ``active`` (M,) bool are searched; the others keep the outputs' fill values
+    (status MISSING, no shapes).
+
+    ``cand_in`` (M, top_k): a first pass's candidates to reuse (rows of -2 mean scan the grid), with
+    their first-pass scores ``cand_score_in`` and each bundle's first-pass best ``first_score``.
+
+    Returns shapes (M,4) int64 (extended shape indices), lam (M,4), points (M,4) (cloud points of the
+    corners, -1 unused), n_contain (M,), status (M,), proj_dist (M,) cm, score (M,) cm, and the
+    distinct best containing simplices (M, top_k) (-1 padded) with their scores, for a second pass.
+    """
+    m = p.shape[0]
+    out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out = _solve_outputs(m, top_k)
+    for i in nb.prange(m):  # solve_bundles_serial: the same loop on one thread
+        if seen[i] and active[i]:
+            _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx,
+                       tinv, hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r,
+                       prev, mu, agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
+                       cand_in, cand_score_in, first_score, out_shapes, out_lam, out_pts, n_contain, status, proj,
+                       score, cand_out, cand_score_out)
+    return out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out
+
+
+@nb.njit(cache=True, nogil=True)
+def solve_bundles_serial(p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx,
+                         tinv, hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r,
+                         prev, mu, agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
+                         cand_in, cand_score_in, first_score, active):  # pragma: no cover - compiled
+    """:func:`solve_bundles` on the calling thread alone (a shot's frames chosen on one thread while another
+    blends: no parallel region is launched from two threads)."""
+    m = p.shape[0]
+    out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out = _solve_outputs(m, top_k)
+    for i in range(m):
+        if seen[i] and active[i]:
+            _solve_one(i, p, seen, dim, origin, basis, pts, pt_off, pt_shape, alias_off, class_off, alias_shape, sx,
+                       tinv, hull, hull_off, lo, h, dims, cell_off, cell_start, items, ptab, nb_off, nb_idx, snap_r,
+                       prev, mu, agree, nu, first_shapes, first_lam, alias_min_w, tol, dist_tol, n_project, top_k,
+                       cand_in, cand_score_in, first_score, out_shapes, out_lam, out_pts, n_contain, status, proj,
+                       score, cand_out, cand_score_out)
+    return out_shapes, out_lam, out_pts, n_contain, status, proj, score, cand_out, cand_score_out
+
+
+@nb.njit(cache=True, nogil=True)
+def agreement(points, lam, seen, alias_off, class_off, alias_shape, nb_off, nb_idx, n_shapes):  # pragma: no cover
+    """(M, S+1) evidence for each shape from the first-pass choices: every corner's weight is split
+    over all shapes merged into its cloud point (they are indistinguishable at that bundle), so only a
+    shape consistent with many bundles collects much; half from the bundle's natural neighbours, half
+    from the whole frame, each relative to its best-supported shape."""
+    m = points.shape[0]
+    vote = np.zeros((m, n_shapes))
+    glob = np.zeros(n_shapes)
+    for j in range(m):
+        if not seen[j]:
+            continue
+        for c in range(4):
+            a = points[j, c]
+            if a < 0 or lam[j, c] <= 0:
+                continue
+            first = class_off[alias_off[a]]
+            last = class_off[alias_off[a + 1]]
+            for o in range(first, last):
+                vote[j, alias_shape[o]] += lam[j, c] / (last - first)
+        for s in range(n_shapes):
+            glob[s] += vote[j, s]
+    gmax = max(glob.max(), 1e-300)
+    out = np.zeros((m, n_shapes))
+    local = np.zeros(n_shapes)
+    for i in range(m):
+        local[:] = 0.0
+        for e in range(nb_off[i], nb_off[i + 1]):
+            j = nb_idx[e]
+            if seen[j]:
+                for s in range(n_shapes):
+                    local[s] += vote[j, s]
+        lmax = max(local.max(), 1e-300)
+        for s in range(n_shapes):
+            # Relative to the best-supported shape, so that the leader scores 1.
+            out[i, s] = 0.5 * (local[s] / lmax + glob[s] / gmax)
+    return out
+
+
+@nb.njit(cache=True, nogil=True)
+def _local_fit_one(i, resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight,
+                   out):  # pragma: no cover - compiled
+    """Bundle i's row of :func:`local_fits`."""
+    a0, a1 = col_off[i], col_off[i + 1]
+    n = a1 - a0
+    for k in range(w_global.shape[0]):
+        out[i, k] = w_global[k]
+    if n == 0:
+        return
+    h = np.zeros((n, n))
+    g = np.zeros(n)
+    for a in range(n):
+        h[a, a] = beta[i]
+    n_rows = 0
+    for e in range(nb_off[i] - 1, nb_off[i + 1]):
+        # The bundle itself first (e = nb_off[i] - 1), then its natural neighbours.
+        own = e < nb_off[i]
+        j = np.int64(i) if own else nb_idx[e]
+        if not seen[j]:
+            continue
+        n_rows += 1
+        cw = own_weight if own else 1.0
+        for a in range(n):
+            ka = cols[a0 + a]
+            acc = 0.0
+            for d in range(3):
+                acc += basis[ka, j, d] * resid[j, d]
+            g[a] += cw * acc
+            for b in range(a + 1):
+                kb = cols[a0 + b]
+                acc = 0.0
+                for d in range(3):
+                    acc += basis[ka, j, d] * basis[kb, j, d]
+                h[a, b] += cw * acc
+    if n_rows == 0:
+        return
+    for a in range(n):
+        for b in range(a):
+            h[b, a] = h[a, b]
+    lo = np.empty(n)
+    hi = np.empty(n)
+    x = np.zeros(n)
+    for a in range(n):
+        wk = w_global[cols[a0 + a]]
+        lo[a] = -wk
+        hi[a] = 1.0 - wk
+    box_qp(h, g, lo, hi, x, np.int64(0), 1e-13, 0.0)
+    for a in range(n):
+        out[i, cols[a0 + a]] = w_global[cols[a0 + a]] + x[a]
+
+
+@nb.njit(parallel=True, cache=True, nogil=True)
+def local_fits(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight,
+               out):  # pragma: no cover - compiled
+    """Each bundle's local shape weights: the global weights changed, on the bundle's candidate shapes,
+    to fit the bundle and its seen natural neighbours.
+
+    For bundle i with rows J = {i} (weight ``own_weight``) and its seen natural neighbours (weight 1),
+    the change d on shapes ``cols[col_off[i]:col_off[i+1]]`` minimises
+    ``sum_j c_j |resid_j - sum_k d_k basis[k, j]|^2 + beta[i] |d|^2`` with ``0 <= w_global + d <= 1``.
+
+    Parameters
+    ----------
+    resid : (M, 3) float64, cm
+        Bundles minus the global fit's model (unskinned space); rows of missing bundles unused.
+    basis : (S, M, 3) float64, cm
+        Every shape's displacement of every bundle.
+    w_global : (S,) float64
+    beta : (M,) float64, cm^2
+        Ridge toward the global weights per bundle.
+    out : (M, S) float64
+        Filled with each bundle's weights.
+    """
+    for i in nb.prange(resid.shape[0]):
+        _local_fit_one(i, resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight, out)
+
+
+@nb.njit(cache=True, nogil=True)
+def local_fits_serial(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight,
+                      out):  # pragma: no cover - compiled
+    """:func:`local_fits` on the calling thread alone (see :func:`solve_bundles_serial`)."""
+    for i in range(resid.shape[0]):
+        _local_fit_one(i, resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight, out)
