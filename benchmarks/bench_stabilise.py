@@ -29,21 +29,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from common import lgi
 
 TABLE = "table:stabilise"
-
-
-def lgi(*args: str) -> str:
-    r = subprocess.run([sys.executable, "-m", "lgi", *args], capture_output=True, text=True)
-    if r.returncode != 0:
-        raise SystemExit(f"lgi {' '.join(args)} failed:\n{r.stdout}\n{r.stderr}")
-    return r.stdout
 
 
 def stats(e: np.ndarray) -> str:
