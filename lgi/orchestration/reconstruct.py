@@ -152,6 +152,8 @@ def reconstruct_shot(
     params = dict(locals())
     if footage and not (calib and markers):
         raise ValueError("a shot from footage needs calib and markers")
+    if footage and not observations:
+        params["calib"] = None  # it calibrates the tracking; without observations there are no rays to make
     opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
     job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
                            contours))
