@@ -48,7 +48,10 @@ def test_kill_and_resume(prefect_api: str, tmp_path: Path, obj_folder: Path, sma
     deadline = time.time() + 300
     natural = tmp_path / "cache" / "natural"
     while time.time() < deadline and proc.poll() is None:
-        if natural.is_dir() and any((d / ".complete").is_file() for d in natural.iterdir()):
+        # A result is complete once renamed to its key: a hidden temporary already holds its .complete marker
+        # (written last, then renamed), and killing then leaves nothing to reuse.
+        if natural.is_dir() and any((d / ".complete").is_file() for d in natural.iterdir()
+                                    if not d.name.startswith(".")):
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the flow finished before it could be killed"
