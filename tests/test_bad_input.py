@@ -274,7 +274,8 @@ CASES = [
     Case("bundles-marker-empty", RECB, 2, "b.csv", bundles_csv(set_cell(4, "marker", ""))),
     # --- reconstruct: options ------------------------------------------------------------------------
     *[Case(f"reconstruct-{flag.strip('-')}-{val}", [*REC, flag, val], 2, flag) for flag, val in (
-        ("--smooth", "0"), ("--smooth", "-3"), ("--jaw-smooth", "0"), ("--chunk-size", "0"), ("--max-gap", "-1"),
+        ("--smooth", "1002"), ("--smooth", "2.5"), ("--jaw-smooth", "1002"), ("--chunk-size", "0"),
+        ("--max-gap", "1.5"),
         ("--temporal-weight", "nan"), ("--temporal-weight", "-1"), ("--spatial-weight", "inf"), ("--noise", "-1"),
         ("--noise", "abc"), ("--noise", "nan"), ("--fps", "0"), ("--fps", "-5"), ("--bilateral", "1"),
         ("--bilateral", "1:0"), ("--bilateral", "a:b"), ("--bilateral", "1:2:3:4"), ("--far-field", "5"),
