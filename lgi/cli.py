@@ -34,7 +34,9 @@ def cmd_import(args: argparse.Namespace) -> int:
             print(line)
         return 0 if "verification" not in s or s["verification"]["passed"] else 1
     if args.markers:
-        raise InputError("--markers builds and verifies an index: it needs --flow (or run lgi build and lgi verify)")
+        # Warned, not refused: releases before the check ignored --markers without --flow, and scripts pass it.
+        logging.getLogger(__name__).warning("--markers builds and verifies an index only with --flow: ignored (add "
+                                            "--flow, or run lgi build and lgi verify)")
     for line in import_report(import_dataset(args.shapes_dir, args.out, opts, show_progress=not args.quiet)):
         print(line)
     return 0
@@ -355,7 +357,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--flow", action="store_true",
                    help="run the Prefect rebuild-dataset flow (cached stages, artifacts): OUT becomes a folder with "
                         "dataset/ and, with --markers, index/, verification/ and report.md")
-    g.add_argument("--markers", metavar="MARKERS_CSV", help="with --flow: also build and verify the index")
+    g.add_argument("--markers", metavar="MARKERS_CSV",
+                   help="with --flow: also build and verify the index (without --flow: ignored, with a warning)")
     s.set_defaults(func=cmd_import)
 
     # ----------------------------------------------------------------------------------------------------- synth

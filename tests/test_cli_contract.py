@@ -196,6 +196,21 @@ def test_smooth_still_refuses_what_it_never_took(shot: Path, capsys) -> None:
     assert not (shot / "bad").exists()
 
 
+def test_options_once_ignored_are_warned_about_not_refused(tmp_path: Path, obj_folder: Path, layout_csv: Path,
+                                                          capsys) -> None:
+    """``lgi import --markers`` without ``--flow`` and ``lgi synth``'s footage options without ``--hmc`` were
+    ignored by the releases before they were checked: they still run (exit 0), saying what is ignored."""
+    assert main(["import", str(obj_folder), "--out", str(tmp_path / "ds"), "-q", "--markers", str(layout_csv)]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "--markers" in err and "--flow" in err, err
+    assert ShapeDataset.load(tmp_path / "ds").n_shapes == 3 and not (tmp_path / "ds" / "index").exists()
+    assert main(["synth", "--out", str(tmp_path / "s"), "--vertices", "1500", "--frames", "2", "-q",
+                 "--rig-flex", "5", "--lens", "pinhole"]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "--lens, --rig-flex" in err and "--hmc" in err, err
+    assert (tmp_path / "s" / "bundles.csv").is_file() and not (tmp_path / "s" / "hmc").exists()
+
+
 # ------------------------------------------------------------------------------------ defects, through the CLI
 
 
