@@ -34,7 +34,9 @@ def cmd_import(args: argparse.Namespace) -> int:
             print(line)
         return 0 if "verification" not in s or s["verification"]["passed"] else 1
     if args.markers:
-        raise InputError("--markers builds and verifies an index: it needs --flow (or run lgi build and lgi verify)")
+        # Warned, not refused: releases before the check ignored --markers without --flow, and scripts pass it.
+        logging.getLogger(__name__).warning("--markers builds and verifies an index only with --flow: ignored (add "
+                                            "--flow, or run lgi build and lgi verify)")
     for line in import_report(import_dataset(args.shapes_dir, args.out, opts, show_progress=not args.quiet)):
         print(line)
     return 0
@@ -232,375 +234,644 @@ def cmd_layout_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+#: ``lgi --help``: where to start, the words a newcomer meets, and the exit statuses (as the README says them).
+DESCRIPTION = """\
+Start with `lgi demo`: it builds a synthetic actor, indexes it and reconstructs its performance, and says \
+where the outputs are. Then `lgi COMMAND --help` for each step.
+
+lgi turns each frame of an actor's painted dots into a full face mesh, by Local Geometric Indexing \
+(Cong, Lan and Fedkiw)."""
+
+EPILOG = """\
+terms:
+  bundles     the 3D positions of the painted dots (markers) per frame: a CSV or Parquet
+              table frame, marker, x, y, z (lgi track, lgi synth and lgi bundles write one)
+  HMC         head-mounted stereo camera: two cameras on a helmet filming the painted face
+  dataset     the actor's facial shapes on one mesh (lgi import writes one from OBJ files)
+  marker layout
+              where the dots are painted, as points on the neutral mesh (a markers CSV)
+  LGI index   what lgi build makes from a dataset and a marker layout; lgi reconstruct
+              and lgi verify read it
+
+exit status:
+  0    success
+  1    a check failed (lgi verify, including a non-finite error)
+  2    bad input (the message names the file, line, frame, marker or option at fault; no
+       partial output is left)
+  3    an internal error (a bug; --debug anywhere on the command line prints the traceback)
+  130  interrupted (Ctrl-C)
+  143  terminated by SIGTERM (cleaned up like Ctrl-C)
+
+example:
+  lgi demo --out lgi-demo
+  lgi reconstruct lgi-demo/index --bundles lgi-demo/bundles.csv --out recon --obj
+
+Every command's options, outputs and an example: docs/cli.md (and `lgi COMMAND --help`). The \
+command line is a contract that outside scripts call: options are added, never renamed or removed."""
+
+
+class _Formatter(argparse.HelpFormatter):
+    """Wraps each paragraph of a description or epilog on its own and keeps indented lines (examples, lists) as
+    written, so an epilog's examples stay one command per line while prose still fits the terminal."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        import textwrap
+
+        out: list[str] = []
+        for block in text.split("\n"):
+            if not block.strip() or block[0].isspace() or block.endswith(":"):
+                out.append(indent + block if block.strip() else "")
+            else:
+                out.append(textwrap.fill(block, width, initial_indent=indent, subsequent_indent=indent))
+        return "\n".join(out)
+
+
+def _epilog(outputs: str | None, example: tuple[str, ...]) -> str:
+    """A subcommand's epilog: what it writes (wrapped here: the formatter keeps indented lines as they are) and
+    an example, one command per line."""
+    import textwrap
+
+    parts = [] if outputs is None else ["writes:\n" + textwrap.fill(outputs, 88, initial_indent="  ",
+                                                                     subsequent_indent="  ")]
+    parts.append("example:\n" + "\n".join(f"  {line}" for line in example))
+    return "\n\n".join(parts)
+
+
+def _command(sub: argparse._SubParsersAction, name: str, help: str, description: str,
+             example: tuple[str, ...], outputs: str | None = None) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=help, description=description, epilog=_epilog(outputs, example),
+                          formatter_class=_Formatter)
+
+
+def _quiet(g: argparse._ActionsContainer) -> None:
+    g.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+
+def _window(text: str) -> int:
+    """``--smooth``/``--jaw-smooth`` WINDOW: a whole number of frames. ``auto`` (the default of an early release,
+    when noisy shots were smoothed here; they are now smoothed per marker, see --noise) is taken as 1."""
+    if text.strip().lower() == "auto":
+        return 1
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a whole number of frames expected, not {text!r}") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="lgi", description="Facial performance capture by Local Geometric Indexing.")
+    p = argparse.ArgumentParser(prog="lgi", description=DESCRIPTION, epilog=EPILOG, formatter_class=_Formatter)
     p.add_argument("--version", action="version", version=f"lgi {__version__}")
     p.add_argument("--debug", action="store_true",
                    help="on an error, also print the traceback (anywhere on the command line)")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                           help="the job to run; `lgi COMMAND --help` describes its options")
 
-    s = sub.add_parser("import", help="import a folder of OBJ shapes into a shape dataset",
-                       description="Import a folder of OBJ shapes (one neutral plus shapes with its vertex order) "
-                                   "into a shape dataset directory, stabilising head motion.")
-    s.add_argument("shapes_dir", metavar="SHAPES_DIR")
-    s.add_argument("--out", required=True, metavar="DATASET_DIR")
-    s.add_argument("--neutral", metavar="NAME", help="file stem of the neutral (default: the file named *neutral*)")
-    s.add_argument("--include", metavar="PATTERN", help="shell patterns of shapes to import, comma-separated")
-    s.add_argument("--exclude", metavar="PATTERN", help="shell patterns of shapes to leave out, comma-separated")
-    s.add_argument("--rigid-vertices", default="auto", metavar="FILE|auto|none",
-                   help="vertex indices that move with the skull (JSON/text/npy), 'auto' to find them, "
-                        "'none' to skip stabilisation (default: auto)")
-    s.add_argument("--units", default="cm", choices=["mm", "cm", "m", "in"], help="units of the files (default cm)")
-    s.add_argument("--deltas", action="store_true", help="shape files hold displacements, not full meshes")
-    s.add_argument("--identity", metavar="NAME=W,...", help="blend identity modes (identity*.obj) into the neutral")
-    s.add_argument("--flow", action="store_true",
+    # ---------------------------------------------------------------------------------------------------- import
+    s = _command(sub, "import", "import a folder of OBJ shapes into a shape dataset",
+                 "Import a folder of OBJ shapes (one neutral plus shapes with its vertex order; quads, UV seams and "
+                 "materials kept) into a shape dataset directory, removing rigid head motion. Positions are "
+                 "converted to cm, the unit datasets are stored in.",
+                 ("lgi import shapes/ --out datasets/actor --units cm --rigid-vertices auto",),
+                 outputs="DATASET_DIR: the shape dataset (manifest.json, mesh.npz, deltas.npy; cm); with --flow, "
+                         "OUT/dataset/ and, with --markers, OUT/index/, OUT/verification/ and OUT/report.md.")
+    g = s.add_argument_group("inputs")
+    g.add_argument("shapes_dir", metavar="SHAPES_DIR",
+                   help="folder of .obj files: the neutral, the shapes, and any identity*.obj identity modes")
+    g.add_argument("--neutral", metavar="NAME", help="file stem of the neutral (default: the file named *neutral*)")
+    g.add_argument("--include", metavar="PATTERN",
+                   help="shell patterns of shapes to import, comma-separated (default: all)")
+    g.add_argument("--exclude", metavar="PATTERN",
+                   help="shell patterns of shapes to leave out, comma-separated (default: none)")
+    g.add_argument("--units", default="cm", choices=["mm", "cm", "m", "in"],
+                   help="length unit of the files' coordinates (default %(default)s)")
+    g.add_argument("--deltas", action="store_true", help="shape files hold displacements, not full meshes")
+    g.add_argument("--identity", metavar="NAME=W,...",
+                   help="blend identity modes (identity*.obj) into the neutral with these weights")
+    g = s.add_argument_group("method")
+    g.add_argument("--rigid-vertices", default="auto", metavar="FILE|auto|none",
+                   help="vertex indices that move with the skull (JSON, text or .npy file), 'auto' to find them, "
+                        "'none' to skip stabilisation (default %(default)s)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="DATASET_DIR", help="the shape dataset directory to write")
+    _quiet(g)
+    g = s.add_argument_group("scheduling")
+    g.add_argument("--flow", action="store_true",
                    help="run the Prefect rebuild-dataset flow (cached stages, artifacts): OUT becomes a folder with "
-                        "dataset/ and, with --markers, index/ and verification/")
-    s.add_argument("--markers", metavar="MARKERS_CSV", help="with --flow: also build and verify the index")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+                        "dataset/ and, with --markers, index/, verification/ and report.md")
+    g.add_argument("--markers", metavar="MARKERS_CSV",
+                   help="with --flow: also build and verify the index (without --flow: ignored, with a warning)")
     s.set_defaults(func=cmd_import)
 
-    s = sub.add_parser("synth", help="write the synthetic actor: dataset, markers, performance, truth",
-                       description="Write DIR/dataset, DIR/markers.csv, DIR/bundles.csv and DIR/truth.npz "
-                                   "(ground-truth vertices (F, V, 3) float32 under 'vertices').")
-    s.add_argument("--out", required=True, metavar="DIR")
-    s.add_argument("--vertices", type=int, default=20000, metavar="N",
-                   help="at least this many vertices (default 20000)")
-    s.add_argument("--frames", type=int, default=240, metavar="F", help="performance length (default 240)")
-    s.add_argument("--seed", type=int, default=0, metavar="S", help="performance seed (default 0)")
-    s.add_argument("--actor", type=int, default=0, metavar="SEED",
-                   help="another actor: proportions and expression details drawn from SEED (default 0: the default "
-                        "actor), same mesh topology")
-    s.add_argument("--hmc", action="store_true",
-                   help="also render head-mounted camera footage into DIR/hmc (frames, board views, true cameras)")
-    s.add_argument("--lens", choices=["fisheye", "pinhole"], default="fisheye", help="HMC lens model (fisheye)")
-    s.add_argument("--image-size", default="1280x1024", metavar="WxH", help="HMC image size (1280x1024)")
-    s.add_argument("--dot-noise", type=float, default=0.3, metavar="PX",
-                   help="random offset of each painted dot per camera and frame, px (0.3)")
-    s.add_argument("--board-views", type=int, default=15, metavar="N", help="calibration board views (15)")
-    s.add_argument("--rig-flex", type=float, default=0.0, metavar="DEG",
-                   help="turn camera 1 by this angle during the shot, after calibration (0; see lgi track --helmet)")
-    s.add_argument("--contour-noise", type=float, default=0.0, metavar="PX",
-                   help="Gaussian noise of the true lip contours in DIR/hmc/lip_contours.csv, px (0)")
-    s.add_argument("--slip", choices=["smooth", "jolts"], default="smooth",
-                   help="how the helmet moves on the head during the shot: smooth (a slow drift of up to 1 deg and "
-                        "1.5 mm) or jolts (that drift plus sudden shifts of 0.5-1.5 deg and 1-3 mm over 1-3 frames, "
-                        "each then held, and a vibration of about 0.02 deg / 0.03 mm) (default: smooth)")
-    s.add_argument("-q", "--quiet", action="store_true")
+    # ----------------------------------------------------------------------------------------------------- synth
+    s = _command(sub, "synth", "write the synthetic actor: dataset, markers, performance, truth",
+                 "Write the synthetic actor: DIR/dataset, DIR/markers.csv, DIR/bundles.csv (its performance), "
+                 "DIR/jaw_rig.npz and DIR/truth.npz (ground-truth vertices (F, V, 3) float32 under 'vertices'); "
+                 "with --hmc also head-mounted camera footage of the performance in DIR/hmc.",
+                 ("lgi synth --out synth --vertices 20000 --frames 240 --seed 1",),
+                 outputs="DIR/dataset/, DIR/markers.csv, DIR/bundles.csv, DIR/jaw_rig.npz, DIR/truth.npz; with --hmc, "
+                         "DIR/hmc/ (cam0/, cam1/, calib/, the true cameras, helmet dots, true 2D dots, "
+                         "lip_contours.csv).")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="DIR", help="folder to write")
+    _quiet(g)
+    g = s.add_argument_group("actor and performance")
+    g.add_argument("--vertices", type=int, default=20000, metavar="N",
+                   help="at least this many mesh vertices (default %(default)s)")
+    g.add_argument("--frames", type=int, default=240, metavar="F",
+                   help="performance length, frames (default %(default)s)")
+    g.add_argument("--seed", type=int, default=0, metavar="S", help="performance seed (default %(default)s)")
+    g.add_argument("--actor", type=int, default=0, metavar="SEED",
+                   help="another actor: proportions and expression details drawn from SEED, same mesh topology "
+                        "(default %(default)s: the default actor)")
+    g = s.add_argument_group("head-mounted camera footage")
+    g.add_argument("--hmc", action="store_true",
+                   help="also render head-mounted camera footage into DIR/hmc (frames, board views, true cameras, "
+                        "lip_contours.csv)")
+    g.add_argument("--lens", choices=["fisheye", "pinhole"], default="fisheye",
+                   help="with --hmc: lens model (default %(default)s)")
+    g.add_argument("--image-size", default="1280x1024", metavar="WxH",
+                   help="with --hmc: image size, px (default %(default)s)")
+    g.add_argument("--dot-noise", type=float, default=0.3, metavar="PX",
+                   help="with --hmc: random offset of each painted dot per camera and frame, px (default %(default)s)")
+    g.add_argument("--board-views", type=int, default=15, metavar="N",
+                   help="with --hmc: calibration board views (default %(default)s)")
+    g.add_argument("--rig-flex", type=float, default=0.0, metavar="DEG",
+                   help="with --hmc: turn camera 1 by this angle during the shot, after calibration, deg "
+                        "(default %(default)s; see lgi track --helmet)")
+    g.add_argument("--contour-noise", type=float, default=0.0, metavar="PX",
+                   help="with --hmc: Gaussian noise of the true lip contours in DIR/hmc/lip_contours.csv, px "
+                        "(default %(default)s)")
+    g.add_argument("--slip", choices=["smooth", "jolts"], default="smooth",
+                   help="with --hmc: how the helmet moves on the head during the shot: smooth (a slow drift of up "
+                        "to 1 deg and 1.5 mm) or jolts (that drift plus sudden shifts of 0.5-1.5 deg and 1-3 mm over "
+                        "1-3 frames, each then held, and a vibration of about 0.02 deg / 0.03 mm) "
+                        "(default %(default)s)")
     s.set_defaults(func=cmd_synth)
 
-    s = sub.add_parser("track", help="track painted dots in stereo HMC footage and write bundles",
-                       description="Detect dots, label the reference frame (rigid fit of the marker layout, or "
-                                   "--labels), track with anchor frames, triangulate, remove head motion; write the "
-                                   "bundles file and a 2D tracks table (Parquet) with reprojection errors.")
-    s.add_argument("footage_dir", metavar="FOOTAGE_DIR", help="cam0/ and cam1/ frames (same names), or left*/right*")
-    s.add_argument("--calib", required=True, metavar="CALIB_JSON", help="lgi calibrate's output")
-    s.add_argument("--markers", required=True, metavar="CSV",
+    # ----------------------------------------------------------------------------------------------------- track
+    s = _command(sub, "track", "track painted dots in stereo HMC footage and write bundles",
+                 "Detect dots, label the reference frame (rigid fit of the marker layout, or --labels), track with "
+                 "anchor frames, triangulate, remove head motion; write the bundles file (cm) and a 2D tracks "
+                 "table (Parquet) with reprojection errors.",
+                 ("lgi track synth/hmc --calib calib.json --markers synth/markers.csv --dataset synth/dataset "
+                  "--out shot.parquet",),
+                 outputs="BUNDLES (cm, whatever --units the marker file is in) and the 2D tracks table (OUT's stem + "
+                         ".tracks.parquet, or --tracks): per observation, reprojection error, source, triangulated or "
+                         "one camera only.")
+    g = s.add_argument_group("inputs")
+    g.add_argument("footage_dir", metavar="FOOTAGE_DIR",
+                   help="the footage: cam0/ and cam1/ frames (same names), or left*/right* images")
+    g.add_argument("--calib", required=True, metavar="CALIB_JSON", help="the stereo calibration (lgi calibrate)")
+    g.add_argument("--markers", required=True, metavar="MARKERS_CSV",
                    help="marker layout; its x,y,z columns give the neutral positions unless --dataset is given")
-    s.add_argument("--out", required=True, metavar="BUNDLES", help="bundles file (.csv or .parquet)")
-    s.add_argument("--index", metavar="INDEX_DIR", default=None,
+    g.add_argument("--dataset", metavar="DIR", help="dataset whose neutral places the markers (and sets the units)")
+    g.add_argument("--units", default="cm", choices=["mm", "cm", "m"],
+                   help="units of the marker file's positions without --dataset (default %(default)s); the bundles "
+                        "are written in cm, as datasets are stored")
+    g.add_argument("--labels", metavar="CSV",
+                   help="labels of the reference frame's dots: camera,x,y,marker (px) (default: fitted)")
+    g.add_argument("--helmet", metavar="CSV",
+                   help="markers fixed on the helmet (name,x,y,z in mm, calibration frame): refine the extrinsics "
+                        "for this shot from them")
+    g.add_argument("--index", metavar="INDEX_DIR", default=None,
                    help="the actor's LGI index (lgi build): solve each frame's head pose with the face (the jaw and "
                         "the shape weights) instead of assuming the least-moving markers rigid; the bundles are then "
                         "in the index's head frame (default: none, the stable-marker fit)")
-    s.add_argument("--dataset", metavar="DIR", help="dataset whose neutral places the markers (and sets the units)")
-    s.add_argument("--units", default="cm", choices=["mm", "cm", "m"],
-                   help="units of the marker file's positions without --dataset (cm); the bundles are written "
-                        "in cm, as datasets are stored")
-    s.add_argument("--labels", metavar="CSV", help="reference-frame labels: camera,x,y,marker")
-    s.add_argument("--reference-frame", type=int, default=0, metavar="F", help="frame to label (0)")
-    s.add_argument("--gate", type=float, default=12.0, metavar="PX", help="tracking search radius (12 px)")
-    s.add_argument("--dot-size", type=float, default=9.0, metavar="PX",
-                   help="typical painted dot diameter in the images (9 px): sets the detector's scale")
-    s.add_argument("--tracks", metavar="PARQUET", help="2D tracks table (default OUT's stem + .tracks.parquet)")
-    s.add_argument("--helmet", metavar="CSV",
-                   help="markers fixed on the helmet (name,x,y,z in mm, calibration frame): refine the extrinsics "
-                        "for this shot from them")
+    g = s.add_argument_group("tracking")
+    g.add_argument("--reference-frame", type=int, default=0, metavar="F",
+                   help="frame to label (default %(default)s)")
+    g.add_argument("--gate", type=float, default=12.0, metavar="PX",
+                   help="tracking search radius, px (default %(default)s)")
+    g.add_argument("--dot-size", type=float, default=9.0, metavar="PX",
+                   help="typical painted dot diameter in the images, px: sets the detector's scale "
+                        "(default %(default)s)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="BUNDLES", help="bundles file to write (.csv or .parquet)")
+    g.add_argument("--tracks", metavar="PARQUET",
+                   help="2D tracks table (default: OUT's stem + .tracks.parquet)")
     s.set_defaults(func=cmd_track)
 
-    s = sub.add_parser("bundles", help="evaluate markers on dataset shapes (one frame per shape)",
-                       description="Write a bundles file with one frame per dataset shape, and OUT.shapes.csv "
-                                   "mapping frames to shape names.")
-    s.add_argument("dataset_dir", metavar="DATASET_DIR")
-    s.add_argument("--markers", required=True, metavar="MARKERS_CSV")
-    s.add_argument("--out", required=True, metavar="BUNDLES", help=".csv or .parquet")
-    s.add_argument("--shapes", metavar="PATTERN", help="only shapes matching these shell patterns")
+    # --------------------------------------------------------------------------------------------------- bundles
+    s = _command(sub, "bundles", "evaluate markers on dataset shapes (one frame per shape)",
+                 "Write a bundles file with one frame per dataset shape, and BUNDLES.shapes.csv (the bundles "
+                 "file's stem + .shapes.csv) mapping frames to shape names.",
+                 ("lgi bundles synth/dataset --markers synth/markers.csv --out shapes.csv",),
+                 outputs='BUNDLES (one frame per shape) and BUNDLES.shapes.csv (frame, shape).')
+    g = s.add_argument_group("inputs")
+    g.add_argument("dataset_dir", metavar="DATASET_DIR", help="the shape dataset (lgi import)")
+    g.add_argument("--markers", required=True, metavar="MARKERS_CSV", help="the marker layout")
+    g.add_argument("--shapes", metavar="PATTERN", help="only shapes matching these shell patterns (default: all)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="BUNDLES", help="bundles file to write (.csv or .parquet)")
     s.set_defaults(func=cmd_bundles)
 
-    s = sub.add_parser("build", help="build the LGI index of a dataset for a marker layout",
-                       description="Build the local geometric index: per-bundle point clouds (pruned), overlapping "
-                                   "simplices, search grids, natural-neighbour weights. See docs/indexing.md.")
-    s.add_argument("dataset_dir", metavar="DATASET_DIR")
-    s.add_argument("--markers", required=True, metavar="MARKERS_CSV")
-    s.add_argument("--out", required=True, metavar="INDEX_DIR")
-    g = s.add_argument_group("pruning (lengths in dataset units)")
+    # ----------------------------------------------------------------------------------------------------- build
+    s = _command(sub, "build", "build the LGI index of a dataset for a marker layout",
+                 "Build the local geometric index: per-bundle point clouds (pruned: INDEX_DIR/pruning.csv says why "
+                 "each shape was dropped or merged), overlapping simplices, search grids, natural-neighbour "
+                 "weights. See docs/indexing.md.",
+                 ("lgi build synth/dataset --markers synth/markers.csv --jaw-rig synth/jaw_rig.npz --out synth/index",),
+                 outputs="INDEX_DIR: the index, with bundles.csv (per bundle: its cloud and simplices) and pruning.csv"
+                         " (why each shape was dropped or merged).")
+    g = s.add_argument_group("inputs")
+    g.add_argument("dataset_dir", metavar="DATASET_DIR", help="the shape dataset (lgi import, lgi synth)")
+    g.add_argument("--markers", required=True, metavar="MARKERS_CSV", help="the marker layout")
+    g = s.add_argument_group("jaw")
+    g.add_argument("--jaw-rig", metavar="RIG_NPZ",
+                   help="jaw rig (lgi rig; npz with 'pivot' (3,) cm and 'weights' (V,)): shapes are stored "
+                        "unskinned and frames unskinned, indexed and skinned back (lgi synth writes the synthetic "
+                        "actor's)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="INDEX_DIR", help="the index directory to write")
+    _quiet(g)
+    g = s.add_argument_group("pruning (lengths in dataset units, cm)")
     g.add_argument("--min-motion-rel", type=float, default=0.005, metavar="R",
                    help="drop a shape from a bundle's cloud if it moves the bundle less than R x the largest "
-                        "motion (default 0.005)")
-    g.add_argument("--min-motion-abs", type=float, default=1e-4, metavar="D", help="... or less than D (1e-4)")
-    g.add_argument("--merge-tol", type=float, default=1e-4, metavar="D", help="merge points closer than D (1e-4)")
+                        "motion (default %(default)s)")
+    g.add_argument("--min-motion-abs", type=float, default=1e-4, metavar="D",
+                   help="... or less than D cm (default %(default)s)")
+    g.add_argument("--merge-tol", type=float, default=1e-4, metavar="D",
+                   help="merge points closer than D cm (default %(default)s)")
     g = s.add_argument_group("simplices")
-    g.add_argument("--subsets", type=int, default=4, metavar="N", help="extra Delaunay tessellations of subsets (4)")
-    g.add_argument("--subset-fraction", type=float, default=0.6, metavar="F", help="subset size (0.6)")
-    g.add_argument("--knn", type=int, default=0, metavar="K", help="k of the nearest-neighbour fans (0 = none)")
-    g.add_argument("--min-quality", type=float, default=0.02, metavar="Q", help="drop slivers below Q (0.02)")
+    g.add_argument("--subsets", type=int, default=4, metavar="N",
+                   help="extra Delaunay tessellations of subsets (default %(default)s)")
+    g.add_argument("--subset-fraction", type=float, default=0.6, metavar="F",
+                   help="subset size, share of the cloud (default %(default)s)")
+    g.add_argument("--knn", type=int, default=0, metavar="K",
+                   help="k of the nearest-neighbour fans (default %(default)s = none)")
+    g.add_argument("--min-quality", type=float, default=0.02, metavar="Q",
+                   help="drop slivers below quality Q (default %(default)s)")
     g.add_argument("--max-edge-rel", type=float, default=0.6, metavar="E",
-                   help="drop extra simplices longer than E x the cloud's extent (0.6)")
-    g.add_argument("--budget", type=int, default=20000, metavar="B", help="simplices per bundle at most (20000)")
+                   help="drop extra simplices longer than E x the cloud's extent (default %(default)s)")
+    g.add_argument("--budget", type=int, default=20000, metavar="B",
+                   help="simplices per bundle at most (default %(default)s)")
     g.add_argument("--region-radius", type=float, default=3.0, metavar="R",
-                   help="natural-neighbour region: within R (cm-equivalent) of a bundle (3.0)")
-    g.add_argument("--seed", type=int, default=0)
-    s.add_argument("--jaw-rig", metavar="RIG_NPZ",
-                   help="jaw rig (npz with 'pivot' (3,) cm and 'weights' (V,)): shapes are stored unskinned and "
-                        "frames unskinned, indexed and skinned back (lgi synth writes the synthetic actor's)")
-    s.add_argument("-q", "--quiet", action="store_true")
+                   help="natural-neighbour region: within R cm (cm-equivalent) of a bundle (default %(default)s)")
+    g.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the subsets (default %(default)s)")
     s.set_defaults(func=cmd_build)
 
-    s = sub.add_parser("reconstruct", help="reconstruct meshes from a bundles file",
-                       description="Write OUT_DIR/meshes.npz (vertices (F, V, 3) float32, frames), "
-                                   "OUT_DIR/diagnostics.csv, OUT_DIR/per_frame.csv and, as asked, "
-                                   "OUT_DIR/obj/frame_NNNNN.obj, OUT_DIR/shot.usdc, OUT_DIR/per_frame.png. "
-                                   "A run replaces the outputs of an earlier one (and removes those it does "
-                                   "not write); other files in OUT_DIR are left alone.")
-    s.add_argument("index_dir", metavar="INDEX_DIR")
-    s.add_argument("--bundles", required=True, metavar="BUNDLES")
-    s.add_argument("--out", required=True, metavar="OUT_DIR")
-    s.add_argument("--obj", action="store_true", help="also write one OBJ per frame")
-    s.add_argument("--temporal-weight", type=float, default=0.02, metavar="MM",
-                   help="preference for the previous frame's shapes, in mm of neighbour misfit (0.02; 0 = none)")
-    s.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
-                   help="tie-break toward shapes the neighbours agree on, in mm (1e-3; 0 = none)")
-    s.add_argument("--smooth", type=int, default=1, metavar="WINDOW",
-                   help="central moving average of each bundle's shape weights over WINDOW frames (1 = none)")
-    s.add_argument("--far-field", default="5:15", metavar="START:END|off",
+    # ----------------------------------------------------------------------------------------------- reconstruct
+    s = _command(sub, "reconstruct", "reconstruct meshes from a bundles file",
+                 "Reconstruct every frame of a shot: a global fit of the jaw and shape weights, refitted per "
+                 "bundle over its natural neighbours, natural-neighbour blend, skinning, and a correction through "
+                 "every bundle. Writes OUT_DIR/meshes.npz (vertices (F, V, 3) float32, frames, and jaw (F, 4) "
+                 "with a rig), OUT_DIR/diagnostics.csv (per frame and bundle), OUT_DIR/per_frame.csv and, as "
+                 "asked, OUT_DIR/obj/frame_NNNNN.obj, OUT_DIR/shot.usdc, OUT_DIR/per_frame.png. A run replaces "
+                 "the outputs of an earlier one (and removes those it does not write); other files in OUT_DIR are "
+                 "left alone.",
+                 ("lgi reconstruct synth/index --bundles synth/bundles.csv --out synth/recon --obj --smooth 3",),
+                 outputs="OUT_DIR/meshes.npz, OUT_DIR/diagnostics.csv, OUT_DIR/per_frame.csv; with --obj OUT_DIR/obj/,"
+                         " --usd OUT_DIR/shot.usdc, --plot OUT_DIR/per_frame.png; with --observations "
+                         "OUT_DIR/bundles_constrained.parquet.")
+    g = s.add_argument_group("inputs")
+    g.add_argument("index_dir", metavar="INDEX_DIR", help="the LGI index (lgi build)")
+    g.add_argument("--bundles", required=True, metavar="BUNDLES",
+                   help="the shot's bundles: CSV or Parquet table frame, marker, x, y, z (cm)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="OUT_DIR", help="folder for the reconstruction's files")
+    g.add_argument("--obj", action="store_true", help="also write one OBJ per frame, OUT_DIR/obj/frame_NNNNN.obj")
+    g.add_argument("--usd", action="store_true", help="also write OUT_DIR/shot.usdc (animated mesh, see --fps)")
+    g.add_argument("--fps", type=float, default=30.0, metavar="F",
+                   help="USD time codes per second (default %(default)s)")
+    g.add_argument("--plot", action="store_true", help="also write OUT_DIR/per_frame.png")
+    _quiet(g)
+    g = s.add_argument_group("method")
+    g.add_argument("--method", default="local", choices=["local", "simplex"],
+                   help="local: a global fit of the jaw and shape weights, refitted per bundle over its natural "
+                        "neighbours and its containing simplices' shapes; simplex: the paper's choice among "
+                        "containing simplices only (default %(default)s)")
+    g.add_argument("--temporal-weight", type=float, default=0.02, metavar="MM",
+                   help="preference for the previous frame's shapes, mm of neighbour misfit (default %(default)s; "
+                        "0 = none)")
+    g.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
+                   help="tie-break toward shapes the neighbours agree on, mm (default %(default)s; 0 = none)")
+    g.add_argument("--far-field", default="5:15", metavar="START:END|off",
                    help="mm from the nearest marker over the skin: beyond START, a bundle whose weights predict the "
                         "markers beyond its neighbourhood clearly worse than the frame's global fit gives way to "
-                        "that fit, wholly beyond END; local geometry carried far from every marker can "
-                        "extrapolate (5:15; off = the bundles' weights everywhere)")
-    s.add_argument("--noise", default="auto", metavar="MM|auto",
-                   help="bundle noise per coordinate: 0 = exact bundles (the surface passes through each); above 0 "
-                        "they are measurements: each marker's trajectory is smoothed (window chosen per marker by "
-                        "Stein's unbiased risk estimate) and fitted, not interpolated; auto (default): estimated "
-                        "from the shot's trajectories and reported")
-    s.add_argument("--method", default="local", choices=["local", "simplex"],
-                   help="local (default): a global fit of the jaw and shape weights, refitted per bundle over its "
-                        "natural neighbours and its containing simplices' shapes; simplex: the paper's choice among "
-                        "containing simplices only")
-    s.add_argument("--jaw-smooth", type=int, default=None, metavar="WINDOW",
-                   help="moving average of the jaw parameters (default: --smooth)")
-    s.add_argument("--jaw", default="auto", metavar="auto|none|FILE",
-                   help="with a jaw-rigged index: estimate the jaw per frame (auto) or read it from a CSV "
-                        "(frame, open_deg, yaw_deg, roll_deg, forward_cm); 'none' needs an index without a rig")
-    s.add_argument("--max-gap", type=int, default=0, metavar="N",
+                        "that fit, wholly beyond END; off = the bundles' weights everywhere (default %(default)s)")
+    g = s.add_argument_group("noise and time")
+    g.add_argument("--noise", default="auto", metavar="MM|auto",
+                   help="bundle noise per coordinate, mm: 0 = exact bundles (the surface passes through each); "
+                        "above 0 they are measurements: each marker's trajectory is smoothed (window chosen per "
+                        "marker by Stein's unbiased risk estimate) and fitted, not interpolated; auto: estimated "
+                        "from the shot's trajectories and reported (default %(default)s)")
+    g.add_argument("--smooth", type=_window, default=1, metavar="WINDOW",
+                   help="central moving average of each bundle's shape weights over WINDOW frames (default "
+                        "%(default)s = none; 0 and below also mean none, and 'auto' means 1)")
+    g.add_argument("--jaw-smooth", type=_window, default=None, metavar="WINDOW",
+                   help="moving average of the jaw parameters over WINDOW frames (default: --smooth's window)")
+    g.add_argument("--max-gap", type=int, default=0, metavar="N",
                    help="bridge a marker's missing runs of up to N frames by interpolating between the frames "
-                        "around (0 = off, the default: a hidden marker's weights are fitted to its seen neighbours "
-                        "in its own frame, which follows fast motion that interpolation misses)")
-    s.add_argument("--flow", action="store_true",
-                   help="run the job as the Prefect reconstruct-shot flow (chunks of frames as tasks, "
-                        "artifacts): the same options and the same files as without it")
-    s.add_argument("--chunk-size", type=int, default=60, metavar="N",
-                   help="frames per task with --flow (60; the results do not depend on it)")
-    s.add_argument("--dask", metavar="ADDRESS",
-                   help="with --flow: run the chunk tasks on Dask, a scheduler address (tcp://host:8786) or local:N "
-                        "(a local cluster of N processes); the results do not depend on it")
-    s.add_argument("--usd", action="store_true", help="also write OUT_DIR/shot.usdc (animated mesh, see --fps)")
-    s.add_argument("--fps", type=float, default=30.0, help="USD time codes per second (30)")
-    s.add_argument("--plot", action="store_true", help="also write OUT_DIR/per_frame.png")
-    s.add_argument("--observations", metavar="TRACKS.parquet",
+                        "around (default %(default)s = off: a hidden marker's weights are fitted to its seen "
+                        "neighbours in its own frame, which follows fast motion that interpolation misses)")
+    g.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]",
+                   help="bilateral filter of the bundles before solving: in time (frames, mm), and with the third "
+                        "value also over the nearest markers (mm), e.g. 1.5:0.5:10 (default: off)")
+    g = s.add_argument_group("jaw")
+    g.add_argument("--jaw", default="auto", metavar="auto|none|FILE",
+                   help="with a jaw-rigged index: estimate the jaw per frame (auto) or read it from a CSV "
+                        "(frame, open_deg, yaw_deg, roll_deg, forward_cm); 'none' needs an index without a rig "
+                        "(default %(default)s)")
+    g = s.add_argument_group("constraints from the cameras")
+    g.add_argument("--observations", metavar="TRACKS_PARQUET",
                    help="the 2D tracks table of lgi track: a marker seen by one camera where the bundles lack it is "
                         "put on its viewing ray, at the depth a first reconstruction without it gives, and the shot "
                         "is reconstructed again through it (twice the solve time); writes "
                         "OUT_DIR/bundles_constrained.parquet and a constraint column in the diagnostics")
-    s.add_argument("--calib", metavar="CALIB.json",
+    g.add_argument("--calib", metavar="CALIB_JSON",
                    help="with --observations: the stereo calibration (default: the rig lgi track stored in the "
                         "table, refined by helmet dots if it was)")
-    s.add_argument("--contours", metavar="CONTOURS.csv",
+    g.add_argument("--contours", metavar="CONTOURS_CSV",
                    help="lip contours traced per frame and camera (frame, camera, curve, point, x, y; curve "
                         "upper_inner or lower_inner; px): the lip region is deformed so that the mesh's inner lip "
                         "edges meet them, keeping the bundles (needs --observations for the head pose and rig); "
                         "adds contour_px_before/after to the diagnostics")
-    s.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]",
-                   help="bilateral filter of the bundles before solving: in time, and with the third value also "
-                        "over the nearest markers (e.g. 1.5:0.5:10)")
-    s.add_argument("-q", "--quiet", action="store_true")
+    g = s.add_argument_group("scheduling")
+    g.add_argument("--flow", action="store_true",
+                   help="run the job as the Prefect reconstruct-shot flow (chunks of frames as tasks, "
+                        "artifacts): the same options and the same files as without it")
+    g.add_argument("--chunk-size", type=int, default=60, metavar="N",
+                   help="with --flow: frames per task (default %(default)s; the results do not depend on it)")
+    g.add_argument("--dask", metavar="ADDRESS",
+                   help="with --flow: run the chunk tasks on Dask, a scheduler address (tcp://host:8786) or local:N "
+                        "(a local cluster of N processes); the results do not depend on it")
     s.set_defaults(func=cmd_reconstruct)
 
-    s = sub.add_parser("verify", help="reconstruct every dataset shape from its own bundles (paper 7.1)",
-                       description="Print per-shape errors (RMS and max, mm); exit 1 if any RMS exceeds the tolerance.")
-    s.add_argument("index_dir", metavar="INDEX_DIR")
-    s.add_argument("--tolerance", type=float, default=0.01, metavar="MM", help="RMS tolerance in mm (0.01)")
-    s.add_argument("--shapes", metavar="PATTERN", help="only shapes matching these shell patterns")
-    s.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM")
-    s.add_argument("-q", "--quiet", action="store_true")
+    # ---------------------------------------------------------------------------------------------------- verify
+    s = _command(sub, "verify", "reconstruct every dataset shape from its own bundles (paper 7.1)",
+                 "The paper's verification: every dataset shape reconstructed from its own bundles; prints RMS and "
+                 "max error per shape (mm) over the marked region and the whole mesh; exit 1 if any marked-region "
+                 "RMS exceeds the tolerance (or is not finite).",
+                 ("lgi verify synth/index --tolerance 0.01",),
+                 outputs="no files: a per-shape table on stdout (RMS and max, mm, marked region and whole mesh); exit "
+                         "1 when the check fails.")
+    g = s.add_argument_group("inputs")
+    g.add_argument("index_dir", metavar="INDEX_DIR", help="the LGI index (lgi build)")
+    g.add_argument("--shapes", metavar="PATTERN", help="only shapes matching these shell patterns (default: all)")
+    g = s.add_argument_group("check")
+    g.add_argument("--tolerance", type=float, default=0.01, metavar="MM",
+                   help="RMS tolerance, mm (default %(default)s)")
+    g.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
+                   help="the solver's tie-break toward shapes the neighbours agree on, mm (default %(default)s)")
+    g = s.add_argument_group("outputs")
+    _quiet(g)
     s.set_defaults(func=cmd_verify)
 
-    s = sub.add_parser("rig", help="fit a jaw rig (hinge and skinning weights) from a dataset's jaw shapes",
-                       description="Fit the jaw hinge and linear-blend-skinning weights from shapes in which given "
-                                   "vertices move rigidly with the jaw (ICT: the lower teeth 19247:21450). Writes "
-                                   "an npz for lgi build --jaw-rig.")
-    s.add_argument("dataset_dir", metavar="DATASET_DIR")
-    s.add_argument("--jaw-vertices", required=True, metavar="FIRST:LAST|FILE",
-                   help="vertices moving rigidly with the jaw: an inclusive range or an index file")
-    s.add_argument("--shapes", default="jaw*", metavar="PATTERN",
-                   help="the jaw shapes (default 'jaw*'); the hinge is fitted from the openings among them (the jaw "
-                        "vertices rotate about the lateral x axis), the others only get their jaw parameters")
-    s.add_argument("--out", required=True, metavar="RIG_NPZ")
+    # ------------------------------------------------------------------------------------------------------- rig
+    s = _command(sub, "rig", "fit a jaw rig (hinge and skinning weights) from a dataset's jaw shapes",
+                 "Fit the jaw hinge and linear-blend-skinning weights from shapes in which given vertices move "
+                 "rigidly with the jaw (ICT: the lower teeth 19247:21450): the hinge from the opening shapes only, "
+                 "each opening's hinge residual printed. Writes an npz for lgi build --jaw-rig; exit 2 when no "
+                 "shape opens the jaw.",
+                 ("lgi rig datasets/ict --jaw-vertices 19247:21450 --out ict-rig.npz",),
+                 outputs="RIG_NPZ: the jaw rig (hinge pivot and skinning weights), for lgi build --jaw-rig and lgi "
+                         "augment --jaw-rig.")
+    g = s.add_argument_group("inputs")
+    g.add_argument("dataset_dir", metavar="DATASET_DIR", help="the shape dataset (lgi import)")
+    g.add_argument("--jaw-vertices", required=True, metavar="FIRST:LAST|FILE",
+                   help="vertices moving rigidly with the jaw: an inclusive range, or an index file (JSON list, "
+                        "text, or .npy of integers)")
+    g.add_argument("--shapes", default="jaw*", metavar="PATTERN",
+                   help="the jaw shapes; the hinge is fitted from the openings among them (the jaw vertices rotate "
+                        "about the lateral x axis), the others only get their jaw parameters (default %(default)s)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="RIG_NPZ", help="the jaw rig file to write (.npz)")
     s.set_defaults(func=cmd_rig)
 
-    s = sub.add_parser("rig-generate", help="an actor-specific blendshape rig from a template rig (paper 7.7)",
-                       description="Reconstruct each template control (and combinations, for correctives) on the "
-                                   "actor with LGI: the template's displacements at the markers (scaled by the "
-                                   "affine map between the neutrals unless --transfer add; the jaw by its "
-                                   "parameters when the index has a jaw rig) are added to the actor's neutral "
-                                   "bundles and fitted with the actor's shapes. Writes a shape dataset (shapes "
-                                   "tagged control / corrective) and, with --usd, a UsdSkel rig (correctives as "
-                                   "blend shapes carrying lgi:combination).")
-    s.add_argument("--template", required=True, metavar="TEMPLATE_DATASET",
+    # ---------------------------------------------------------------------------------------------- rig-generate
+    s = _command(sub, "rig-generate", "an actor-specific blendshape rig from a template rig (paper 7.7)",
+                 "Reconstruct each template control (and combinations, for correctives) on the actor with LGI: "
+                 "the template's displacements at the markers (scaled by the affine map between the neutrals "
+                 "unless --transfer add; the jaw by its parameters when the index has a jaw rig) are added to the "
+                 "actor's neutral bundles and fitted with the actor's shapes. Writes a shape dataset (shapes "
+                 "tagged control / corrective) and, with --usd, a UsdSkel rig (correctives as blend shapes "
+                 "carrying lgi:combination). See docs/rigs.md.",
+                 ("lgi rig-generate --template datasets/template --index actor/index --out actor/rig "
+                  "--correctives auto --usd actor/rig.usda",),
+                 outputs="RIG_DIR: a shape dataset of the actor's controls (tag control) and correctives (tags "
+                         "corrective, combination), each with its metadata; with --usd, the UsdSkel rig.")
+    g = s.add_argument_group("inputs")
+    g.add_argument("--template", required=True, metavar="TEMPLATE_DATASET",
                    help="the template rig: a shape dataset on the actor's mesh topology")
-    s.add_argument("--index", required=True, metavar="INDEX_DIR", help="the actor's LGI index")
-    s.add_argument("--out", required=True, metavar="RIG_DIR", help="the actor's rig, as a shape dataset")
-    s.add_argument("--correctives", default=None, metavar="PAIRS|auto",
+    g.add_argument("--index", required=True, metavar="INDEX_DIR", help="the actor's LGI index")
+    g.add_argument("--controls", default=None, metavar="PATTERN",
+                   help="template shapes to use as controls (shell patterns; default: every name without '+')")
+    g.add_argument("--correctives", default=None, metavar="PAIRS|auto",
                    help="combinations a+b[+c] (comma-separated) or 'auto' (the template's combination shapes, or "
                         "else up to 24 pairs moving the same markers); the template's combination shape (its parts "
-                        "in any order) is used when it has one, else the sum of the parts")
-    s.add_argument("--transfer", choices=["scale", "add"], default="scale",
-                   help="template displacements scaled by the affine map between the neutrals (default) or added")
-    s.add_argument("--controls", default=None, metavar="PATTERN",
-                   help="template shapes to use as controls (shell patterns; default: every name without '+')")
-    s.add_argument("--coverage", type=float, default=2.0, metavar="MM",
+                        "in any order) is used when it has one, else the sum of the parts (default: none)")
+    g = s.add_argument_group("method")
+    g.add_argument("--transfer", choices=["scale", "add"], default="scale",
+                   help="template displacements scaled by the affine map between the neutrals, or added "
+                        "(default %(default)s)")
+    g.add_argument("--coverage", type=float, default=2.0, metavar="MM",
                    help="a combination whose bundles lie farther than this outside the actor's dataset takes the "
-                        "template's corrective, transferred, and is reported (default 2; inf: always reconstruct)")
-    s.add_argument("--fit", type=float, default=0.5, metavar="MM",
-                   help="fit the actor's shapes to the transferred bundles as measurements with this noise, so the "
-                        "template's own detail at the markers is not copied (default 0.5; 0: interpolate exactly)")
-    s.add_argument("--usd", default=None, metavar="RIG.usda", help="also write the rig as UsdSkel blend shapes")
-    s.add_argument("-q", "--quiet", action="store_true")
+                        "template's corrective, transferred, and is reported, mm (default %(default)s; inf: always "
+                        "reconstruct)")
+    g.add_argument("--fit", type=float, default=0.5, metavar="MM",
+                   help="fit the actor's shapes to the transferred bundles as measurements with this noise, mm, so "
+                        "the template's own detail at the markers is not copied (default %(default)s; 0: "
+                        "interpolate exactly)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="RIG_DIR", help="the actor's rig, as a shape dataset")
+    g.add_argument("--usd", default=None, metavar="RIG.usda", help="also write the rig as UsdSkel blend shapes")
+    _quiet(g)
     s.set_defaults(func=cmd_rig_generate)
 
-    s = sub.add_parser("augment", help="add in-between shapes to a dataset",
-                       description="Add in-betweens: combinations of 2-3 compatible shapes at fixed weights, "
-                                   "tagged with their sources (opposites such as jawLeft+jawRight are skipped; "
-                                   "mouthClose only with jawOpen), as linear blends and/or simulated with a "
-                                   "volume-preserving flesh model (the same combinations for both).")
-    s.add_argument("dataset_dir", metavar="DATASET_DIR")
-    s.add_argument("--out", required=True, metavar="DATASET_DIR2")
-    s.add_argument("--linear", action="store_true", help="linear combinations of dataset shapes")
-    s.add_argument("--simulate", action="store_true",
-                   help="physically simulated in-betweens (volumetric flesh, volume kept, lips kept apart)")
-    s.add_argument("--budget", type=int, default=200, metavar="N",
-                   help="combinations to add at most, per method (200)")
-    s.add_argument("--jaw-rig", metavar="RIG_NPZ", help="--simulate: the jaw carries the flesh's jaw side; lip contact")
-    s.add_argument("--thickness", type=float, default=0.8, metavar="D",
-                   help="--simulate: flesh thickness in dataset units (0.8)")
-    s.add_argument("--iterations", type=int, default=60, metavar="N", help="--simulate: solver iterations (60)")
-    s.add_argument("-q", "--quiet", action="store_true")
-    s.add_argument("--levels", default="0.25,0.5,0.75,1", metavar="W,...", help="weights a source may take")
-    s.add_argument("--orders", default="2,3", metavar="K,...", help="sources per combination")
-    s.add_argument("--include", metavar="PATTERN", help="only these source shapes")
-    s.add_argument("--requires", metavar="SHAPE=PARTNER,...",
-                   help="shapes that appear only with a partner (default mouthClose=jawOpen)")
-    s.add_argument("--markers", metavar="MARKERS_CSV",
+    # --------------------------------------------------------------------------------------------------- augment
+    s = _command(sub, "augment", "add in-between shapes to a dataset",
+                 "Add in-betweens: combinations of 2-3 compatible shapes at fixed weights, tagged with their "
+                 "sources (opposites such as jawLeft+jawRight are skipped; mouthClose only with jawOpen), as "
+                 "linear blends and/or simulated with a volume-preserving flesh model (the same combinations for "
+                 "both). See docs/inbetweens.md.",
+                 ("lgi augment synth/dataset --out synth/dataset2 --linear --budget 100 --markers synth/markers.csv",),
+                 outputs="DATASET_DIR2: the dataset plus the in-betweens (tagged with their sources and method); with "
+                         "--markers, augmentation.csv.")
+    g = s.add_argument_group("inputs")
+    g.add_argument("dataset_dir", metavar="DATASET_DIR", help="the shape dataset to add to")
+    g.add_argument("--markers", metavar="MARKERS_CSV",
                    help="also report per bundle how many points the in-betweens added and kept (augmentation.csv)")
-    s.add_argument("--seed", type=int, default=0)
+    g = s.add_argument_group("combinations")
+    g.add_argument("--budget", type=int, default=200, metavar="N",
+                   help="combinations to add at most, per method (default %(default)s)")
+    g.add_argument("--levels", default="0.25,0.5,0.75,1", metavar="W,...",
+                   help="weights a source may take (default %(default)s)")
+    g.add_argument("--orders", default="2,3", metavar="K,...", help="sources per combination (default %(default)s)")
+    g.add_argument("--include", metavar="PATTERN", help="only these source shapes (default: all)")
+    g.add_argument("--requires", metavar="SHAPE=PARTNER,...",
+                   help="shapes that appear only with a partner (default mouthClose=jawOpen)")
+    g.add_argument("--seed", type=int, default=0, metavar="S",
+                   help="seed of the choice within the budget (default %(default)s)")
+    g = s.add_argument_group("method")
+    g.add_argument("--linear", action="store_true", help="linear combinations of dataset shapes")
+    g.add_argument("--simulate", action="store_true",
+                   help="physically simulated in-betweens (volumetric flesh, volume kept, lips kept apart)")
+    g.add_argument("--jaw-rig", metavar="RIG_NPZ",
+                   help="with --simulate: the jaw carries the flesh's jaw side; lip contact")
+    g.add_argument("--thickness", type=float, default=0.8, metavar="D",
+                   help="with --simulate: flesh thickness in dataset units, cm (default %(default)s)")
+    g.add_argument("--iterations", type=int, default=60, metavar="N",
+                   help="with --simulate: solver iterations (default %(default)s)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="DATASET_DIR2", help="the augmented dataset to write")
+    _quiet(g)
     s.set_defaults(func=cmd_augment)
 
-    s = sub.add_parser("calibrate", help="calibrate a stereo camera pair from chessboard or ChArUco images",
-                       description="Detect the board, calibrate both cameras (rejecting outlier views, saying why) "
-                                   "and the stereo extrinsics; write a documented JSON (and OpenCV YAML).")
-    s.add_argument("images_dir", metavar="IMAGES_DIR", help="left*/right* images, or cam0/ and cam1/ folders")
-    s.add_argument("--board", required=True, metavar="BOARD",
+    # ------------------------------------------------------------------------------------------------- calibrate
+    s = _command(sub, "calibrate", "calibrate a stereo camera pair from chessboard or ChArUco images",
+                 "Detect the board, calibrate both cameras (rejecting outlier views, saying why) and the stereo "
+                 "extrinsics; print RMS, per-view errors and the baseline; write a documented JSON (and OpenCV "
+                 "YAML).",
+                 ("lgi calibrate synth/hmc/calib --board charuco:7x5:15:11:DICT_5X5_100 --fisheye --out calib.json",),
+                 outputs="CALIB_JSON (per-camera intrinsics and distortion, stereo extrinsics, errors, rejected "
+                         "views); with --yaml, the OpenCV YAML.")
+    g = s.add_argument_group("inputs")
+    g.add_argument("images_dir", metavar="IMAGES_DIR", help="left*/right* images, or cam0/ and cam1/ folders")
+    g.add_argument("--board", required=True, metavar="BOARD",
                    help="chessboard:COLSxROWS:SQUARE_MM (inner corners) or charuco:COLSxROWS:SQUARE_MM:MARKER_MM:DICT "
                         "(squares; e.g. charuco:7x5:15:11:DICT_5X5_100)")
-    s.add_argument("--out", required=True, metavar="CALIB_JSON")
-    s.add_argument("--yaml", metavar="FILE", help="also write OpenCV YAML (K0, dist0, K1, dist1, R, T)")
-    s.add_argument("--rational", action="store_true", help="OpenCV's rational distortion model (wide lenses)")
-    s.add_argument("--fisheye", action="store_true", help="fisheye (equidistant) lens model")
+    g = s.add_argument_group("lens model (default: pinhole)")
+    g.add_argument("--rational", action="store_true", help="OpenCV's rational distortion model (wide lenses)")
+    g.add_argument("--fisheye", action="store_true", help="fisheye (equidistant) lens model")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="CALIB_JSON", help="the calibration to write (JSON)")
+    g.add_argument("--yaml", metavar="FILE", help="also write OpenCV YAML (K0, dist0, K1, dist1, R, T)")
     s.set_defaults(func=cmd_calibrate)
 
-    s = sub.add_parser("export", help="export a reconstruction as USD and/or OpenEXR displacement maps",
-                       description="Write RECON_DIR/meshes.npz as an animated USD mesh (time samples, UVs) and/or "
-                                   "per-frame displacement maps in UV space (OpenEXR, float32, RGB = xyz, cm).")
-    s.add_argument("recon_dir", metavar="RECON_DIR")
-    s.add_argument("--index", required=True, metavar="INDEX_DIR", help="the index it was reconstructed with")
-    s.add_argument("--usd", metavar="FILE", help=".usdc (binary) or .usda (text)")
-    s.add_argument("--exr", metavar="DIR", help="one frame_NNNNN.exr per frame")
-    s.add_argument("--exr-size", type=int, default=512, metavar="N", help="map width and height (512)")
-    s.add_argument("--fps", type=float, default=30.0, help="USD time codes per second (30)")
-    s.add_argument("-q", "--quiet", action="store_true")
+    # ---------------------------------------------------------------------------------------------------- export
+    s = _command(sub, "export", "export a reconstruction as USD and/or OpenEXR displacement maps",
+                 "Write RECON_DIR/meshes.npz as an animated USD mesh (time samples, face-varying UVs, cm with "
+                 "metersPerUnit 0.01) and/or per-frame displacement maps in UV space (OpenEXR, float32, RGB = xyz "
+                 "displacement, cm).",
+                 ("lgi export synth/recon --index synth/index --usd shot.usda --exr maps",),
+                 outputs="--usd FILE (animated mesh) and/or --exr DIR/frame_NNNNN.exr (one displacement map per "
+                         "frame).")
+    g = s.add_argument_group("inputs")
+    g.add_argument("recon_dir", metavar="RECON_DIR", help="a reconstruction (lgi reconstruct's OUT_DIR)")
+    g.add_argument("--index", required=True, metavar="INDEX_DIR", help="the index it was reconstructed with")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--usd", metavar="FILE", help="animated mesh: .usdc (binary) or .usda (text)")
+    g.add_argument("--fps", type=float, default=30.0, metavar="F",
+                   help="USD time codes per second (default %(default)s)")
+    g.add_argument("--exr", metavar="DIR", help="displacement maps: one frame_NNNNN.exr per frame")
+    g.add_argument("--exr-size", type=int, default=512, metavar="N",
+                   help="map width and height, texels (default %(default)s)")
+    _quiet(g)
     s.set_defaults(func=cmd_export)
 
-    s = sub.add_parser("bench", help="compare LGI with the baselines on the same frames",
-                       description="Run LGI, the blendshape fits (with and without the jaw rig), RBF weights + "
-                                   "smooth and smooth interpolation on the synthetic held-out performance and, when "
-                                   "../shared/data has ICT FaceKit, on an ICT actor with a rotating jaw, held-out ICT "
-                                   "shapes and ICT with combination shapes; a capture session (the synthetic actor's "
-                                   "shapes plus 0, 150 or 400 captured poses, with and without its jaw rig, and ICT "
-                                   "with 150 captured frames); each with clean and noisy bundles. "
-                                   "Prints one table per set, writes accuracy.csv and heat maps (PNG).")
-    s.add_argument("--out", default="lgi-bench", metavar="DIR", help="tables and pictures (default ./lgi-bench)")
-    s.add_argument("--frames", type=int, default=300, metavar="F", help="synthetic performance length (300)")
-    s.add_argument("--noise", type=float, default=0.3, metavar="MM",
-                   help="bundle noise of the noisy sets, per coordinate (0.3; 5 %% of marker-frames also missing)")
-    s.add_argument("--ict", metavar="DIR", help="ICT FaceKit folder (default ../shared/data/ict-facekit)")
-    s.add_argument("--no-ict", action="store_true", help="synthetic sets only (the performance and its sessions)")
+    # ----------------------------------------------------------------------------------------------------- bench
+    s = _command(sub, "bench", "compare LGI with the baselines on the same frames",
+                 "Run LGI, the blendshape fits (with and without the jaw rig), RBF weights + smooth and smooth "
+                 "interpolation on the synthetic held-out performance and, when ../shared/data has ICT FaceKit, "
+                 "on an ICT actor with a rotating jaw, held-out ICT shapes and ICT with combination shapes; a "
+                 "capture session (the synthetic actor's shapes plus 0, 150 or 400 captured poses, with and "
+                 "without its jaw rig, and ICT with 150 captured frames); each with clean and noisy bundles. "
+                 "Prints one table per set, writes accuracy.csv and heat maps (PNG). See docs/accuracy.md.",
+                 ("lgi bench --out lgi-bench --frames 300 --no-ict",),
+                 outputs='DIR/accuracy.csv and DIR/heatmaps_*.png; the tables on stdout.')
+    g = s.add_argument_group("inputs")
+    g.add_argument("--frames", type=int, default=300, metavar="F",
+                   help="synthetic performance length, frames (default %(default)s)")
+    g.add_argument("--noise", type=float, default=0.3, metavar="MM",
+                   help="bundle noise of the noisy sets per coordinate, mm; 5 %% of marker-frames are also missing "
+                        "(default %(default)s)")
+    g.add_argument("--ict", metavar="DIR", help="ICT FaceKit folder (default: ../shared/data/ict-facekit)")
+    g.add_argument("--no-ict", action="store_true", help="synthetic sets only (the performance and its sessions)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", default="lgi-bench", metavar="DIR", help="tables and pictures (default %(default)s)")
     s.set_defaults(func=cmd_bench)
 
-    s = sub.add_parser("cache", help="list or trim the rebuild's stage cache",
-                       description="List the stage results of a dataset rebuild's cache (OUT/.cache, or the "
-                                   "rebuild's --cache-dir), or remove old ones. Results in use by a running "
-                                   "rebuild are left alone.")
-    s.add_argument("action", choices=["ls", "prune"])
-    s.add_argument("cache_dir", metavar="CACHE_DIR", help="the rebuild's OUT (its .cache) or the cache folder")
-    s.add_argument("--keep", type=int, metavar="N", help="prune: keep the N most recently used results of each stage")
-    s.add_argument("--older-than", type=float, metavar="DAYS", help="prune: remove results unused for DAYS days")
+    # ----------------------------------------------------------------------------------------------------- cache
+    s = _command(sub, "cache", "list or trim the rebuild's stage cache",
+                 "List the stage results of a dataset rebuild's cache (OUT/.cache, or the rebuild's cache folder): "
+                 "stage, key, size, last use; or remove old ones. Results in use by a running rebuild are left "
+                 "alone.",
+                 ("lgi cache ls rebuild-out", "lgi cache prune rebuild-out --keep 2 --older-than 30"),
+                 outputs='no files: ls prints stage, key, size and last use; prune removes results.')
+    g = s.add_argument_group("inputs")
+    g.add_argument("action", choices=["ls", "prune"], metavar="ls|prune",
+                   help="ls: list the results; prune: remove those --keep and --older-than say")
+    g.add_argument("cache_dir", metavar="CACHE_DIR", help="the rebuild's OUT (its .cache) or the cache folder")
+    g = s.add_argument_group("prune")
+    g.add_argument("--keep", type=int, metavar="N", help="keep the N most recently used results of each stage")
+    g.add_argument("--older-than", type=float, metavar="DAYS", help="remove results unused for DAYS days")
     s.set_defaults(func=cmd_cache)
 
-    s = sub.add_parser("demo", help="run the main job end to end on the built-in synthetic actor",
-                       description="Build the synthetic actor and run the pipeline on its performance; "
-                                   "prints figures and where the outputs are.")
-    s.add_argument("--out", default="lgi-demo", metavar="DIR", help="output directory (default ./lgi-demo)")
-    s.add_argument("--vertices", type=int, default=20000, metavar="N")
-    s.add_argument("--frames", type=int, default=240, metavar="F")
-    s.add_argument("--seed", type=int, default=0, metavar="S")
-    s.add_argument("-q", "--quiet", action="store_true")
+    # ------------------------------------------------------------------------------------------------------ demo
+    s = _command(sub, "demo", "run the main job end to end on the built-in synthetic actor",
+                 "Build the synthetic actor, index it with its jaw rig, reconstruct its performance (frames not in "
+                 "the dataset) with lgi reconstruct's defaults and compare with the truth; prints the figures "
+                 "(speed, error against the truth in mm) and where the outputs are.",
+                 ("lgi demo --out lgi-demo --vertices 5000 --frames 60",),
+                 outputs="DIR/dataset/, DIR/markers.csv, DIR/bundles.csv, DIR/jaw_rig.npz, DIR/truth.npz (the "
+                         "synthetic actor), DIR/index/, and the reconstruction: DIR/meshes.npz, DIR/diagnostics.csv, "
+                         "DIR/per_frame.csv.")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", default="lgi-demo", metavar="DIR", help="output directory (default %(default)s)")
+    _quiet(g)
+    g = s.add_argument_group("actor and performance")
+    g.add_argument("--vertices", type=int, default=20000, metavar="N",
+                   help="at least this many mesh vertices (default %(default)s)")
+    g.add_argument("--frames", type=int, default=240, metavar="F",
+                   help="performance length, frames (default %(default)s)")
+    g.add_argument("--seed", type=int, default=0, metavar="S", help="performance seed (default %(default)s)")
     s.set_defaults(func=cmd_demo)
 
+    # ---------------------------------------------------------------------------------------------------- layout
     s = sub.add_parser("layout", help="design a marker layout by integer programming, or compare layouts",
                        description="Marker layouts: design one by integer programming (after Zell et al.), or "
-                                   "measure one on held-out shapes. See docs/layout_design.md.")
-    lsub = s.add_subparsers(dest="layout_command", required=True, metavar="ACTION")
-    d = lsub.add_parser("design", help="design a layout by integer programming (SciPy milp / HiGHS)",
-                        description="Choose COUNT marker positions on the dataset's neutral covering the motion of "
-                                    "its shapes (docs/layout_design.md); write a markers CSV for lgi build. Exit 2 "
-                                    "when the request cannot be met (count too high for the spacing).")
-    d.add_argument("dataset_dir", metavar="DATASET_DIR")
-    d.add_argument("--count", required=True, type=int, metavar="N", help="number of markers")
-    d.add_argument("--out", required=True, metavar="MARKERS_CSV")
-    d.add_argument("--symmetric", action="store_true",
-                   help="markers in mirror pairs across the face's symmetry plane (x = c), selected together")
-    d.add_argument("--min-spacing", type=float, default=8.0, metavar="MM",
-                   help="smallest distance between two markers, mm (default 8)")
-    d.add_argument("--exclude", default="auto", metavar="SPEC",
-                   help="where paint cannot go, comma-separated: auto (the dataset's eyes, inner lips, borders), "
-                        "none, FIRST:LAST (vertex indices), boundary:MM, or a vertex index file (default auto)")
-    d.add_argument("--held-out", metavar="PATTERN",
+                                   "measure one on held-out shapes. See docs/layout_design.md.",
+                       epilog=_epilog(None, ("lgi layout design synth/dataset --count 60 --symmetric --out "
+                                             "markers60.csv",
+                                             "lgi layout evaluate synth/dataset --markers markers60.csv")),
+                       formatter_class=_Formatter)
+    lsub = s.add_subparsers(dest="layout_command", required=True, metavar="ACTION",
+                            help="design or evaluate; `lgi layout ACTION --help` describes its options")
+    d = _command(lsub, "design", "design a layout by integer programming (SciPy milp / HiGHS)",
+                 "Choose COUNT marker positions on the dataset's neutral covering the motion of its shapes "
+                 "(docs/layout_design.md); write a markers CSV for lgi build. Exit 2 when the request cannot be met "
+                 "(count too high for the spacing: the message says how many fit).",
+                 ("lgi layout design synth/dataset --count 60 --symmetric --min-spacing 8 --out markers60.csv",),
+                 outputs='MARKERS_CSV: the layout, for lgi build.')
+    g = d.add_argument_group("inputs")
+    g.add_argument("dataset_dir", metavar="DATASET_DIR", help="the shape dataset")
+    g.add_argument("--held-out", metavar="PATTERN",
                    help="shapes the design ignores (shell patterns or auto, as lgi layout evaluate --held-out), so "
                         "that a layout is evaluated on shapes it was not designed for (default: none)")
-    d.add_argument("--epsilon", type=float, default=0.5, metavar="E",
-                   help="Zell's threshold: every shape gets a marker moving >= E x its largest motion (0.5; 0: off)")
-    d.add_argument("--time-limit", type=float, default=60.0, metavar="S",
-                   help="seconds for the solver; the best layout found is kept (60)")
+    g = d.add_argument_group("constraints")
+    g.add_argument("--count", required=True, type=int, metavar="N", help="number of markers")
+    g.add_argument("--symmetric", action="store_true",
+                   help="markers in mirror pairs across the face's symmetry plane (x = c), selected together")
+    g.add_argument("--min-spacing", type=float, default=8.0, metavar="MM",
+                   help="smallest distance between two markers, mm (default %(default)s)")
+    g.add_argument("--exclude", default="auto", metavar="SPEC",
+                   help="where paint cannot go, comma-separated: auto (the dataset's eyes, inner lips, borders), "
+                        "none, FIRST:LAST (vertex indices), boundary:MM, or a vertex index file (default %(default)s)")
+    g.add_argument("--epsilon", type=float, default=0.5, metavar="E",
+                   help="Zell's threshold: every shape gets a marker moving >= E x its largest motion "
+                        "(default %(default)s; 0: off)")
+    g = d.add_argument_group("scheduling")
+    g.add_argument("--time-limit", type=float, default=60.0, metavar="SECONDS",
+                   help="seconds for the solver; the best layout found is kept, with a warning (default %(default)s)")
+    g = d.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="MARKERS_CSV", help="the marker layout to write")
     d.set_defaults(func=cmd_layout_design)
-    e = lsub.add_parser("evaluate", help="held-out error of a layout (LGI and the blendshape baseline)",
-                        description="Build the index for the layout on the dataset minus the held-out shapes, "
-                                    "reconstruct each held-out shape from its own bundles with LGI and with the "
-                                    "blendshape fit, and print vertex RMS / p95 / max (mm).")
-    e.add_argument("dataset_dir", metavar="DATASET_DIR")
-    e.add_argument("--markers", required=True, metavar="MARKERS_CSV")
-    e.add_argument("--held-out", default="auto", metavar="PATTERN",
+    e = _command(lsub, "evaluate", "held-out error of a layout (LGI and the blendshape baseline)",
+                 "Build the index for the layout on the dataset minus the held-out shapes, reconstruct each "
+                 "held-out shape from its own bundles with LGI and with the blendshape fit, and print vertex RMS / "
+                 "p95 / max (mm).",
+                 ("lgi layout evaluate synth/dataset --markers synth/markers.csv --held-out 'smile*' "
+                  "--out errors.csv",),
+                 outputs='the table on stdout; with --out, the per-shape table (CSV).')
+    g = e.add_argument_group("inputs")
+    g.add_argument("dataset_dir", metavar="DATASET_DIR", help="the shape dataset")
+    g.add_argument("--markers", required=True, metavar="MARKERS_CSV", help="the marker layout to measure")
+    g.add_argument("--held-out", default="auto", metavar="PATTERN",
                    help="held-out shapes: shell patterns on names, comma-separated; every5: every fifth shape in the "
-                        "dataset's order from the third; auto (default): the accuracy benchmark's six ICT shapes when "
-                        "the dataset has them, else every5")
-    e.add_argument("--out", metavar="CSV", help="also write the per-shape table (method, shape, rms, p95, max mm)")
+                        "dataset's order from the third; auto: the accuracy benchmark's six ICT shapes when the "
+                        "dataset has them, else every5 (default %(default)s)")
+    g = e.add_argument_group("outputs")
+    g.add_argument("--out", metavar="CSV", help="also write the per-shape table (method, shape, rms, p95, max mm)")
     e.set_defaults(func=cmd_layout_evaluate)
     return p
 

@@ -248,7 +248,6 @@ CASES = [
     Case("import-out-is-file", IMP, 2, "a file of that name exists", chain(OBJS, write("out", "precious")), ()),
     Case("import-out-under-file", ["import", f"{C}/objs", "--out", f"{C}/f/sub", "-q"], 2, "a file is in its path",
          chain(OBJS, write("f", "x")), ("f/sub",)),
-    Case("import-markers-without-flow", [*IMP, "--markers", f"{S}/markers.csv"], 2, "--flow", OBJS),
     # --- reconstruct: bundles files -------------------------------------------------------------------
     Case("bundles-missing", RECB, 2, "b.csv", None),
     Case("bundles-empty-file", RECB, 2, "b.csv", write("b.csv", "")),
@@ -274,7 +273,8 @@ CASES = [
     Case("bundles-marker-empty", RECB, 2, "b.csv", bundles_csv(set_cell(4, "marker", ""))),
     # --- reconstruct: options ------------------------------------------------------------------------
     *[Case(f"reconstruct-{flag.strip('-')}-{val}", [*REC, flag, val], 2, flag) for flag, val in (
-        ("--smooth", "0"), ("--smooth", "-3"), ("--jaw-smooth", "0"), ("--chunk-size", "0"), ("--max-gap", "-1"),
+        ("--smooth", "1002"), ("--smooth", "2.5"), ("--jaw-smooth", "1002"), ("--chunk-size", "0"),
+        ("--max-gap", "1.5"),
         ("--temporal-weight", "nan"), ("--temporal-weight", "-1"), ("--spatial-weight", "inf"), ("--noise", "-1"),
         ("--noise", "abc"), ("--noise", "nan"), ("--fps", "0"), ("--fps", "-5"), ("--bilateral", "1"),
         ("--bilateral", "1:0"), ("--bilateral", "a:b"), ("--bilateral", "1:2:3:4"), ("--far-field", "5"),
@@ -499,7 +499,6 @@ CASES = [
                                    "1000000"], 2, "GiB of memory"),
     Case("synth-image-size-huge", ["synth", "--out", f"{C}/out", "-q", "--hmc", "--image-size", "100000x100000"], 2,
          "--image-size"),
-    Case("synth-rig-flex-without-hmc", ["synth", "--out", f"{C}/out", "-q", "--rig-flex", "5"], 2, "add --hmc"),
     Case("demo-vertices-huge", ["demo", "--out", f"{C}/out", "--vertices", "100000000000"], 2, "--vertices"),
     Case("demo-frames-0", ["demo", "--out", f"{C}/out", "--frames", "0"], 2, "lgi demo: error: --frames"),
     Case("bench-frames-0", ["bench", "--out", f"{C}/out", "--frames", "0", "--no-ict"], 2,

@@ -100,8 +100,8 @@ def test_rerun_replaces_the_jobs_outputs_only(shot: Path) -> None:
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
 
 
-@pytest.mark.parametrize("flag,value", [("--smooth", "0"), ("--smooth", "-3"), ("--chunk-size", "0"),
-                                        ("--max-gap", "-1"), ("--temporal-weight", "nan"), ("--noise", "-1"),
+@pytest.mark.parametrize("flag,value", [("--smooth", "1002"), ("--jaw-smooth", "1002"), ("--chunk-size", "0"),
+                                        ("--max-gap", "1000001"), ("--temporal-weight", "nan"), ("--noise", "-1"),
                                         ("--fps", "0"), ("--bilateral", "1:0")])
 def test_bad_options_refused_before_any_work(shot: Path, flag: str, value: str, capsys) -> None:
     out = shot / "bad"

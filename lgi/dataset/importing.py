@@ -31,6 +31,19 @@ from lgi.progress import progress
 from lgi.units import check_units
 
 
+def _load_npy_indices(path: Path) -> np.ndarray:
+    """A ``.npy`` of vertex indices, never unpickled: an array of Python objects (a list saved as
+    ``dtype=object``) is refused with the file's name, instead of numpy's advice to allow pickles."""
+    try:
+        return np.load(path, allow_pickle=False)
+    except ValueError as exc:
+        if "allow_pickle" in str(exc):
+            raise InputError("the .npy array holds Python objects (dtype object), not integers: save the vertex "
+                             "indices as an integer array, e.g. np.save(path, np.asarray(indices, dtype=np.int64))",
+                             path=path) from None
+        raise InputError(f"not a readable .npy array of vertex indices ({exc})", path=path) from None
+
+
 def load_vertex_indices(path: str | os.PathLike[str], n_vertices: int | None = None) -> np.ndarray:
     """Read a vertex index set.
 
@@ -46,7 +59,7 @@ def load_vertex_indices(path: str | os.PathLike[str], n_vertices: int | None = N
     if not path.is_file():
         raise InputError("vertex index file not found", path=path)
     if path.suffix == ".npy":
-        idx = np.load(path, allow_pickle=False)
+        idx = _load_npy_indices(path)
     elif path.suffix == ".json":
         try:
             obj = json.loads(path.read_text())
@@ -82,6 +95,18 @@ def neutral_mesh(folder: str | os.PathLike[str], neutral: str | None = None) -> 
     if not files:
         raise InputError("no OBJ files in folder", path=folder)
     return read_obj(_find_neutral(files, folder, neutral))
+
+
+def _one_file_per_shape(files: list[Path], folder: Path) -> None:
+    """A shape is named by its file's stem, so two files with one stem (``jawOpen.obj`` and ``jawOpen.OBJ``)
+    would be two shapes of one name: refused here, naming the files, before any is read."""
+    by_stem: dict[str, list[str]] = {}
+    for f in files:
+        by_stem.setdefault(f.stem, []).append(f.name)
+    clashes = {stem: names for stem, names in by_stem.items() if len(names) > 1}
+    if clashes:
+        which = "; ".join(f"{stem!r} from {' and '.join(names)}" for stem, names in sorted(clashes.items()))
+        raise InputError(f"several files give one shape name: {which} (rename or remove all but one)", path=folder)
 
 
 def _find_neutral(files: list[Path], folder: Path, neutral: str | None) -> Path:
@@ -153,6 +178,7 @@ def read_shape_folder(
     ]
     if not shape_files:
         raise InputError(f"no shapes selected (include={include!r}, exclude={exclude!r})", path=folder)
+    _one_file_per_shape(shape_files, folder)
 
     x0 = mesh.vertices
     identity_used: dict[str, float] = {}

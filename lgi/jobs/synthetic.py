@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import re
@@ -89,8 +90,10 @@ class SynthOptions:
             given = [f"--{f.name.replace('_', '-')}" for f in fields(self) if f.name in _HMC_ONLY
                      and getattr(self, f.name) != f.default]
             if given:
-                raise InputError(f"{', '.join(given)} shape{'s' if len(given) == 1 else ''} the camera footage: "
-                                 "add --hmc")
+                # Warned, not refused: releases before the check ignored them, and scripts may still pass them.
+                logging.getLogger(__name__).warning(
+                    f"{', '.join(given)} shape{'s' if len(given) == 1 else ''} the camera footage, which only --hmc "
+                    "renders: ignored (add --hmc)")
 
     def footage(self) -> dict[str, Any] | None:
         """Keyword arguments of :func:`lgi.synthetic.hmc.write_footage`, or None without ``hmc``."""

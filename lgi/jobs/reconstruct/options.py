@@ -14,6 +14,9 @@ from lgi.errors import InputError
 from lgi.jobs import options_from_dict
 from lgi.units import MM_PER_CM
 
+#: Options whose values below the least are taken as the least (no smoothing, no bridging), as they always were.
+_NONE_BELOW = ("smooth", "jaw_smooth", "max_gap")
+
 
 @dataclass(frozen=True)
 class ReconstructOptions:
@@ -26,9 +29,9 @@ class ReconstructOptions:
     spatial_weight : float, mm
         Tie-break toward the shapes the neighbours agree on (0 = none).
     smooth : int
-        Moving average of each bundle's shape weights over this many frames (1 = none).
+        Moving average of each bundle's shape weights over this many frames (1 = none; below 1 is taken as 1).
     jaw_smooth : int or None
-        Moving average of the jaw parameters (None: ``smooth``).
+        Moving average of the jaw parameters (None: ``smooth``; below 1 is taken as 1).
     noise : float (mm) or "auto"
         Bundle noise per coordinate; 0 = exact bundles.
     method : "local" or "simplex"
@@ -38,7 +41,7 @@ class ReconstructOptions:
         With a rigged index: estimate the jaw per frame, or read it (frame, open_deg, yaw_deg, roll_deg,
         forward_cm); "none" needs an index without a rig.
     max_gap : int
-        Bridge missing runs of up to this many frames (0 = off).
+        Bridge missing runs of up to this many frames (0 = off; below 0 is taken as 0).
     bilateral : str or None
         ``SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]``: bilateral filter of the bundles before solving.
     obj : bool
@@ -101,7 +104,13 @@ class ReconstructOptions:
             v = getattr(self, name)
             if v is None and name == "jaw_smooth":
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not least <= v <= most:
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise bad(name, f"must be a whole number in [{least}, {most}], not {v!r}")
+            if v < least and name in _NONE_BELOW:
+                # The first release took any window <= 1 as no smoothing and any gap <= 0 as no bridging, and
+                # scripts pass 0: those values stay accepted (the command line is a contract), as what they meant.
+                object.__setattr__(self, name, least)
+            elif not least <= v <= most:
                 raise bad(name, f"must be a whole number in [{least}, {most}], not {v!r}")
         if self.noise != "auto":
             try:
