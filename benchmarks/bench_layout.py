@@ -9,7 +9,7 @@ index is built on the others and every held-out shape is reconstructed from its 
 evaluate``). Prints the held-out vertex RMS / p95 / max (mm) of LGI and of the blendshape fit for the shipped
 layout and the designed one at the same count, the designed layout at fewer markers (``--fractions`` of the
 shipped count) and the smallest count of that sweep that matches the shipped layout's LGI RMS, and the solve time
-of the integer program for N = 110 on ICT. Issue 18's goal: at equal count >= 15 % lower held-out RMS, or the
+of the integer program for N = 110 on ICT. The goal: at equal count >= 15 % lower held-out RMS, or the
 same error with >= 25 % fewer markers.
 """
 

@@ -10,7 +10,7 @@ from its own 47-shape dataset with its true jaw rig. Truth: the actor's own shap
 Errors are vertex distances over the whole mesh, mm; "pooled" is the RMS over all shapes of a kind.
 
 Methods, all given the same template shapes and the actor's index (its neutral, markers, jaw rig):
-- naive: the template's displacement added to the actor's neutral (the issue's baseline);
+- naive: the template's displacement added to the actor's neutral (the baseline);
 - transfer, no LGI: the displacement mapped by the neutrals' affine map and the jaw moved by its parameters
   through the actor's rig, whole mesh: everything ``lgi rig-generate`` does except LGI (the strongest baseline
   with the same information);

@@ -12,8 +12,8 @@ to every true vertex rather than to the bundles:
 - ``global bounded``: one set of [0, 1] weights for the whole mesh.
 
 Then LGI (default options) and the rigged blendshape fit from the bundles, on the same frames. Errors in
-mm over every vertex. No timing; nothing asserted. Used in issue 12 to show that the 0.5x target on this set
-lies below what bounded dataset weights can represent.
+mm over every vertex. No timing; nothing asserted. It shows that a 0.5x target on this set lies below what
+bounded dataset weights can represent.
 """
 
 from __future__ import annotations

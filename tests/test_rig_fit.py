@@ -1,4 +1,4 @@
-"""The jaw hinge is fitted from the opening shapes only (issue 12), with a residual report and warnings."""
+"""The jaw hinge is fitted from the opening shapes only, with a residual report and warnings."""
 
 from __future__ import annotations
 
