@@ -212,6 +212,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_review(args: argparse.Namespace) -> int:
+    from lgi.jobs.review import ReviewOptions, review, review_report
+
+    opts = ReviewOptions(truth=args.truth, compare=args.compare, fps=args.fps)
+    for line in review_report(review(args.recon_dir, args.index, args.out, opts)):
+        print(line)
+    return 0
+
+
 def cmd_layout_design(args: argparse.Namespace) -> int:
     from lgi.jobs.layout import DesignOptions, design, design_report
 
@@ -563,6 +572,30 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, metavar="S")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("review", help="write a shot's review page (3D, colour maps, markers, curves)",
+                       description="Write REVIEW_DIR/index.html and its data scripts: the reconstruction in 3D "
+                                   "(orbit, zoom, pan; play, step, slider, speed), colour maps in mm (distance to "
+                                   "the truth, the correction's size, the distance from another reconstruction), "
+                                   "the markers coloured by their status per frame (the diagnostics row on hover "
+                                   "or click), per-frame curves and the run's summary. Open it from the file "
+                                   "system: no server, no network. See docs/review.md.",
+                       epilog="example: lgi review lgi-demo --index lgi-demo/index --truth lgi-demo/truth.npz "
+                              "--out lgi-demo/review",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("recon_dir", metavar="RECON_DIR", help="a reconstruction (lgi reconstruct's OUT_DIR)")
+    s.add_argument("--index", required=True, metavar="INDEX_DIR", help="the index it was reconstructed with")
+    s.add_argument("--out", required=True, metavar="REVIEW_DIR",
+                   help="the page's folder (replaced as a whole; required, no default)")
+    s.add_argument("--truth", metavar="TRUTH_NPZ",
+                   help="true surfaces, an npz with vertices (F, V, 3) in cm (lgi synth's truth.npz): adds the "
+                        "distance-to-truth map (mm) and error curves (default: none)")
+    s.add_argument("--compare", metavar="OTHER_RECON_DIR",
+                   help="another reconstruction of the shot on the same mesh (e.g. --method blendshape): adds the "
+                        "distance between the two (mm) as a colour map (default: none)")
+    s.add_argument("--fps", type=float, default=30.0, metavar="F",
+                   help="the shot's frame rate, frames per second: playback at speed 1x (default 30)")
+    s.set_defaults(func=cmd_review)
 
     s = sub.add_parser("layout", help="design a marker layout by integer programming, or compare layouts",
                        description="Marker layouts: design one by integer programming (after Zell et al.), or "
