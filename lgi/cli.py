@@ -108,17 +108,34 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     opts = _reconstruct_options(args)
     if args.dask and not args.flow:
         raise InputError("--dask runs the flow's chunk tasks on Dask: it needs --flow")
+    if opts.method == "blendshape" and args.flow:
+        raise InputError("--method blendshape runs in this process: it does not take --flow")
+    if args.review:
+        from lgi.io.atomic import check_output as check_dir
+        from lgi.jobs.review import REVIEW_ENTRIES
+
+        check_dir(f"{args.out}/review", "dir", owned=REVIEW_ENTRIES, what="lgi review folder")  # before the work
     if args.flow:
         check_output(args.out, (args.index_dir, args.bundles, opts.jaw, opts.observations, opts.calib,
                                 opts.contours))
         preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
         from lgi.orchestration.reconstruct import reconstruct_shot
 
-        summary = reconstruct_shot(args.index_dir, args.bundles, args.out, dask_address=args.dask, **opts.to_json())
+        summary = reconstruct_shot(args.index_dir, args.bundles, args.out, dask_address=args.dask,
+                                   review=args.review, **opts.to_json())
     else:
         summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
-    for line in report_lines(summary):
+        if args.review:
+            from lgi.jobs.review import ReviewOptions, review_beside
+
+            summary["review"] = review_beside(args.out, args.index_dir, summary, ReviewOptions(fps=args.fps))["page"]
+    report = report_lines
+    if opts.method == "blendshape":
+        from lgi.jobs.blendshape import blendshape_report as report
+    for line in report(summary):
         print(line)
+    if summary.get("review"):
+        print(f"review page: {summary['review']}")
     return 0
 
 
@@ -390,10 +407,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "they are measurements: each marker's trajectory is smoothed (window chosen per marker by "
                         "Stein's unbiased risk estimate) and fitted, not interpolated; auto (default): estimated "
                         "from the shot's trajectories and reported")
-    s.add_argument("--method", default="local", choices=["local", "simplex"],
+    s.add_argument("--method", default="local", choices=["local", "simplex", "blendshape"],
                    help="local (default): a global fit of the jaw and shape weights, refitted per bundle over its "
                         "natural neighbours and its containing simplices' shapes; simplex: the paper's choice among "
-                        "containing simplices only")
+                        "containing simplices only; blendshape: no LGI, the rigged bounded blendshape fit (jaw and "
+                        "weights per frame, then skinned; the benchmarks' baseline), the same outputs, for lgi "
+                        "review --compare (the LGI options --noise, --smooth, --far-field... do not apply)")
+    s.add_argument("--review", action="store_true",
+                   help="also write the shot's review page into OUT_DIR/review (index.html; see lgi review) "
+                        "(default: off)")
     s.add_argument("--jaw-smooth", type=int, default=None, metavar="WINDOW",
                    help="moving average of the jaw parameters (default: --smooth)")
     s.add_argument("--jaw", default="auto", metavar="auto|none|FILE",

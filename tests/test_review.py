@@ -66,6 +66,38 @@ def shot(tmp_path_factory) -> Path:
     return t
 
 
+def test_method_blendshape_is_the_baseline_fit(shot, capsys):
+    """--method blendshape writes the rigged blendshape fit of the benchmarks, as a reconstruction with its review
+    page; lgi review --compare shows LGI against it."""
+    from lgi.capture.bundles import read_bundles
+    from lgi.evaluation.baselines import RiggedBlendshapeSolver
+    from lgi.index.build import LGIIndex
+
+    t = shot
+    assert main(["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(t / "recb"),
+                 "--method", "blendshape", "--review", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "blendshape fit" in out and str(t / "recb" / "review" / "index.html") in out
+    index = LGIIndex.load(t / "idx")
+    want = RiggedBlendshapeSolver(index).solve_sequence(read_bundles(t / "bundles.csv", index.marker_names).positions)
+    got = np.load(t / "recb" / "meshes.npz")
+    assert np.array_equal(got["vertices"], want) and got["jaw"].shape == (20, 4)
+    d = pd.read_csv(t / "recb" / "diagnostics.csv")
+    assert set(d.status) == {"fitted", "missing"}
+    seen = d.status == "fitted"
+    assert np.allclose(d.residual_mm[seen], d.residual_before_mm[seen])
+    assert (t / "recb" / "per_frame.csv").is_file() and (t / "recb" / "review" / "review_frames.js").is_file()
+    assert main(["review", str(t / "rec"), "--index", str(t / "idx"), "--compare", str(t / "recb"),
+                 "--out", str(t / "page_compare")]) == 0
+    assert "compare" in capsys.readouterr().out
+
+
+def test_method_blendshape_refuses_lgi_only_options(shot, tmp_path, capsys):
+    assert main(["reconstruct", str(shot / "idx"), "--bundles", str(shot / "bundles.csv"), "--out",
+                 str(tmp_path / "r"), "--method", "blendshape", "--max-gap", "3"]) == 2
+    assert "--max-gap" in capsys.readouterr().err and not (tmp_path / "r").exists()
+
+
 def test_review_writes_a_self_contained_page(shot):
     page = shot / "page"
     assert sorted(p.name for p in page.iterdir()) == ["index.html", "review_frames.js", "review_meta.js",

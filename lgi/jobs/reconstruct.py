@@ -60,9 +60,10 @@ class ReconstructOptions:
         Moving average of the jaw parameters (None: ``smooth``).
     noise : float (mm) or "auto"
         Bundle noise per coordinate; 0 = exact bundles.
-    method : "local" or "simplex"
+    method : "local", "simplex" or "blendshape"
         Where a bundle's weights come from: refitted over its natural neighbours ("local"), or the paper's
-        choice among the containing simplices only ("simplex").
+        choice among the containing simplices only ("simplex"); "blendshape": no LGI, the rigged bounded
+        blendshape fit of the benchmarks' baseline (:mod:`lgi.jobs.blendshape`).
     jaw : "auto", "none" or a CSV path
         With a rigged index: estimate the jaw per frame, or read it (frame, open_deg, yaw_deg, roll_deg,
         forward_cm); "none" needs an index without a rig.
@@ -139,8 +140,8 @@ class ReconstructOptions:
                 raise bad("noise", f"takes a number of mm or 'auto', not {self.noise!r}") from None
             if not math.isfinite(value) or value < 0:
                 raise bad("noise", f"must be a finite number of mm >= 0, not {self.noise!r}")
-        if self.method not in ("local", "simplex"):
-            raise bad("method", f"takes 'local' or 'simplex', not {self.method!r}")
+        if self.method not in ("local", "simplex", "blendshape"):
+            raise bad("method", f"takes 'local', 'simplex' or 'blendshape', not {self.method!r}")
         if not isinstance(self.fps, (int, float)) or not math.isfinite(self.fps) or self.fps <= 0:
             raise bad("fps", f"must be a positive number, not {self.fps!r}")
         if self.calib and not self.observations:
@@ -893,6 +894,10 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
     from lgi._stages import stage
 
     options = options or ReconstructOptions()
+    if options.method == "blendshape":
+        from lgi.jobs.blendshape import reconstruct_blendshape
+
+        return reconstruct_blendshape(index_dir, bundles, out, options, show_progress)
     check_output(out, (index_dir, bundles, options.jaw, options.observations, options.calib, options.contours))
     t0 = time.perf_counter()
     shot = Shot(index_dir, bundles, options)
