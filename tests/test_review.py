@@ -260,3 +260,19 @@ def test_clicking_a_curve_jumps_to_its_frame(page):
     assert page.evaluate("window.lgiReview.frame()") == 19
     page.click("#back")
     assert page.evaluate("window.lgiReview.frame()") == 18
+
+
+def test_shot_flow_writes_and_links_the_page(prefect_harness, shot):
+    """The reconstruct-shot flow writes OUT/review and links it from its report artifact."""
+    from prefect.artifacts import Artifact
+
+    from flows.reconstruct_shot import reconstruct_shot
+    from lgi.orchestration import artifact_key
+
+    out = shot / "via_flow"
+    summary = reconstruct_shot(index_dir=str(shot / "idx"), bundles=str(shot / "bundles.csv"), out=str(out),
+                               noise=0, chunk_size=10)
+    page = out / "review" / "index.html"
+    assert summary["review"] == str(page.resolve()) and (out / "review" / "review_frames.js").is_file()
+    report = Artifact.get(artifact_key("shot-report", out))
+    assert report is not None and page.resolve().as_uri() in report.data

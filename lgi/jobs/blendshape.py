@@ -127,9 +127,8 @@ def blendshape_report(s: dict[str, Any]) -> list[str]:
              f"{sec['solve']:.2f} s (index loaded in {sec['load']:.2f} s)",
              f"bundles: {s['fitted_share'] * 100:.1f} % fitted, {s['missing_share'] * 100:.1f} % missing; no "
              f"correction: max bundle residual {s['max_residual_mm']:.3f} mm"]
-    if "jaw_open_deg" in s:
-        lo, hi = s["jaw_open_deg"]
-        lines.append(f"jaw: opening {lo:.1f} to {hi:.1f} deg; fit residual median {s['fit_rms_mm']['median']:.3f} mm, "
-                     f"max {s['fit_rms_mm']['max']:.3f} mm (per frame RMS)")
-    lines.append(f"outputs in {s['out']}: {', '.join(n + ('/' if n == 'obj' else '') for n in s['outputs'])}")
+    from lgi.jobs.reconstruct import report_lines
+
+    # The jaw's range and where the outputs are, as LGI's report says them.
+    lines += [line for line in report_lines(s) if line.startswith(("jaw:", "outputs in"))]
     return lines
