@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 from lgi.cli import main
-from lgi.review.pack import blob, dequantise_frames, quantise_frames, quantise_map, unblob
+from lgi.review.pack import blob, decode_codes, dequantise_frames, encode_codes, quantise_frames, quantise_map, unblob
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 
@@ -35,6 +35,12 @@ def test_quantised_frames_round_trip_within_half_a_step():
     for arr in (q.codes, q.moving, q.rest):
         assert np.array_equal(unblob(blob(arr)), arr)
     assert np.array_equal(unblob(blob(q.codes, compress=False)), q.codes)
+    # Frame differences wrap in int16 (a jump of more than half the range) and still come back exactly.
+    jumpy = q.codes.copy()
+    jumpy[::2] = 32767
+    jumpy[1::2] = -32767
+    for c in (q.codes, jumpy):
+        assert np.array_equal(decode_codes(unblob(blob(encode_codes(c))), c.shape), c)
 
 
 def test_colour_map_codes():

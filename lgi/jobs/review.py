@@ -208,7 +208,7 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     """
     from lgi.index.build import LGIIndex
     from lgi.io.atomic import atomic_dir, check_output
-    from lgi.review.pack import blob, quantise_frames, write_script
+    from lgi.review.pack import blob, encode_codes, quantise_frames, write_script
 
     o = options or ReviewOptions()
     t0 = time.perf_counter()
@@ -322,7 +322,8 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
         "quantisation": {"scale_cm": q.scale, "error_bound_mm": q.error_bound_cm * MM_PER_CM,
                          "moving_vertices": int(len(q.moving))},
     }
-    frames_payload = {"rest": blob(q.rest.ravel()), "moving": blob(q.moving), "codes": blob(q.codes.ravel()),
+    frames_payload = {"rest": blob(q.rest.ravel()), "moving": blob(q.moving), "codes": blob(encode_codes(q.codes)),
+                      "codes_shape": list(q.codes.shape),
                       "scale": q.scale, "n_frames": n_f, "maps": maps}
     static = resources.files("lgi.review") / "static"
     with atomic_dir(out, REVIEW_ENTRIES, "lgi review folder") as tmp:

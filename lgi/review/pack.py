@@ -74,6 +74,25 @@ def dequantise_frames(q: QuantisedFrames) -> np.ndarray:
     return out
 
 
+def encode_codes(codes: np.ndarray) -> np.ndarray:
+    """(F, K, 3) int16 codes as the bytes the page stores: frame-to-frame differences (wrapping in int16, so the
+    page's running sum in an ``Int16Array`` restores them exactly), low bytes then high bytes. Smooth motion makes
+    small differences whose high bytes are mostly 0 or 255: gzip then takes the frames to about 60 % of its size
+    on the codes themselves (measured on the 300-frame synthetic shot)."""
+    c = np.ascontiguousarray(codes, np.int16)
+    d = c.astype(np.int32)
+    d[1:] -= c[:-1]
+    b = d.astype(np.int16).astype("<i2").view(np.uint8).reshape(-1, 2)
+    return np.concatenate([b[:, 0], b[:, 1]])
+
+
+def decode_codes(data: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """The codes of :func:`encode_codes` (what the page computes)."""
+    n = data.size // 2
+    d = (data[:n].astype(np.uint16) | (data[n:].astype(np.uint16) << 8)).view(np.int16).reshape(shape)
+    return np.cumsum(d, axis=0, dtype=np.int16) if d.size else d
+
+
 def quantise_map(values: np.ndarray, vmax: float) -> np.ndarray:
     """A colour map's values (any shape, mm) as uint8 codes over [0, vmax] (clamped; NaN -> 255 is avoided:
     NaN becomes 0). The page reads code k as k / 255 * vmax mm."""

@@ -35,6 +35,15 @@
     return new T(bytes.buffer, bytes.byteOffset, bytes.byteLength / T.BYTES_PER_ELEMENT);
   }
 
+  // The frames are stored as frame-to-frame differences, low bytes then high bytes (they compress better):
+  // Int16Array stores wrap as numpy's int16 arithmetic does, so the running sum restores the codes exactly.
+  function deltaPlanes(bytes, perFrame) {
+    const n = bytes.length / 2, out = new Int16Array(n);
+    for (let i = 0; i < n; i++) out[i] = bytes[i] | (bytes[n + i] << 8);
+    for (let i = perFrame; i < n; i++) out[i] += out[i - perFrame];
+    return out;
+  }
+
   // ---------------------------------------------------------------- small maths
   function normalize(v) { const l = Math.hypot(v[0], v[1], v[2]) || 1; return [v[0] / l, v[1] / l, v[2] / l]; }
   function cross(a, b) { return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]; }
@@ -78,6 +87,7 @@
       decode(META.triangles), decode(DATA.rest), decode(DATA.moving), decode(DATA.codes),
       decode(META.marker_vertices), decode(META.marker_weights), decode(META.status), decode(META.diag_present)]);
     scale = DATA.scale;
+    codes = deltaPlanes(codes, moving.length * 3);
     for (const m of DATA.maps) maps[m.key] = { ...m, values: await decode(m.codes) };
     for (const c of META.diagnostics) diag.push({ name: c.name, kind: c.kind, values: c.values, codes: await decode(c.data) });
     api.timing.scripts_ms = T_SCRIPTS - (window.LGI_T0 || 0);
