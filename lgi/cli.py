@@ -232,7 +232,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_review(args: argparse.Namespace) -> int:
     from lgi.jobs.review import ReviewOptions, review, review_report
 
-    opts = ReviewOptions(truth=args.truth, compare=args.compare, fps=args.fps)
+    opts = ReviewOptions(truth=args.truth, compare=args.compare, fps=args.fps, step_um=args.step)
     for line in review_report(review(args.recon_dir, args.index, args.out, opts)):
         print(line)
     return 0
@@ -617,6 +617,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "distance between the two (mm) as a colour map (default: none)")
     s.add_argument("--fps", type=float, default=30.0, metavar="F",
                    help="the shot's frame rate, frames per second: playback at speed 1x (default 30)")
+    s.add_argument("--step", type=float, default=10.0, metavar="UM",
+                   help="quantisation step of the positions the page shows, micrometres: they are within half of "
+                        "it; finer steps make a larger page (default 10; 0: the finest the shot's range allows)")
     s.set_defaults(func=cmd_review)
 
     s = sub.add_parser("layout", help="design a marker layout by integer programming, or compare layouts",

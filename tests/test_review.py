@@ -32,6 +32,8 @@ def test_quantised_frames_round_trip_within_half_a_step():
     assert err <= q.error_bound_cm + 4e-6
     assert q.error_bound_cm < 1e-4  # 1 um for displacements of a couple of cm
     assert q.codes.dtype == np.int16 and not np.isin(np.arange(100), q.moving).any()
+    coarse = quantise_frames(verts, rest, step=1e-3)  # lgi review's default, 10 um
+    assert coarse.scale == 1e-3 and np.abs(dequantise_frames(coarse) - verts).max() <= 5e-4 + 4e-6
     for arr in (q.codes, q.moving, q.rest):
         assert np.array_equal(unblob(blob(arr)), arr)
     assert np.array_equal(unblob(blob(q.codes, compress=False)), q.codes)

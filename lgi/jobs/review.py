@@ -48,15 +48,21 @@ class ReviewOptions:
         distance-between-them colour map.
     fps : float
         The shot's frame rate, frames per second: the page's playback rate at speed 1.
+    step_um : float, um
+        Quantisation step of the positions the page shows (within half of it; coarser only when the shot moves
+        more than 32767 steps). The colour maps are computed from the exact meshes.
     """
 
     truth: str | None = None
     compare: str | None = None
     fps: float = 30.0
+    step_um: float = 10.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.fps, (int, float)) or not math.isfinite(self.fps) or self.fps <= 0:
             raise InputError(f"--fps must be a positive number of frames per second, not {self.fps!r}")
+        if not isinstance(self.step_um, (int, float)) or not 0 <= self.step_um <= 1000:
+            raise InputError(f"--step must be a number of um in [0, 1000], not {self.step_um!r}")
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -254,7 +260,7 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     from lgi.dataset.mesh import triangulate
 
     tris = triangulate(a["face_vertices"], a["face_offsets"])[0].astype(np.int32)
-    q = quantise_frames(verts, a["neutral"])
+    q = quantise_frames(verts, a["neutral"], o.step_um * 1e-4)
     # ---- colour maps, mm per vertex and frame
     maps = []
     if truth is not None:

@@ -301,8 +301,9 @@
       });
       g.stroke();
       const now = vals[S.frame];
-      g.fillStyle = "#ccc";
-      g.fillText(`${cv.label} (${cv.unit}): ${fmt(now)}   [max ${fmt(Math.max(...fin))}]`, left + 4, y0 + 12);
+      const text = `${cv.label} (${cv.unit}): ${fmt(now)}   [max ${fmt(Math.max(...fin))}]`;
+      g.fillStyle = "rgba(23, 25, 28, 0.8)"; g.fillRect(left + 1, y0 + 1, g.measureText(text).width + 6, 14);
+      g.fillStyle = "#ccc"; g.fillText(text, left + 4, y0 + 12);
     });
     g.strokeStyle = "#fff"; g.lineWidth = 1; g.beginPath(); g.moveTo(xOf(S.frame), 0); g.lineTo(xOf(S.frame), h); g.stroke();
   }
