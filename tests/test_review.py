@@ -284,3 +284,11 @@ def test_shot_flow_writes_and_links_the_page(prefect_harness, shot):
     assert summary["review"] == str(page.resolve()) and (out / "review" / "review_frames.js").is_file()
     report = Artifact.get(artifact_key("shot-report", out))
     assert report is not None and page.resolve().as_uri() in report.data
+
+
+def test_demo_writes_the_page_and_prints_its_path(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--vertices", "1500", "--frames", "8", "-q"]) == 0
+    page = (tmp_path / "demo" / "review" / "index.html").resolve()
+    assert str(page) in capsys.readouterr().out
+    meta = (tmp_path / "demo" / "review" / "review_meta.js").read_text()
+    assert '"noise estimate"' in meta and "distance to the truth" in (page.parent / "review_frames.js").read_text()

@@ -392,7 +392,7 @@ def _warnings(diag: pd.DataFrame, per_frame: pd.DataFrame, n_markers: int,
             f = int(per_frame["frame"].iloc[int(np.nanargmax(r))])
             out.append(f"largest bundle residual after correction {np.nanmax(r):.3f} mm (frame {f})")
     if "fallback" in diag:
-        fb = diag["fallback"].fillna("").astype(str)
+        fb = diag["fallback"].astype(object).where(diag["fallback"].notna(), "").astype(str)
         if (fb != "").any():
             out.append(f"{int((fb != '').sum())} bundle-frames fell back ({fb[fb != ''].iloc[0]})")
     if summary and summary.get("noise_estimated") and not math.isfinite(summary.get("noise_estimate_mm") or 0.0):

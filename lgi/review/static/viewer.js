@@ -88,8 +88,11 @@
       decode(META.marker_vertices), decode(META.marker_weights), decode(META.status), decode(META.diag_present)]);
     scale = DATA.scale;
     codes = deltaPlanes(codes, moving.length * 3);
-    for (const m of DATA.maps) maps[m.key] = { ...m, values: await decode(m.codes) };
-    for (const c of META.diagnostics) diag.push({ name: c.name, kind: c.kind, values: c.values, codes: await decode(c.data) });
+    // All at once: the browser inflates the streams side by side.
+    const mapValues = await Promise.all(DATA.maps.map((m) => decode(m.codes)));
+    DATA.maps.forEach((m, i) => { maps[m.key] = { ...m, values: mapValues[i] }; });
+    const diagCodes = await Promise.all(META.diagnostics.map((c) => decode(c.data)));
+    META.diagnostics.forEach((c, i) => diag.push({ name: c.name, kind: c.kind, values: c.values, codes: diagCodes[i] }));
     api.timing.scripts_ms = T_SCRIPTS - (window.LGI_T0 || 0);
     api.timing.decode_ms = performance.now() - t0;
     pos = new Float32Array(nV * 3); nrm = new Float32Array(nV * 3); col = new Float32Array(nV * 3);
