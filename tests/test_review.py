@@ -176,7 +176,7 @@ def page(browser, shot):
     pg.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     pg.on("pageerror", lambda e: errors.append(str(e)))
     pg.goto((shot / "page" / "index.html").resolve().as_uri())
-    pg.wait_for_function("window.lgiReview && (window.lgiReview.ready || window.lgiReview.error)", timeout=60_000)
+    pg.wait_for_function("window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)", timeout=60_000)
     pg.errors = errors
     yield pg
     pg.close()
@@ -292,3 +292,23 @@ def test_demo_writes_the_page_and_prints_its_path(tmp_path, capsys):
     assert str(page) in capsys.readouterr().out
     meta = (tmp_path / "demo" / "review" / "review_meta.js").read_text()
     assert '"noise estimate"' in meta and "distance to the truth" in (page.parent / "review_frames.js").read_text()
+
+
+def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_path):
+    """A shot longer than a block is inflated block by block; frame 19 from blocks of 8 frames is the same
+    picture as from one block."""
+    import lgi.jobs.review as job
+
+    monkeypatch.setattr(job, "BLOCK", 8)
+    job.review(shot / "rec", shot / "idx", tmp_path / "blocks", job.ReviewOptions(truth=str(shot / "s" / "truth.npz")))
+    shots = []
+    for folder in (shot / "page", tmp_path / "blocks"):
+        pg = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1)
+        pg.goto((folder / "index.html").resolve().as_uri())
+        pg.wait_for_function("window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)",
+                             timeout=60_000)
+        assert pg.evaluate("window.lgiReview.error") is None
+        pg.evaluate("window.lgiReview.setFrame(19); window.lgiReview.setMap('truth')")
+        shots.append(_pixels(pg.locator("#gl").screenshot()))
+        pg.close()
+    assert np.abs(shots[0] - shots[1]).max() <= 2

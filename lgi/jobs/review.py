@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 
 #: What a review folder holds (anything else in an existing one makes the job refuse to replace it).
 REVIEW_ENTRIES = ("index.html", "viewer.js", "review_meta.js", "review_frames.js")
+#: Frames per separately compressed block of the page's data: the page shows the first block while it inflates
+#: the others (a 1000-frame ICT shot takes seconds to inflate whole).
+BLOCK = 50
 #: The status of a marker in a frame, in the order of the page's codes (the diagnostics' ``status`` values, and
 #: ``ray`` where the ``constraint`` column says a viewing ray held the marker).
 STATUSES = ("contained", "projected", "neighbour", "fitted", "missing", "bridged", "ray", "other")
@@ -167,7 +170,7 @@ def _map(values: np.ndarray, label: str, note: str) -> dict[str, Any]:
     vmax = float(np.percentile(finite, 99.9)) if finite.size else 0.0
     vmax = vmax if vmax > 0 else max(float(finite.max()) if finite.size else 0.0, 1e-3)
     return {"label": label, "note": note, "vmax_mm": vmax, "max_mm": float(finite.max()) if finite.size else 0.0,
-            "codes": blob(quantise_map(values, vmax))}
+            "blocks": [blob(quantise_map(values[lo:lo + BLOCK], vmax)) for lo in range(0, len(values), BLOCK)]}
 
 
 def _diag_columns(d: pd.DataFrame, order: np.ndarray) -> list[dict[str, Any]]:
@@ -328,8 +331,8 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
         "quantisation": {"scale_cm": q.scale, "error_bound_mm": q.error_bound_cm * MM_PER_CM,
                          "moving_vertices": int(len(q.moving))},
     }
-    frames_payload = {"rest": blob(q.rest.ravel()), "moving": blob(q.moving), "codes": blob(encode_codes(q.codes)),
-                      "codes_shape": list(q.codes.shape),
+    frames_payload = {"rest": blob(q.rest.ravel()), "moving": blob(q.moving), "block": BLOCK,
+                      "blocks": [blob(encode_codes(q.codes[lo:lo + BLOCK])) for lo in range(0, n_f, BLOCK)],
                       "scale": q.scale, "n_frames": n_f, "maps": maps}
     static = resources.files("lgi.review") / "static"
     with atomic_dir(out, REVIEW_ENTRIES, "lgi review folder") as tmp:

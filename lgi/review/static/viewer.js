@@ -75,7 +75,7 @@
   for (let k = 0; k < 256; k++) { const c = ramp(k / 255); LUT.set(c, 3 * k); }
 
   // ---------------------------------------------------------------- state
-  const S = { frame: 0, playing: false, speed: 1, map: "none", showMarkers: true, yaw: 0, pitch: 0, dist: 1,
+  const S = { frame: 0, loaded: 1, playing: false, speed: 1, map: "none", showMarkers: true, yaw: 0, pitch: 0, dist: 1,
               target: [0, 0, 0], radius: 1, hover: -1, pinned: -1, acc: 0, last: 0 };
   let nF, nV, nM, tris, rest, moving, codes, scale, maps = {}, mv, mw, status, present, diag = [];
   let pos, nrm, col, mpos, mcol, gl, prog, pprog, buf = {}, curves;
@@ -83,14 +83,13 @@
   async function load() {
     const t0 = performance.now();
     nF = DATA.n_frames; nV = META.n_vertices; nM = META.markers.length;
-    [tris, rest, moving, codes, mv, mw, status, present] = await Promise.all([
-      decode(META.triangles), decode(DATA.rest), decode(DATA.moving), decode(DATA.codes),
+    [tris, rest, moving, mv, mw, status, present] = await Promise.all([
+      decode(META.triangles), decode(DATA.rest), decode(DATA.moving),
       decode(META.marker_vertices), decode(META.marker_weights), decode(META.status), decode(META.diag_present)]);
     scale = DATA.scale;
-    codes = deltaPlanes(codes, moving.length * 3);
-    // All at once: the browser inflates the streams side by side.
-    const mapValues = await Promise.all(DATA.maps.map((m) => decode(m.codes)));
-    DATA.maps.forEach((m, i) => { maps[m.key] = { ...m, values: mapValues[i] }; });
+    codes = new Int16Array(nF * moving.length * 3);
+    for (const m of DATA.maps) maps[m.key] = { ...m, values: new Uint8Array(nF * nV) };
+    await loadBlock(0);
     const diagCodes = await Promise.all(META.diagnostics.map((c) => decode(c.data)));
     META.diagnostics.forEach((c, i) => diag.push({ name: c.name, kind: c.kind, values: c.values, codes: diagCodes[i] }));
     api.timing.scripts_ms = T_SCRIPTS - (window.LGI_T0 || 0);
@@ -105,6 +104,25 @@
     S.target = [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2];
     S.radius = Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) / 2 || 1;
     S.dist = S.radius * 2.6;
+  }
+
+  // The frames come in blocks, each compressed on its own: the first is shown while the others inflate.
+  async function loadBlock(k) {
+    const per = moving.length * 3, lo = k * DATA.block;
+    const [c, ...mapped] = await Promise.all([decode(DATA.blocks[k]), ...DATA.maps.map((m) => decode(m.blocks[k]))]);
+    codes.set(deltaPlanes(c, per), lo * per);
+    DATA.maps.forEach((m, i) => maps[m.key].values.set(mapped[i], lo * nV));
+    S.loaded = Math.min(nF, lo + DATA.block);
+  }
+  async function loadRest() {
+    for (let k = 1; k < DATA.blocks.length; k++) {
+      await loadBlock(k);
+      $("status").textContent = S.loaded < nF ? `${META.title} (frames decoded: ${S.loaded}/${nF})` : META.title;
+      drawCurves();
+    }
+    api.timing.all_frames_ms = performance.now() - (window.LGI_T0 || 0);
+    api.allLoaded = true;
+    $("loadTime").textContent += `, all frames ${fmt(api.timing.all_frames_ms)} ms`;
   }
 
   // ---------------------------------------------------------------- per frame
@@ -308,12 +326,14 @@
       g.fillStyle = "rgba(23, 25, 28, 0.8)"; g.fillRect(left + 1, y0 + 1, g.measureText(text).width + 6, 14);
       g.fillStyle = "#ccc"; g.fillText(text, left + 4, y0 + 12);
     });
+    if (S.loaded < nF) { g.fillStyle = "rgba(0, 0, 0, 0.45)"; g.fillRect(xOf(S.loaded), 0, w - xOf(S.loaded), h); }
     g.strokeStyle = "#fff"; g.lineWidth = 1; g.beginPath(); g.moveTo(xOf(S.frame), 0); g.lineTo(xOf(S.frame), h); g.stroke();
   }
 
   // ---------------------------------------------------------------- interaction
   function setFrame(f) {
-    f = Math.max(0, Math.min(nF - 1, Math.round(f)));
+    // Frames still inflating are not there yet: the slider stops at the last one decoded.
+    f = Math.max(0, Math.min(S.loaded - 1, Math.round(f)));
     S.frame = f; $("slider").value = f; dirty.geom = true;
     $("frameLabel").textContent = `frame ${META.frames[f]} (${f + 1}/${nF})`;
     drawCurves(); showMarker(); draw();
@@ -380,7 +400,8 @@
   function tick(now) {
     if (S.playing) {
       S.acc += (now - S.last) / 1000 * META.fps * S.speed; S.last = now;
-      if (S.acc >= 1) { const step = Math.floor(S.acc); S.acc -= step; setFrame((S.frame + step) % nF); }
+      // Frames are dropped, not slowed, when drawing takes longer than the shot's frame time.
+      if (S.acc >= 1) { const step = Math.floor(S.acc); S.acc -= step; setFrame((S.frame + step) % S.loaded); }
     }
     requestAnimationFrame(tick);
   }
@@ -402,6 +423,7 @@
         diagnostics, pinMarker: (m) => { S.pinned = m; showMarker(); },
       });
       S.last = performance.now(); requestAnimationFrame(tick);
+      await loadRest();
     } catch (err) {
       api.error = String(err && err.message || err);
       $("status").textContent = `cannot show the shot: ${api.error}`;
