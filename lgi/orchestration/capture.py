@@ -142,7 +142,7 @@ def capture_session(
     rows = []
     for folder in folders:
         shot_dir = out_dir / "shots" / folder.name
-        row: dict = {"shot": folder.name, "status": "failed", "frames": 0, "error": ""}
+        row: dict = {"shot": folder.name, "status": "failed", "frames": 0, "error": "", "review": ""}
         state = reconstruct_shot(index_dir, str(shot_dir / "bundles.csv"), str(shot_dir / "recon"), smooth=smooth,
                                  usd=usd, fps=fps, chunk_size=chunk_size, footage=str(folder), calib=calib,
                                  markers=markers, helmet=helmet, dask_address=dask_address, return_state=True)
