@@ -90,6 +90,7 @@
     codes = new Int16Array(nF * moving.length * 3);
     for (const m of DATA.maps) maps[m.key] = { ...m, values: new Uint8Array(nF * nV) };
     await loadBlock(0);
+    S.loaded = Math.min(nF, DATA.block);
     const diagCodes = await Promise.all(META.diagnostics.map((c) => decode(c.data)));
     META.diagnostics.forEach((c, i) => diag.push({ name: c.name, kind: c.kind, values: c.values, codes: diagCodes[i] }));
     api.timing.scripts_ms = T_SCRIPTS - (window.LGI_T0 || 0);
@@ -112,11 +113,13 @@
     const [c, ...mapped] = await Promise.all([decode(DATA.blocks[k]), ...DATA.maps.map((m) => decode(m.blocks[k]))]);
     codes.set(deltaPlanes(c, per), lo * per);
     DATA.maps.forEach((m, i) => maps[m.key].values.set(mapped[i], lo * nV));
-    S.loaded = Math.min(nF, lo + DATA.block);
   }
   async function loadRest() {
-    for (let k = 1; k < DATA.blocks.length; k++) {
-      await loadBlock(k);
+    // A few blocks at a time: the browser inflates them side by side.
+    for (let k = 1; k < DATA.blocks.length; k += 4) {
+      const group = [k, k + 1, k + 2, k + 3].filter((j) => j < DATA.blocks.length);
+      await Promise.all(group.map(loadBlock));
+      S.loaded = Math.min(nF, (group[group.length - 1] + 1) * DATA.block);
       $("status").textContent = S.loaded < nF ? `${META.title} (frames decoded: ${S.loaded}/${nF})` : META.title;
       drawCurves();
     }
@@ -139,7 +142,8 @@
       const ux = pos[b] - pos[a], uy = pos[b + 1] - pos[a + 1], uz = pos[b + 2] - pos[a + 2];
       const wx = pos[c] - pos[a], wy = pos[c + 1] - pos[a + 1], wz = pos[c + 2] - pos[a + 2];
       const nx = uy * wz - uz * wy, ny = uz * wx - ux * wz, nz = ux * wy - uy * wx;
-      for (const i of [a, b, c]) { nrm[i] += nx; nrm[i + 1] += ny; nrm[i + 2] += nz; }
+      nrm[a] += nx; nrm[a + 1] += ny; nrm[a + 2] += nz; nrm[b] += nx; nrm[b + 1] += ny; nrm[b + 2] += nz;
+      nrm[c] += nx; nrm[c + 1] += ny; nrm[c + 2] += nz;
     }
     for (let m = 0; m < nM; m++) for (let k = 0; k < 3; k++) {
       let s = 0; for (let j = 0; j < 3; j++) s += mw[3 * m + j] * pos[3 * mv[3 * m + j] + k];
