@@ -124,11 +124,15 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         summary = reconstruct_shot(args.index_dir, args.bundles, args.out, dask_address=args.dask,
                                    review=args.review, **opts.to_json())
     else:
-        summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
+        from lgi.jobs.review import collected_warnings
+
+        with collected_warnings() as warned:
+            summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
         if args.review:
             from lgi.jobs.review import ReviewOptions, review_beside
 
-            summary["review"] = review_beside(args.out, args.index_dir, summary, ReviewOptions(fps=args.fps))["page"]
+            summary["review"] = review_beside(args.out, args.index_dir, {**summary, "options": opts.to_json()},
+                                              ReviewOptions(fps=args.fps), warned)["page"]
     report = report_lines
     if opts.method == "blendshape":
         from lgi.jobs.blendshape import blendshape_report as report

@@ -151,6 +151,33 @@ def test_review_refuses_a_folder_of_other_files(shot, tmp_path, capsys):
     assert "notes.txt" in capsys.readouterr().err and (out / "notes.txt").read_text() == "mine"
 
 
+def test_shot_flow_writes_and_links_the_page(prefect_harness, shot):
+    """The reconstruct-shot flow writes OUT/review and links it from its report artifact. (Before the browser
+    tests: Playwright's sync API keeps an event loop running in this thread, where Prefect's sync calls would
+    return coroutines.)"""
+    from prefect.artifacts import Artifact
+
+    from flows.reconstruct_shot import reconstruct_shot
+    from lgi.orchestration import artifact_key
+
+    out = shot / "via_flow"
+    summary = reconstruct_shot(index_dir=str(shot / "idx"), bundles=str(shot / "bundles.csv"), out=str(out),
+                               noise=0, chunk_size=10)
+    page = out / "review" / "index.html"
+    assert summary["review"] == str(page.resolve()) and (out / "review" / "review_frames.js").is_file()
+    report = Artifact.get(artifact_key("shot-report", out))
+    assert report is not None and page.resolve().as_uri() in report.data
+
+
+def test_demo_writes_the_page_and_prints_its_path(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--vertices", "1500", "--frames", "8", "-q"]) == 0
+    page = (tmp_path / "demo" / "review" / "index.html").resolve()
+    assert str(page) in capsys.readouterr().out
+    meta = (tmp_path / "demo" / "review" / "review_meta.js").read_text()
+    assert '"noise estimate"' in meta and '"options"' in meta
+    assert "distance to the truth" in (page.parent / "review_frames.js").read_text()
+
+
 # ------------------------------------------------------------------------------------------------ the browser
 @pytest.fixture(scope="module")
 def browser():
@@ -268,30 +295,6 @@ def test_clicking_a_curve_jumps_to_its_frame(page):
     assert page.evaluate("window.lgiReview.frame()") == 19
     page.click("#back")
     assert page.evaluate("window.lgiReview.frame()") == 18
-
-
-def test_shot_flow_writes_and_links_the_page(prefect_harness, shot):
-    """The reconstruct-shot flow writes OUT/review and links it from its report artifact."""
-    from prefect.artifacts import Artifact
-
-    from flows.reconstruct_shot import reconstruct_shot
-    from lgi.orchestration import artifact_key
-
-    out = shot / "via_flow"
-    summary = reconstruct_shot(index_dir=str(shot / "idx"), bundles=str(shot / "bundles.csv"), out=str(out),
-                               noise=0, chunk_size=10)
-    page = out / "review" / "index.html"
-    assert summary["review"] == str(page.resolve()) and (out / "review" / "review_frames.js").is_file()
-    report = Artifact.get(artifact_key("shot-report", out))
-    assert report is not None and page.resolve().as_uri() in report.data
-
-
-def test_demo_writes_the_page_and_prints_its_path(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path / "demo"), "--vertices", "1500", "--frames", "8", "-q"]) == 0
-    page = (tmp_path / "demo" / "review" / "index.html").resolve()
-    assert str(page) in capsys.readouterr().out
-    meta = (tmp_path / "demo" / "review" / "review_meta.js").read_text()
-    assert '"noise estimate"' in meta and "distance to the truth" in (page.parent / "review_frames.js").read_text()
 
 
 def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_path):

@@ -10,10 +10,12 @@ The command line, ``lgi demo``, ``lgi reconstruct --review`` and the flows all c
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import shutil
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from importlib import resources
 from pathlib import Path
@@ -413,10 +415,27 @@ def review_report(r: dict[str, Any]) -> list[str]:
 
 
 def review_beside(out: str | Path, index_dir: str | Path, summary: dict[str, Any] | None = None,
-                  options: ReviewOptions | None = None) -> dict[str, Any]:
+                  options: ReviewOptions | None = None, warnings: list[str] | None = None) -> dict[str, Any]:
     """The review page of the reconstruction in ``out``, written to ``out/review`` (``--review``, the demo and the
     flows)."""
-    return review(out, index_dir, Path(out) / "review", options, summary)
+    return review(out, index_dir, Path(out) / "review", options, summary, warnings)
+
+
+@contextlib.contextmanager
+def collected_warnings() -> Iterator[list[str]]:
+    """The warnings lgi logs inside the block (what a run could not do as asked), for the page."""
+    seen: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            seen.append(record.getMessage())
+
+    handler = Collect(logging.WARNING)
+    logging.getLogger("lgi").addHandler(handler)
+    try:
+        yield seen
+    finally:
+        logging.getLogger("lgi").removeHandler(handler)
 
 
 def remove_review(out: str | Path) -> None:

@@ -226,7 +226,8 @@ def demo(out: str | Path, options: DemoOptions | None = None, show_progress: boo
     from lgi.jobs.reconstruct import summarise
     from lgi.jobs.review import ReviewOptions, review_beside
 
-    page = review_beside(out, out / "index", summarise(res, shot, out, {"load": 0.0, "solve": dt}),
+    page = review_beside(out, out / "index", {**summarise(res, shot, out, {"load": 0.0, "solve": dt}),
+                                              "options": opts.to_json()},
                          ReviewOptions(truth=str(out / "truth.npz")))
     s["review"] = page["page"]
     log(f"review page (open it in a browser; no server needed): {page['page']}")

@@ -218,7 +218,7 @@ def reconstruct_shot(
         job.forget_parts(work)
         shutil.rmtree(work, ignore_errors=True)
     if review:
-        summary["review"] = review_task(out, index_dir, summary, fps)
+        summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, fps)
     _report(summary, out)
     logger = get_run_logger()
     for line in job.report_lines(summary):
