@@ -607,10 +607,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "or click), per-frame curves and the run's summary. Open it from the file "
                                    "system: no server, no network. See docs/review.md.",
                        epilog="example: lgi review lgi-demo --index lgi-demo/index --truth lgi-demo/truth.npz "
-                              "--out lgi-demo/review",
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+                              "--out lgi-demo/review")
     s.add_argument("recon_dir", metavar="RECON_DIR", help="a reconstruction (lgi reconstruct's OUT_DIR)")
-    s.add_argument("--index", required=True, metavar="INDEX_DIR", help="the index it was reconstructed with")
+    s.add_argument("--index", required=True, metavar="INDEX_DIR",
+                   help="the index it was reconstructed with (required, no default)")
     s.add_argument("--out", required=True, metavar="REVIEW_DIR",
                    help="the page's folder (replaced as a whole; required, no default)")
     s.add_argument("--truth", metavar="TRUTH_NPZ",
