@@ -157,6 +157,8 @@ def _aligned(other: np.ndarray, other_frames: np.ndarray | None, frames: np.ndar
         if len(other) < len(frames):
             raise InputError(f"{what} has {len(other)} frames, the reconstruction {len(frames)}", path=path)
         return other[: len(frames)]
+    if len(other_frames) == len(frames) and np.array_equal(other_frames, frames):
+        return other  # the same frames in the same order: no copy of a large shot
     pos = {int(f): i for i, f in enumerate(other_frames)}
     absent = [int(f) for f in frames if int(f) not in pos]
     if absent:
