@@ -110,17 +110,38 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     opts = _reconstruct_options(args)
     if args.dask and not args.flow:
         raise InputError("--dask runs the flow's chunk tasks on Dask: it needs --flow")
+    if opts.method == "blendshape" and args.flow:
+        raise InputError("--method blendshape runs in this process: it does not take --flow")
+    if args.review:
+        from lgi.io.atomic import check_output as check_dir
+        from lgi.jobs.review import REVIEW_ENTRIES
+
+        check_dir(f"{args.out}/review", "dir", owned=REVIEW_ENTRIES, what="lgi review folder")  # before the work
     if args.flow:
         check_output(args.out, (args.index_dir, args.bundles, opts.jaw, opts.observations, opts.calib,
                                 opts.contours))
         preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
         from lgi.orchestration.reconstruct import reconstruct_shot
 
-        summary = reconstruct_shot(args.index_dir, args.bundles, args.out, dask_address=args.dask, **opts.to_json())
+        summary = reconstruct_shot(args.index_dir, args.bundles, args.out, dask_address=args.dask,
+                                   review=args.review, **opts.to_json())
     else:
-        summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
-    for line in report_lines(summary):
+        from lgi.jobs.review import collected_warnings
+
+        with collected_warnings() as warned:
+            summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
+        if args.review:
+            from lgi.jobs.review import ReviewOptions, review_beside
+
+            summary["review"] = review_beside(args.out, args.index_dir, {**summary, "options": opts.to_json()},
+                                              ReviewOptions(fps=args.fps), warned)["page"]
+    report = report_lines
+    if opts.method == "blendshape":
+        from lgi.jobs.blendshape import blendshape_report as report
+    for line in report(summary):
         print(line)
+    if summary.get("review"):
+        print(f"review page: {summary['review']}")
     return 0
 
 
@@ -211,6 +232,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     demo(args.out, DemoOptions(vertices=args.vertices, frames=args.frames, seed=args.seed),
          show_progress=not args.quiet)
+    return 0
+
+
+def cmd_review(args: argparse.Namespace) -> int:
+    from lgi.jobs.review import ReviewOptions, review, review_report
+
+    opts = ReviewOptions(truth=args.truth, compare=args.compare, fps=args.fps, step_um=args.step)
+    for line in review_report(review(args.recon_dir, args.index, args.out, opts)):
+        print(line)
     return 0
 
 
@@ -534,12 +564,17 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--fps", type=float, default=30.0, metavar="F",
                    help="USD time codes per second (default %(default)s)")
     g.add_argument("--plot", action="store_true", help="also write OUT_DIR/per_frame.png")
+    g.add_argument("--review", action="store_true",
+                   help="also write the shot's review page into OUT_DIR/review (index.html; see lgi review)")
     _quiet(g)
     g = s.add_argument_group("method")
-    g.add_argument("--method", default="local", choices=["local", "simplex"],
+    g.add_argument("--method", default="local", choices=["local", "simplex", "blendshape"],
                    help="local: a global fit of the jaw and shape weights, refitted per bundle over its natural "
                         "neighbours and its containing simplices' shapes; simplex: the paper's choice among "
-                        "containing simplices only (default %(default)s)")
+                        "containing simplices only; blendshape: no LGI, the rigged bounded blendshape fit (jaw and "
+                        "weights per frame, then skinned; the benchmarks' baseline), the same outputs, for lgi "
+                        "review --compare (the LGI options --noise, --smooth, --far-field... do not apply) "
+                        "(default %(default)s)")
     g.add_argument("--temporal-weight", type=float, default=0.02, metavar="MM",
                    help="preference for the previous frame's shapes, mm of neighbour misfit (default %(default)s; "
                         "0 = none)")
@@ -816,6 +851,36 @@ def build_parser() -> argparse.ArgumentParser:
                    help="performance length, frames (default %(default)s)")
     g.add_argument("--seed", type=int, default=0, metavar="S", help="performance seed (default %(default)s)")
     s.set_defaults(func=cmd_demo)
+
+    # ---------------------------------------------------------------------------------------------------- review
+    s = _command(sub, "review", "write a shot's review page (3D, colour maps, markers, curves)",
+                 "Write REVIEW_DIR/index.html and its data scripts: the reconstruction in 3D (orbit, zoom, pan; "
+                 "play, step, slider, speed), colour maps in mm (distance to the truth, the correction's size, the "
+                 "distance from another reconstruction), the markers coloured by their status per frame (the "
+                 "diagnostics row on hover or click), per-frame curves and the run's summary. Open it from the "
+                 "file system: no server, no network. See docs/review.md.",
+                 ("lgi review lgi-demo --index lgi-demo/index --truth lgi-demo/truth.npz --out lgi-demo/review",),
+                 outputs="REVIEW_DIR/index.html, viewer.js, review_meta.js, review_frames.js (replaced as a whole).")
+    g = s.add_argument_group("inputs")
+    g.add_argument("recon_dir", metavar="RECON_DIR", help="a reconstruction (lgi reconstruct's OUT_DIR)")
+    g.add_argument("--index", required=True, metavar="INDEX_DIR",
+                   help="the index it was reconstructed with (required, no default)")
+    g.add_argument("--truth", metavar="TRUTH_NPZ",
+                   help="true surfaces, an npz with vertices (F, V, 3) in cm (lgi synth's truth.npz): adds the "
+                        "distance-to-truth map (mm) and error curves (default: none)")
+    g.add_argument("--compare", metavar="OTHER_RECON_DIR",
+                   help="another reconstruction of the shot on the same mesh (e.g. --method blendshape): adds the "
+                        "distance between the two (mm) as a colour map (default: none)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="REVIEW_DIR",
+                   help="the page's folder (replaced as a whole; required, no default)")
+    g.add_argument("--fps", type=float, default=30.0, metavar="F",
+                   help="the shot's frame rate, frames per second: playback at speed 1x (default %(default)s)")
+    g.add_argument("--step", type=float, default=10.0, metavar="UM",
+                   help="quantisation step of the positions the page shows, micrometres: they are within half of "
+                        "it; finer steps make a larger page (default %(default)s; 0: the finest the shot's range "
+                        "allows)")
+    s.set_defaults(func=cmd_review)
 
     # ---------------------------------------------------------------------------------------------------- layout
     s = sub.add_parser("layout", help="design a marker layout by integer programming, or compare layouts",

@@ -39,7 +39,7 @@ def test_the_walk_reaches_every_command() -> None:
     cannot pass by looking at nothing."""
     paths = {" ".join(p) for p, _ in _parsers(build_parser())}
     assert {"lgi reconstruct", "lgi rig-generate", "lgi layout design", "lgi layout evaluate", "lgi demo"} <= paths
-    assert len(paths) == 19
+    assert len(paths) >= 19  # one per command, and more as commands are added
     assert len(_arguments()) > 150
 
 

@@ -225,5 +225,13 @@ def demo(out: str | Path, options: DemoOptions | None = None, show_progress: boo
         f"frames: {warm:.1f} s); error against the truth: RMS {s['rms_mm']:.3f} mm, 95th pct {s['p95_mm']:.3f} mm, "
         f"max {s['max_mm']:.2f} mm; max bundle residual {s['max_residual_mm']:.1e} mm")
     log(f"outputs in {out.resolve()}: dataset/, markers.csv, bundles.csv, truth.npz, index/, meshes.npz, "
-        f"diagnostics.csv, per_frame.csv")
+        f"diagnostics.csv, per_frame.csv, review/")
+    from lgi.jobs.reconstruct import summarise
+    from lgi.jobs.review import ReviewOptions, review_beside
+
+    page = review_beside(out, out / "index", {**summarise(res, shot, out, {"load": 0.0, "solve": dt}),
+                                              "options": opts.to_json()},
+                         ReviewOptions(truth=str(out / "truth.npz")))
+    s["review"] = page["page"]
+    log(f"review page (open it in a browser; no server needed): {page['page']}")
     return s

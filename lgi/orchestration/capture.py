@@ -142,13 +142,13 @@ def capture_session(
     rows = []
     for folder in folders:
         shot_dir = out_dir / "shots" / folder.name
-        row: dict = {"shot": folder.name, "status": "failed", "frames": 0, "error": ""}
+        row: dict = {"shot": folder.name, "status": "failed", "frames": 0, "error": "", "review": ""}
         state = reconstruct_shot(index_dir, str(shot_dir / "bundles.csv"), str(shot_dir / "recon"), smooth=smooth,
                                  usd=usd, fps=fps, chunk_size=chunk_size, footage=str(folder), calib=calib,
                                  markers=markers, helmet=helmet, dask_address=dask_address, return_state=True)
         try:
             summary = state.result()
-            row.update(status="done", frames=summary["frames"], recon=summary["out"])
+            row.update(status="done", frames=summary["frames"], recon=summary["out"], review=summary.get("review", ""))
             if exr_size is not None:
                 export_shot(summary["out"], index_dir, str(shot_dir / "exr"), exr_size, fps)
                 row["exr"] = str((shot_dir / "exr").resolve())
@@ -162,7 +162,9 @@ def capture_session(
     create_markdown_artifact(key=f"{key}-report", markdown=(
         f"# Capture session\n\ncalibration: `{calib}` ({'cached' if cal_hit else 'computed'})\n\n"
         f"{len(rows) - len(failed)} of {len(rows)} shots reconstructed"
-        + ("".join(f"\n- **{r['shot']}** failed: {r['error']}" for r in failed) if failed else "") + "\n"))
+        + ("".join(f"\n- **{r['shot']}** failed: {r['error']}" for r in failed) if failed else "")
+        + "".join(f"\n- {r['shot']}: review page [{r['review']}]({Path(r['review']).as_uri()})"
+                  for r in rows if r.get("review")) + "\n"))
     logger.info("%d of %d shots reconstructed%s", len(rows) - len(failed), len(rows),
                 f"; failed: {', '.join(r['shot'] for r in failed)}" if failed else "")
     return {"calibration": calib, "calibration_cached": cal_hit, "shots": rows, "failed": [r["shot"] for r in failed]}

@@ -88,6 +88,14 @@ def write_shot(index_dir: str, bundles: str, options: dict, parts: list[str], ou
     return job.assemble(index_dir, bundles, job.ReconstructOptions.from_json(options), parts, out)
 
 
+@task(name="review-page", **_T)
+def review_task(out: str, index_dir: str, summary: dict, fps: float) -> str:
+    """The shot's review page in ``out/review`` (see :func:`lgi.jobs.review.review`); returns its path."""
+    from lgi.jobs.review import ReviewOptions, review_beside
+
+    return review_beside(out, index_dir, summary, ReviewOptions(fps=fps))["page"]
+
+
 @flow(name="reconstruct-shot")
 @described(job.ReconstructOptions, index_dir="LGI index folder (lgi build).",
            bundles="Bundles file (CSV or Parquet: frame, marker, x, y, z in cm, head frame); written first when "
@@ -109,7 +117,9 @@ def write_shot(index_dir: str, bundles: str, options: dict, parts: list[str], ou
            helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot, with footage.",
            dask_address="Run the chunk tasks on Dask: a scheduler address (tcp://host:8786), or local:N for a "
                         "local cluster of N worker processes (null: threads in this process). Results are the "
-                        "same bit for bit.")
+                        "same bit for bit.",
+           review="Also write the shot's review page into OUT/review (index.html: the shot in 3D with its "
+                  "markers, colour maps and curves; opens from the file system) and link it in the report.")
 def reconstruct_shot(
     index_dir: str,
     bundles: str,
@@ -136,6 +146,7 @@ def reconstruct_shot(
     markers: str | None = None,
     helmet: str | None = None,
     dask_address: str | None = None,
+    review: bool = True,
 ) -> dict:
     """Reconstruct a shot into ``out``: the options of ``lgi reconstruct`` (:class:`~lgi.jobs.reconstruct.
     ReconstructOptions`), with the work in chunks of ``chunk_size`` frames.
@@ -202,6 +213,8 @@ def reconstruct_shot(
     finally:
         job.forget_parts(work)
         shutil.rmtree(work, ignore_errors=True)
+    if review:
+        summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, fps)
     _report(summary, out)
     logger = get_run_logger()
     for line in job.report_lines(summary):
@@ -312,4 +325,6 @@ def _report(summary: dict, out: str) -> None:
         "|---|---|---|---|---|\n"
         f"| {summary['contained_share']:.1%} | {summary['projected_share']:.1%} | {summary['neighbour_share']:.1%} "
         f"| {summary['missing_share']:.1%} | {summary['max_residual_mm']:.2e} mm |\n\n"
-        f"{plot}Diagnostics: `diagnostics.csv`, `per_frame.csv`\n"))
+        f"{plot}Diagnostics: `diagnostics.csv`, `per_frame.csv`\n"
+        + (f"\nReview page (open in a browser): [{summary['review']}]({Path(summary['review']).as_uri()})\n"
+           if summary.get("review") else "")))

@@ -34,9 +34,10 @@ class ReconstructOptions:
         Moving average of the jaw parameters (None: ``smooth``; below 1 is taken as 1).
     noise : float (mm) or "auto"
         Bundle noise per coordinate; 0 = exact bundles.
-    method : "local" or "simplex"
+    method : "local", "simplex" or "blendshape"
         Where a bundle's weights come from: refitted over its natural neighbours ("local"), or the paper's
-        choice among the containing simplices only ("simplex").
+        choice among the containing simplices only ("simplex"); "blendshape": no LGI, the rigged bounded
+        blendshape fit of the benchmarks' baseline (:mod:`lgi.jobs.blendshape`).
     jaw : "auto", "none" or a CSV path
         With a rigged index: estimate the jaw per frame, or read it (frame, open_deg, yaw_deg, roll_deg,
         forward_cm); "none" needs an index without a rig.
@@ -119,8 +120,8 @@ class ReconstructOptions:
                 raise bad("noise", f"takes a number of mm or 'auto', not {self.noise!r}") from None
             if not math.isfinite(value) or value < 0:
                 raise bad("noise", f"must be a finite number of mm >= 0, not {self.noise!r}")
-        if self.method not in ("local", "simplex"):
-            raise bad("method", f"takes 'local' or 'simplex', not {self.method!r}")
+        if self.method not in ("local", "simplex", "blendshape"):
+            raise bad("method", f"takes 'local', 'simplex' or 'blendshape', not {self.method!r}")
         if not isinstance(self.fps, (int, float)) or not math.isfinite(self.fps) or self.fps <= 0:
             raise bad("fps", f"must be a positive number, not {self.fps!r}")
         if self.calib and not self.observations:

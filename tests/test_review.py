@@ -1,0 +1,317 @@
+"""The shot review page (lgi review): packing, bad input, and the page itself in a real headless browser.
+
+The browser tests drive Debian's chromium through Playwright's Python package (no browser download); they skip
+with the reason when either is missing."""
+
+from __future__ import annotations
+
+import io
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lgi.cli import main
+from lgi.review.pack import blob, decode_codes, dequantise_frames, encode_codes, quantise_frames, quantise_map, unblob
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+
+
+# ------------------------------------------------------------------------------------------------ packing
+def test_quantised_frames_round_trip_within_half_a_step():
+    rng = np.random.default_rng(0)
+    rest = rng.normal(0, 5, (400, 3)).astype(np.float32)
+    verts = rest[None] + rng.normal(0, 0.4, (12, 400, 3)).astype(np.float32)
+    verts[:, :100] = rest[:100]  # vertices that never move are left out of the codes
+    q = quantise_frames(verts, rest)
+    back = dequantise_frames(q)
+    err = np.abs(back.astype(np.float64) - verts.astype(np.float64)).max()
+    # Half a code step, plus float32 rounding of coordinates of ~15 cm.
+    assert err <= q.error_bound_cm + 4e-6
+    assert q.error_bound_cm < 1e-4  # 1 um for displacements of a couple of cm
+    assert q.codes.dtype == np.int16 and not np.isin(np.arange(100), q.moving).any()
+    coarse = quantise_frames(verts, rest, step=1e-3)  # lgi review's default, 10 um
+    assert coarse.scale == 1e-3 and np.abs(dequantise_frames(coarse) - verts).max() <= 5e-4 + 4e-6
+    for arr in (q.codes, q.moving, q.rest):
+        assert np.array_equal(unblob(blob(arr)), arr)
+    assert np.array_equal(unblob(blob(q.codes, compress=False)), q.codes)
+    # Frame differences wrap in int16 (a jump of more than half the range) and still come back exactly.
+    jumpy = q.codes.copy()
+    jumpy[::2] = 32767
+    jumpy[1::2] = -32767
+    for c in (q.codes, jumpy):
+        assert np.array_equal(decode_codes(unblob(blob(encode_codes(c))), c.shape), c)
+
+
+def test_colour_map_codes():
+    c = quantise_map(np.array([0.0, 0.5, 1.0, 7.0, np.nan]), 1.0)
+    assert c.tolist() == [0, 128, 255, 255, 0]
+
+
+def test_still_shot_quantises():
+    rest = np.ones((5, 3), np.float32)
+    q = quantise_frames(np.repeat(rest[None], 3, axis=0), rest)
+    assert q.moving.size == 0 and np.array_equal(dequantise_frames(q), np.repeat(rest[None], 3, axis=0))
+
+
+# ------------------------------------------------------------------------------------------------ a small shot
+@pytest.fixture(scope="module")
+def shot(tmp_path_factory) -> Path:
+    """A 20-frame synthetic shot of 3000 vertices, reconstructed from bundles with a few missing."""
+    t = tmp_path_factory.mktemp("review")
+    assert main(["synth", "--out", str(t / "s"), "--vertices", "3000", "--frames", "20", "-q"]) == 0
+    assert main(["build", str(t / "s" / "dataset"), "--markers", str(t / "s" / "markers.csv"), "--out",
+                 str(t / "idx"), "--jaw-rig", str(t / "s" / "jaw_rig.npz"), "-q"]) == 0
+    d = pd.read_csv(t / "s" / "bundles.csv")
+    d = d.drop(index=np.random.default_rng(1).choice(len(d), len(d) // 25, replace=False))
+    d.to_csv(t / "bundles.csv", index=False)
+    assert main(["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(t / "rec"),
+                 "--noise", "0", "-q"]) == 0
+    assert main(["review", str(t / "rec"), "--index", str(t / "idx"), "--truth", str(t / "s" / "truth.npz"),
+                 "--out", str(t / "page")]) == 0
+    return t
+
+
+def test_method_blendshape_is_the_baseline_fit(shot, capsys):
+    """--method blendshape writes the rigged blendshape fit of the benchmarks, as a reconstruction with its review
+    page; lgi review --compare shows LGI against it."""
+    from lgi.capture.bundles import read_bundles
+    from lgi.evaluation.baselines import RiggedBlendshapeSolver
+    from lgi.index.build import LGIIndex
+
+    t = shot
+    assert main(["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(t / "recb"),
+                 "--method", "blendshape", "--review", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "blendshape fit" in out and str(t / "recb" / "review" / "index.html") in out
+    index = LGIIndex.load(t / "idx")
+    want = RiggedBlendshapeSolver(index).solve_sequence(read_bundles(t / "bundles.csv", index.marker_names).positions)
+    got = np.load(t / "recb" / "meshes.npz")
+    assert np.array_equal(got["vertices"], want) and got["jaw"].shape == (20, 4)
+    d = pd.read_csv(t / "recb" / "diagnostics.csv")
+    assert set(d.status) == {"fitted", "missing"}
+    seen = d.status == "fitted"
+    assert np.allclose(d.residual_mm[seen], d.residual_before_mm[seen])
+    assert (t / "recb" / "per_frame.csv").is_file() and (t / "recb" / "review" / "review_frames.js").is_file()
+    assert main(["review", str(t / "rec"), "--index", str(t / "idx"), "--compare", str(t / "recb"),
+                 "--out", str(t / "page_compare")]) == 0
+    assert "compare" in capsys.readouterr().out
+
+
+def test_method_blendshape_refuses_lgi_only_options(shot, tmp_path, capsys):
+    assert main(["reconstruct", str(shot / "idx"), "--bundles", str(shot / "bundles.csv"), "--out",
+                 str(tmp_path / "r"), "--method", "blendshape", "--max-gap", "3"]) == 2
+    assert "--max-gap" in capsys.readouterr().err and not (tmp_path / "r").exists()
+
+
+def test_review_writes_a_self_contained_page(shot):
+    page = shot / "page"
+    assert sorted(p.name for p in page.iterdir()) == ["index.html", "review_frames.js", "review_meta.js",
+                                                      "viewer.js"]
+    html = (page / "index.html").read_text()
+    js = (page / "viewer.js").read_text()
+    for text in (html, js):  # nothing fetched at view time
+        assert "http://" not in text and "https://" not in text and "fetch(" not in text
+
+
+def test_review_not_a_reconstruction(shot, tmp_path, capsys):
+    out = tmp_path / "page"
+    assert main(["review", str(shot / "s"), "--index", str(shot / "idx"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "meshes.npz" in err and "not a reconstruction" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_review_compare_other_topology(shot, tmp_path, capsys):
+    other = tmp_path / "other"
+    other.mkdir()
+    np.savez(other / "meshes.npz", vertices=np.zeros((20, 50, 3), np.float32), frames=np.arange(20))
+    out = tmp_path / "page"
+    assert main(["review", str(shot / "rec"), "--index", str(shot / "idx"), "--compare", str(other),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(other / "meshes.npz") in err and "topology" in err and not out.exists()
+
+
+def test_review_truth_of_another_shot(shot, tmp_path, capsys):
+    bad = tmp_path / "truth.npz"
+    np.savez(bad, vertices=np.zeros((5, 3000 + 21, 3), np.float32), frames=np.arange(100, 105))
+    assert main(["review", str(shot / "rec"), "--index", str(shot / "idx"), "--truth", str(bad),
+                 "--out", str(tmp_path / "page")]) == 2
+    assert str(bad) in capsys.readouterr().err
+
+
+def test_review_refuses_a_folder_of_other_files(shot, tmp_path, capsys):
+    out = tmp_path / "page"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert main(["review", str(shot / "rec"), "--index", str(shot / "idx"), "--out", str(out)]) == 2
+    assert "notes.txt" in capsys.readouterr().err and (out / "notes.txt").read_text() == "mine"
+
+
+def test_shot_flow_writes_and_links_the_page(prefect_harness, shot):
+    """The reconstruct-shot flow writes OUT/review and links it from its report artifact. (Before the browser
+    tests: Playwright's sync API keeps an event loop running in this thread, where Prefect's sync calls would
+    return coroutines.)"""
+    from prefect.artifacts import Artifact
+
+    from flows.reconstruct_shot import reconstruct_shot
+    from lgi.orchestration import artifact_key
+
+    out = shot / "via_flow"
+    summary = reconstruct_shot(index_dir=str(shot / "idx"), bundles=str(shot / "bundles.csv"), out=str(out),
+                               noise=0, chunk_size=10)
+    page = out / "review" / "index.html"
+    assert summary["review"] == str(page.resolve()) and (out / "review" / "review_frames.js").is_file()
+    report = Artifact.get(artifact_key("shot-report", out))
+    assert report is not None and page.resolve().as_uri() in report.data
+
+
+def test_demo_writes_the_page_and_prints_its_path(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--vertices", "1500", "--frames", "8", "-q"]) == 0
+    page = (tmp_path / "demo" / "review" / "index.html").resolve()
+    assert str(page) in capsys.readouterr().out
+    meta = (tmp_path / "demo" / "review" / "review_meta.js").read_text()
+    assert '"noise estimate"' in meta and '"options"' in meta
+    assert "distance to the truth" in (page.parent / "review_frames.js").read_text()
+
+
+# ------------------------------------------------------------------------------------------------ the browser
+@pytest.fixture(scope="module")
+def browser():
+    sync_api = pytest.importorskip("playwright.sync_api", reason="Playwright's Python package is not installed "
+                                                                 "(pip install playwright)")
+    if not Path(CHROMIUM).is_file():
+        pytest.skip(f"no chromium at {CHROMIUM} (apt-get install -y chromium)")
+    with sync_api.sync_playwright() as p:
+        try:
+            # SwiftShader: WebGL on the CPU, as a headless machine has no GPU.
+            b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox", "--use-angle=swiftshader",
+                                                                  "--enable-unsafe-swiftshader"])
+        except Exception as exc:  # noqa: BLE001 - any launch failure means the browser cannot run here
+            pytest.skip(f"chromium cannot start here: {exc}")
+        yield b
+        b.close()
+
+
+@pytest.fixture()
+def page(browser, shot):
+    pg = browser.new_page(viewport={"width": 1100, "height": 760}, device_scale_factor=1)
+    errors: list[str] = []
+    pg.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto((shot / "page" / "index.html").resolve().as_uri())
+    pg.wait_for_function("window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)", timeout=60_000)
+    pg.errors = errors
+    yield pg
+    pg.close()
+
+
+def _pixels(png: bytes) -> np.ndarray:
+    import matplotlib.image
+
+    return (matplotlib.image.imread(io.BytesIO(png), format="png")[..., :3] * 255).round().astype(np.int16)
+
+
+def test_page_loads_from_file_without_errors(page):
+    assert page.evaluate("window.lgiReview.error") is None
+    assert page.errors == []
+    timing = page.evaluate("window.lgiReview.timing")
+    assert timing["decode_ms"] >= 0 and page.evaluate("window.lgiReview.nFrames") == 20
+
+
+def test_canvas_is_not_blank_and_screenshot_kept(page, tmp_path):
+    png = page.locator("#gl").screenshot()
+    px = _pixels(png)
+    background = px[2, 2]
+    differs = np.any(np.abs(px - background) > 12, axis=2)
+    assert differs.mean() > 0.1  # the face covers a good share of the view
+    assert len(np.unique(px[differs].reshape(-1, 3), axis=0)) > 50  # shaded, not flat
+    page.screenshot(path=str(tmp_path / "review.png"))
+    assert (tmp_path / "review.png").stat().st_size > 10_000
+
+
+def test_slider_changes_the_picture(page, tmp_path):
+    page.uncheck("#showMarkers")
+    before = _pixels(page.locator("#gl").screenshot())
+    page.locator("#slider").fill("15")
+    assert page.evaluate("window.lgiReview.frame()") == 15
+    assert "16/20" in page.inner_text("#frameLabel")
+    after = _pixels(page.locator("#gl").screenshot(path=str(tmp_path / "frame15.png")))
+    assert np.any(np.abs(after - before) > 12, axis=2).sum() > 200
+
+
+def test_colour_map_changes_the_colours(page, tmp_path):
+    page.uncheck("#showMarkers")
+    shaded = _pixels(page.locator("#gl").screenshot())
+    assert set(page.evaluate("window.lgiReview.maps")) >= {"truth", "correction"}
+    for key in ("truth", "correction"):
+        page.select_option("#map", key)
+        coloured = _pixels(page.locator("#gl").screenshot(path=str(tmp_path / f"map_{key}.png")))
+        assert np.any(np.abs(coloured - shaded) > 20, axis=2).mean() > 0.05
+        # The shaded face is grey; a map paints it in the ramp's blues.
+        face = np.any(np.abs(coloured - coloured[2, 2]) > 12, axis=2)
+        assert (coloured[face][:, 2] - coloured[face][:, 0]).mean() > 20
+        assert page.is_visible("#colourbar") and "mm" in page.locator("#cbar").get_attribute("title")
+
+
+def test_marker_status_colour_matches_the_diagnostics(page, shot, tmp_path):
+    diag = pd.read_csv(shot / "rec" / "diagnostics.csv", keep_default_na=False)
+    frames = sorted(diag.frame.unique())
+    markers = page.evaluate("window.lgiReview && window.LGI_REVIEW_META.markers")
+    checked = set()
+    for frame_pos in (0, 10, 19):
+        page.evaluate(f"window.lgiReview.setFrame({frame_pos})")
+        rows = diag[diag.frame == frames[frame_pos]].set_index("marker")
+        screen = np.array([page.evaluate(f"window.lgiReview.markerScreen({m})") for m in range(len(markers))])
+        img = _pixels(page.locator("#gl").screenshot(path=str(tmp_path / f"markers_{frame_pos}.png")))
+        gaps = np.linalg.norm(screen[:, None] - screen[None], axis=2) + np.eye(len(markers)) * 1e9
+        for m in np.flatnonzero(gaps.min(axis=1) > 14):  # markers with room around them
+            status = rows.loc[markers[m], "status"]
+            if rows.loc[markers[m]].get("constraint", "") == "ray":
+                status = "ray"
+            want = np.round(np.array(page.evaluate(f"window.lgiReview.statusColour('{status}')")) * 255)
+            x, y = np.round(screen[m]).astype(int)
+            if not (2 <= x < img.shape[1] - 2 and 2 <= y < img.shape[0] - 2):
+                continue
+            got = img[y - 1:y + 2, x - 1:x + 2].reshape(-1, 3)
+            assert np.abs(got - want).max(axis=1).min() <= 3, (frame_pos, markers[m], status, got, want)
+            checked.add(status)
+    assert {"missing", "fitted"} <= checked or len(checked) >= 2, checked
+    # Hovering a marker shows its name and its diagnostics row.
+    m = int(np.flatnonzero(gaps.min(axis=1) > 14)[0])
+    x, y = page.evaluate(f"window.lgiReview.markerScreen({m})")
+    box = page.locator("#gl").bounding_box()
+    page.mouse.move(box["x"] + x, box["y"] + y)
+    text = page.inner_text("#marker")
+    assert markers[m] in text and "residual_mm" in text and rows.loc[markers[m], "status"] in text
+
+
+def test_clicking_a_curve_jumps_to_its_frame(page):
+    box = page.locator("#curves").bounding_box()
+    page.mouse.click(box["x"] + box["width"] - 8, box["y"] + box["height"] / 2)
+    assert page.evaluate("window.lgiReview.frame()") == 19
+    page.click("#back")
+    assert page.evaluate("window.lgiReview.frame()") == 18
+
+
+def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_path):
+    """A shot longer than a block is inflated block by block; frame 19 from blocks of 8 frames is the same
+    picture as from one block."""
+    import lgi.jobs.review as job
+
+    monkeypatch.setattr(job, "BLOCK", 8)
+    job.review(shot / "rec", shot / "idx", tmp_path / "blocks", job.ReviewOptions(truth=str(shot / "s" / "truth.npz")))
+    shots = []
+    for folder in (shot / "page", tmp_path / "blocks"):
+        pg = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1)
+        pg.goto((folder / "index.html").resolve().as_uri())
+        pg.wait_for_function("window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)",
+                             timeout=60_000)
+        assert pg.evaluate("window.lgiReview.error") is None
+        pg.evaluate("window.lgiReview.setFrame(19); window.lgiReview.setMap('truth')")
+        shots.append(_pixels(pg.locator("#gl").screenshot()))
+        pg.close()
+    assert np.abs(shots[0] - shots[1]).max() <= 2
