@@ -165,6 +165,17 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_compare(args: argparse.Namespace) -> int:
+    from lgi.jobs.compare import CompareOptions, compare, compare_report
+
+    opts = CompareOptions(frames=tuple(args.frame or ()), scans=tuple(args.scan or ()), pairs=args.pairs,
+                          index=args.index, align=args.align, region=args.region, gate_mm=args.gate,
+                          units=args.units, out=args.out)
+    for line in compare_report(compare(args.recon_dir, opts)):
+        print(line)
+    return 0
+
+
 def cmd_rig(args: argparse.Namespace) -> int:
     from lgi.jobs.index import RigOptions, fit_jaw_rig, rig_report
 
@@ -527,6 +538,46 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--fps", type=float, default=30.0, help="USD time codes per second (30)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_export)
+
+    s = sub.add_parser("compare", help="compare reconstructed frames with scans of any topology (distances in mm)",
+                       description="Point-to-surface distances both ways between reconstructed frames and scans of "
+                                   "the same moments (any topology; holes, hair and shoulders allowed): RMS, 95th "
+                                   "percentile, maximum and Hausdorff distance (mm) where the scan covers the face, "
+                                   "and the covered share. See docs/compare.md.",
+                       epilog="examples:\n"
+                              "  lgi compare synth/recon --index synth/index --frame 12 --scan scans/take3_f12.obj\n"
+                              "  lgi compare recon --index index --pairs scans.csv --units mm --align rigid "
+                              "--region face --out recon/compare",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("recon_dir", metavar="RECON_DIR", help="a folder written by lgi reconstruct (its meshes.npz)")
+    s.add_argument("--index", metavar="INDEX_DIR",
+                   help="the index (or dataset) the shot was reconstructed with: the mesh's triangles (default: "
+                        "RECON_DIR/obj/frame_NNNNN.obj, written by lgi reconstruct --obj)")
+    s.add_argument("--frame", type=int, action="append", metavar="F",
+                   help="a frame number of the reconstruction; repeat, one per --scan, in the same order "
+                        "(default: none; give pairs this way or with --pairs)")
+    s.add_argument("--scan", action="append", metavar="SCAN",
+                   help="a scan of that frame's moment (.obj, .ply, .stl or .off; in --units); repeat, one per --frame "
+                        "(default: none)")
+    s.add_argument("--pairs", metavar="CSV",
+                   help="instead of --frame/--scan: a CSV with columns frame, scan (paths relative to the CSV's "
+                        "folder) (default: none)")
+    s.add_argument("--units", default="cm", choices=["mm", "cm", "m", "in"],
+                   help="units of the scan files, converted to cm like the reconstruction (default cm)")
+    s.add_argument("--align", default="none", choices=["none", "rigid"],
+                   help="rigid: first move the scan onto the reconstruction by ICP over the covered region, and "
+                        "report the transform; none: compare as given (default none)")
+    s.add_argument("--region", default="all", metavar="REGION",
+                   help="vertices to measure: all, face (the face area), marked (what the markers constrain; needs "
+                        "--index), lips (the synthetic actor and ICT), FIRST:LAST (0-based vertex indices, "
+                        "inclusive) or a vertex index file (JSON list, text or .npy) (default all)")
+    s.add_argument("--gate", type=float, default=10.0, metavar="MM",
+                   help="closest points farther than this, in mm, count as not covered (reconstruction) or outside "
+                        "(scan) (default 10)")
+    s.add_argument("--out", metavar="DIR",
+                   help="also write summary.csv/.json, per-vertex distances (Parquet) and heat maps (PNG) here "
+                        "(default: print only)")
+    s.set_defaults(func=cmd_compare)
 
     s = sub.add_parser("bench", help="compare LGI with the baselines on the same frames",
                        description="Run LGI, the blendshape fits (with and without the jaw rig), RBF weights + "
