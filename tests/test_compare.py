@@ -17,6 +17,7 @@ import pytest
 from lgi.cli import main
 from lgi.dataset.mesh import ClosestPointQuery, vertex_normals
 from lgi.dataset.shapes import ShapeDataset
+from lgi.evaluation.compare import remeshed_scan
 from lgi.io.npz import save_npz
 from lgi.io.obj import write_obj
 
@@ -32,27 +33,6 @@ def run(argv: list[str], capsys) -> tuple[int, str, str]:
         code = int(exc.code or 0)
     out, err = capsys.readouterr()
     return code, out, err
-
-
-def remeshed(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``vertices``' surface remeshed by pymeshlab (another topology), with the forehead hole cut out."""
-    import pymeshlab
-
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(np.asarray(vertices, np.float64), np.asarray(triangles, np.int32)))
-    edge = np.linalg.norm(vertices[triangles[:, 0]] - vertices[triangles[:, 1]], axis=1).mean()
-    ms.meshing_isotropic_explicit_remeshing(iterations=6, targetlen=pymeshlab.PureValue(0.7 * edge),
-                                            maxsurfdist=pymeshlab.PureValue(0.005))
-    w = ms.current_mesh().vertex_matrix()
-    g = ms.current_mesh().face_matrix().astype(np.int64)
-    c = w[g].mean(axis=1)
-    cx, cy, hx, hy = HOLE
-    hole = (np.abs(c[:, 0] - cx) < hx) & (np.abs(c[:, 1] - cy) < hy)
-    g = g[~hole]
-    used = np.unique(g)
-    remap = np.full(len(w), -1)
-    remap[used] = np.arange(len(used))
-    return w[used], remap[g]
 
 
 def save_scan(path: Path, vertices: np.ndarray, triangles: np.ndarray, scale: float = 1.0) -> Path:
@@ -76,7 +56,8 @@ def shot(tmp_path_factory) -> dict:
     ds = ShapeDataset.load(w / "s" / "dataset")
     tri = ds.triangles.astype(np.int64)
     x = truth["vertices"][FRAME].astype(np.float64)
-    sv, st = remeshed(x, tri)
+    edge = np.linalg.norm(x[tri[:, 0]] - x[tri[:, 1]], axis=1).mean()
+    sv, st = remeshed_scan(x, tri, 0.7 * edge, HOLE)
     # The bound: how far the true vertices are from the remeshed surface (independent of pymeshlab's filter).
     bound = ClosestPointQuery(sv, st).query(x)[2]
     return {"w": w, "tri": tri, "x": x, "scan_v": sv, "scan_t": st, "bound": bound,
@@ -232,3 +213,7 @@ def test_bad_scans_exit_2_naming_the_file(shot, capsys, tmp_path) -> None:
     assert code == 2 and "one --scan per --frame" in err
     code, _, err = run([*base[:-1], "99", "--scan", str(shot["scan"])], capsys)
     assert code == 2 and "frame 99" in err
+    code, _, err = run([*base, "--scan", str(shot["scan"]), "--out", str(w / "true")], capsys)
+    assert code == 2 and "would replace this run's input" in err  # the output may not replace the reconstruction
+    code, _, err = run([*base, "--scan", str(far), "--align", "rigid"], capsys)
+    assert code == 2 and str(far) in err

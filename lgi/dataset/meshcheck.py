@@ -18,8 +18,8 @@ the mesh's edges):
 * **degenerate faces**: zero area (repeated corners, collinear corners): a vertex area or cotangent of 0;
 * **unreferenced vertices**: no face uses them, so they have no area;
 * **isolated pieces**: a piece of fewer than :data:`MIN_PIECE_TRIANGLES` triangles apart from the main mesh:
-  debris of an edit (a stray or duplicated face), never a modelled part (ICT FaceKit's smallest parts, 56 in all,
-  have 30 triangles each).
+  debris of an edit (a stray or duplicated face), never a modelled part (ICT FaceKit has 56 pieces; the smallest
+  have 30 triangles).
 
 Counted and reported (not refused): pieces, boundary loops (holes and outlines), the genus.
 """

@@ -269,7 +269,12 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
         if not np.all(np.isfinite(v)):
             raise InputError("non-finite vertex positions", path=src, frame=f)
         scan = read_scan(scan_path, o.units)
-        res = compare_frame(v, topo.triangles, scan, region, gate, o.align)
+        try:
+            res = compare_frame(v, topo.triangles, scan, region, gate, o.align)
+        except InputError as exc:
+            if exc.path is not None:
+                raise
+            raise InputError(exc.message, path=scan_path, frame=f) from None
         n_cov = int(res.covered.sum())
         if n_cov == 0:
             raise InputError(f"the scan covers no part of the face: no vertex of frame {f} ({region_text}) is within "
@@ -326,8 +331,10 @@ def _write(out: str | Path, rows: list[dict[str, Any]], vertex_tables: list[pd.D
         pd.concat(scan_tables, ignore_index=True).to_parquet(stage / "scan_distances.parquet", index=False)
         (stage / "heatmaps").mkdir()
         for name, v, values, covered, title in pictures:
+            # Only whole covered triangles are painted; a scan covering scattered vertices alone gets the whole mesh.
+            mask = covered if np.all(covered[triangles], axis=1).any() else None
             heatmap_row(stage / "heatmaps" / f"{name}.png", v, triangles, {"distance to the scan": values},
-                        mask=covered, label="distance (mm)", title=title)
+                        mask=mask, label="distance (mm)", title=title)
 
 
 def compare_report(s: dict[str, Any]) -> list[str]:
