@@ -144,6 +144,8 @@ def read_shape_folder(
     if not files:
         raise InputError("no OBJ files in folder", path=folder)
     neutral_path = _find_neutral(files, folder, neutral)
+    # lgi's reader, not pymeshlab's: it keeps quads, UV seams and the vertex order every shape shares (pymeshlab
+    # triangulates and splits seam vertices) and names the line of a bad value; pymeshlab checks the result.
     mesh = read_obj(neutral_path)
     from lgi.dataset.meshcheck import check_mesh
 
