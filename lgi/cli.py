@@ -188,6 +188,17 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_compare(args: argparse.Namespace) -> int:
+    from lgi.jobs.compare import CompareOptions, compare, compare_report
+
+    opts = CompareOptions(frames=tuple(args.frame or ()), scans=tuple(args.scan or ()), pairs=args.pairs,
+                          index=args.index, align=args.align, region=args.region, gate_mm=args.gate,
+                          units=args.units, out=args.out)
+    for line in compare_report(compare(args.recon_dir, opts)):
+        print(line)
+    return 0
+
+
 def cmd_rig(args: argparse.Namespace) -> int:
     from lgi.jobs.index import RigOptions, fit_jaw_rig, rig_report
 
@@ -793,6 +804,49 @@ def build_parser() -> argparse.ArgumentParser:
                    help="map width and height, texels (default %(default)s)")
     _quiet(g)
     s.set_defaults(func=cmd_export)
+
+    # --------------------------------------------------------------------------------------------------- compare
+    s = _command(sub, "compare", "compare reconstructed frames with scans of any topology (distances in mm)",
+                 "Point-to-surface distances both ways between reconstructed frames and scans of the same moments "
+                 "(any topology; holes, hair and shoulders allowed): RMS, 95th percentile, maximum and Hausdorff "
+                 "distance (mm) where the scan covers the face, and the covered share. See docs/compare.md.",
+                 ("lgi compare synth/recon --index synth/index --frame 12 --scan scans/take3_f12.obj",
+                  "lgi compare recon --index index --pairs scans.csv --units mm --align rigid --region face "
+                  "--out recon/compare"),
+                 outputs="the table on stdout; with --out DIR/summary.csv, summary.json, per-vertex distances "
+                         "(Parquet) and heat maps (PNG).")
+    g = s.add_argument_group("inputs")
+    g.add_argument("recon_dir", metavar="RECON_DIR", help="a folder written by lgi reconstruct (its meshes.npz)")
+    g.add_argument("--index", metavar="INDEX_DIR",
+                   help="the index (or dataset) the shot was reconstructed with: the mesh's triangles (default: "
+                        "RECON_DIR/obj/frame_NNNNN.obj, written by lgi reconstruct --obj)")
+    g.add_argument("--frame", type=int, action="append", metavar="F",
+                   help="a frame number of the reconstruction; repeat, one per --scan, in the same order "
+                        "(default: none; give pairs this way or with --pairs)")
+    g.add_argument("--scan", action="append", metavar="SCAN",
+                   help="a scan of that frame's moment (.obj, .ply, .stl or .off; in --units); repeat, one per "
+                        "--frame (default: none)")
+    g.add_argument("--pairs", metavar="CSV",
+                   help="instead of --frame/--scan: a CSV with columns frame, scan (paths relative to the CSV's "
+                        "folder) (default: none)")
+    g.add_argument("--units", default="cm", choices=["mm", "cm", "m", "in"],
+                   help="units of the scan files, converted to cm like the reconstruction (default %(default)s)")
+    g = s.add_argument_group("method")
+    g.add_argument("--align", default="none", choices=["none", "rigid"],
+                   help="rigid: first move the scan onto the reconstruction by ICP over the covered region, and "
+                        "report the transform; none: compare as given (default %(default)s)")
+    g.add_argument("--region", default="all", metavar="REGION",
+                   help="vertices to measure: all, face (the face area), marked (what the markers constrain; needs "
+                        "--index), lips (the synthetic actor and ICT), FIRST:LAST (0-based vertex indices, "
+                        "inclusive) or a vertex index file (JSON list, text or .npy) (default %(default)s)")
+    g.add_argument("--gate", type=float, default=10.0, metavar="MM",
+                   help="closest points farther than this, mm, count as not covered (reconstruction) or outside "
+                        "(scan) (default %(default)s)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", metavar="DIR",
+                   help="also write summary.csv/.json, per-vertex distances (Parquet) and heat maps (PNG) here "
+                        "(default: print only)")
+    s.set_defaults(func=cmd_compare)
 
     # ----------------------------------------------------------------------------------------------------- bench
     s = _command(sub, "bench", "compare LGI with the baselines on the same frames",

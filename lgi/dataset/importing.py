@@ -169,7 +169,12 @@ def read_shape_folder(
     if not files:
         raise InputError("no OBJ files in folder", path=folder)
     neutral_path = _find_neutral(files, folder, neutral)
+    # lgi's reader, not pymeshlab's: it keeps quads, UV seams and the vertex order every shape shares (pymeshlab
+    # triangulates and splits seam vertices) and names the line of a bad value; pymeshlab checks the result.
     mesh = read_obj(neutral_path)
+    from lgi.dataset.meshcheck import check_mesh
+
+    mesh_check = check_mesh(mesh, neutral_path)  # before the shapes are read: a mesh the index cannot use is refused
     ident_files = [f for f in files if f != neutral_path and fnmatch.fnmatchcase(f.stem, identity_pattern)]
     shape_files = [
         f for f in files
@@ -216,6 +221,7 @@ def read_shape_folder(
         "mtllib": mesh.mtllib,
         "units": "cm",
         "source_units": units,
+        "mesh_check": mesh_check,
     }
     return RawShapes(mesh, x0, positions, [f.stem for f in shape_files], [f.name for f in shape_files], info)
 

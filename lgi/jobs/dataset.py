@@ -160,7 +160,7 @@ def dataset_summary(ds, out: str | Path, seconds: float | None = None) -> dict[s
     s: dict[str, Any] = {"path": str(Path(out).resolve()), "n_shapes": ds.n_shapes, "n_vertices": ds.n_vertices,
                          "n_faces": len(ds.face_offsets) - 1, "units": ds.units,
                          "source_units": ds.info.get("source_units", ds.units), "content_hash": ds.content_hash(),
-                         "stabilisation": st, "seconds": seconds}
+                         "stabilisation": st, "seconds": seconds, "mesh_check": ds.info.get("mesh_check")}
     if st.get("method", "none") != "none":
         s["removed_max_deg"] = max(
             float(np.degrees(np.arccos(np.clip((np.trace(m.rigid_transform[:3, :3]) - 1) / 2, -1, 1))))
@@ -178,6 +178,10 @@ def import_report(s: dict[str, Any]) -> list[str]:
         lines.append(f"stabilised on {st['count']} rigid vertices ({st['method']}): removed up to "
                      f"{s['removed_max_deg']:.3g} deg and {s['removed_max_shift']:.3g} {s['units']}; "
                      f"worst fit RMS {st['fit_rms_max']:.2g} {s['units']}")
+    if s.get("mesh_check"):
+        from lgi.dataset.meshcheck import check_report
+
+        lines.append(check_report(s["mesh_check"]))
     lines.append(f"dataset: {s['path']}  (content hash {s['content_hash'][:16]})")
     return lines
 
