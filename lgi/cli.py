@@ -184,6 +184,16 @@ def cmd_rig_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_rig_solve(args: argparse.Namespace) -> int:
+    from lgi.jobs.rig_solve import RigSolveOptions, rig_solve, rig_solve_report
+
+    opts = RigSolveOptions(smooth=args.smooth, vertices=args.vertices, robust=args.robust, fps=args.fps)
+    for line in rig_solve_report(rig_solve(args.recon_dir, args.rig, args.out, opts, usd=args.usd,
+                                           rig_usd=args.rig_usd, show_progress=not args.quiet)):
+        print(line)
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from lgi.jobs.bench import BenchOptions, bench
 
@@ -475,6 +485,39 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--usd", default=None, metavar="RIG.usda", help="also write the rig as UsdSkel blend shapes")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_rig_generate)
+
+    s = sub.add_parser(
+        "rig-solve", help="a reconstructed shot as animation curves of the actor's rig",
+        description="Fit the rig's control weights (in [0, 1], correctives driven by the product of their controls') "
+                    "to each reconstructed frame over the face region (robust Gauss-Newton, warm-started), then "
+                    "clean the curves over time (a second-difference penalty solved over the shot: no lag). Writes "
+                    "OUT_DIR/curves.csv (frame, control, value), residuals.csv (rig playback - reconstruction, RMS "
+                    "and max mm per frame), vertex_error.npz/.png (where the rig falls short) and solve.json; with "
+                    "--usd, a UsdSkel animation layer over the rig's USD.",
+        epilog="example: lgi rig-solve shot/recon --rig actor_rig --out shot/anim --usd shot/anim.usda "
+               "--rig-usd actor_rig.usda",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("recon_dir", metavar="RECON_DIR", help="the reconstruction (lgi reconstruct's meshes.npz)")
+    s.add_argument("--rig", required=True, metavar="RIG_DIR", help="the actor's rig dataset (lgi rig-generate)")
+    s.add_argument("--out", required=True, metavar="OUT_DIR", help="folder for curves.csv, residuals.csv, ...")
+    s.add_argument("--usd", default=None, metavar="ANIM.usda",
+                   help="also write the shot as a UsdSkel animation of the rig (needs --rig-usd; default: none)")
+    s.add_argument("--rig-usd", default=None, metavar="RIG.usda",
+                   help="the rig's USD (lgi rig-generate --usd), checked against RIG_DIR and sublayered by the "
+                        "animation (default: none)")
+    s.add_argument("--smooth", type=float, default=4.0, metavar="FRAMES",
+                   help="temporal regularisation: the period in frames whose wiggles the curves' penalty halves "
+                        "(zero-phase, so no lag; default 4; 0: each frame fitted on its own)")
+    s.add_argument("--vertices", type=int, default=4000, metavar="N",
+                   help="face vertices fitted per frame, an even subsample (default 4000; 0: every vertex the rig "
+                        "moves)")
+    s.add_argument("--robust", type=float, default=3.0, metavar="TIMES",
+                   help="Huber threshold in multiples of each frame's median vertex residual (default 3; 0: plain "
+                        "least squares)")
+    s.add_argument("--fps", type=float, default=30.0, metavar="FPS",
+                   help="time codes per second of the USD animation (default 30)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar (default: shown)")
+    s.set_defaults(func=cmd_rig_solve)
 
     s = sub.add_parser("augment", help="add in-between shapes to a dataset",
                        description="Add in-betweens: combinations of 2-3 compatible shapes at fixed weights, "
