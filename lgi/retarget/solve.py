@@ -136,38 +136,46 @@ class RigSolver:
         k = rig.n_controls
         d = np.asarray(rig.deltas, np.float64)[:, self.vertices]  # (K + P, S, 3)
         self.x0 = rig.neutral[self.vertices].reshape(-1)
-        self.dc = np.ascontiguousarray(d[:k].reshape(k, -1).T)  # (3S, K)
-        self.dp = np.ascontiguousarray(d[k:].reshape(len(d) - k, -1).T)  # (3S, P)
+        self.d = np.ascontiguousarray(d.reshape(len(d), -1).T)  # (3S, K + P)
+        # The Gram matrix once: an iteration then costs two passes over the sample, and the robust reweighting
+        # only subtracts the few down-weighted vertices' rows from it.
+        self.gram = self.d.T @ self.d
         self.lo = np.zeros(k)
         self.hi = np.ones(k)
         # A ridge at the rounding level keeps the QP's Cholesky defined for a control that moves no sampled vertex.
-        self.ridge = 1e-12 * max(float(np.einsum("ij,ij->", self.dc, self.dc)), 1e-30)
+        self.ridge = 1e-12 * max(float(np.trace(self.gram[:k, :k])), 1e-30)
 
-    def _product_jacobian(self, w: np.ndarray) -> np.ndarray:
-        """(P, K): derivative of each corrective's weight in each control's."""
-        g = np.zeros((len(self.rig.combinations), len(w)))
+    def _chain(self, w: np.ndarray) -> np.ndarray:
+        """(K + P, K): derivative of every shape's weight in each control's (identity, then the products')."""
+        k = len(w)
+        a = np.zeros((k + len(self.rig.combinations), k))
+        a[:k] = np.eye(k)
         for p, combo in enumerate(self.rig.combinations):
             for c in combo:
-                g[p, c] = np.prod([w[o] for o in combo if o != c])
-        return g
+                a[k + p, c] = np.prod([w[o] for o in combo if o != c])
+        return a
 
     def linearise(self, w: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """Residual model at ``w`` for sampled positions ``y`` (3S,): Hessian (K, K), gradient (K,) (of half the
-        reweighted squared residual), the per-vertex robust weights (S,) and the cost."""
+        """Residual model at ``w`` for sampled positions ``y`` (3S,): Gauss-Newton Hessian (K, K), gradient (K,)
+        (of half the reweighted squared residual), the per-vertex robust weights (S,) and the cost."""
         b = self.rig.all_weights(w)
-        k = len(w)
-        r = self.x0 + self.dc @ b[:k] + (self.dp @ b[k:] if self.dp.shape[1] else 0.0) - y
+        r = self.x0 + self.d @ b - y
         dist = np.sqrt(np.sum(r.reshape(-1, 3) ** 2, axis=1))
         omega = np.ones_like(dist)
+        gram = self.gram
         if self.robust > 0:
             c = max(self.robust * float(np.median(dist)), self.floor_cm)
-            big = dist > c
-            omega[big] = c / dist[big]
-        jac = self.dc + (self.dp @ self._product_jacobian(w) if self.dp.shape[1] else 0.0)
-        wj = jac * np.repeat(omega, 3)[:, None]
-        h = jac.T @ wj + self.ridge * np.eye(k)
-        grad = wj.T @ r
-        return h, grad, omega, 0.5 * float(np.sum(np.repeat(omega, 3) * r * r))
+            big = np.flatnonzero(dist > c)
+            if big.size:
+                omega[big] = c / dist[big]
+                rows = (3 * big[:, None] + np.arange(3)).ravel()
+                db = self.d[rows]
+                gram = gram - db.T @ (np.repeat(1.0 - omega[big], 3)[:, None] * db)
+        wr = np.repeat(omega, 3) * r
+        a = self._chain(w)
+        h = a.T @ gram @ a + self.ridge * np.eye(len(w))
+        grad = a.T @ (self.d.T @ wr)
+        return h, grad, omega, 0.5 * float(r @ wr)
 
     def fit_frame(self, y: np.ndarray, w0: np.ndarray | None = None, max_iter: int = 30,
                   tol: float = 1e-9) -> FrameFit:
@@ -223,7 +231,8 @@ def smooth_curves(fits: list[FrameFit], lam: np.ndarray, lo: float = 0.0, hi: fl
     d2 = sp.diags([np.ones(n_f - 2), -2 * np.ones(n_f - 2), np.ones(n_f - 2)], [0, 1, 2], shape=(n_f - 2, n_f))
     a = (h + sp.kron(d2.T @ d2, sp.diags(np.asarray(lam, np.float64)))).tocsc()
     x = np.clip(w, lo, hi)
-    fixed = np.zeros(n_f * k, bool)
+    # Start from the frames' own active bounds (a control at rest stays at 0): few passes then change the set.
+    fixed = (x <= lo) | (x >= hi)
     for _ in range(max_iter):
         free = ~fixed
         sub = a[free][:, free]
