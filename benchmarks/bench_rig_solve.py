@@ -6,7 +6,9 @@ Setup, all through the command line: ``lgi synth --actor 1`` (a 300-frame perfor
 dataset, markers, true jaw rig and truth), ``lgi build`` with its jaw rig, the actor's rig from the default actor's
 template (its 13 controls and its own combination shapes of the pairs ``--correctives auto`` picks, as
 ``bench_rig.py``) with ``lgi rig-generate --correctives auto --usd``, the shot with ``lgi reconstruct``, then
-``lgi rig-solve`` with the default smoothing and with ``--smooth 0`` (each frame on its own).
+``lgi rig-solve`` with the default smoothing and with ``--smooth 0`` (each frame on its own). A second shot adds
+0.2 mm of Gaussian noise per coordinate to the bundles (a tracker's jitter) before ``lgi reconstruct`` (its
+``--noise auto``): synthetic bundles are exact, so only the noisy shot shows what the temporal term is for.
 
 Figures, over the rig's face region (the vertices some rig shape moves), mm:
 - the rig's playback against the reconstruction (what rig-solve fits) and against the truth (the true meshes);
@@ -68,6 +70,10 @@ def prepare(work: Path, n_vertices: int, frames: int, actor: int) -> None:
             str(work / "rig"), "--correctives", "auto", "--usd", str(work / "rig.usda"))
     if not (work / "recon").is_dir():
         lgi("reconstruct", str(work / "index"), "--bundles", str(s / "bundles.csv"), "--out", str(work / "recon"))
+    if not (work / "recon_noisy").is_dir():
+        add_noise(s / "bundles.csv", work / "bundles_noisy.csv")
+        lgi("reconstruct", str(work / "index"), "--bundles", str(work / "bundles_noisy.csv"), "--out",
+            str(work / "recon_noisy"))
 
 
 def stats(e: np.ndarray) -> str:
@@ -81,6 +87,19 @@ def best_shift(curve: np.ndarray, truth: np.ndarray, span: int = 3) -> int:
     return int(np.argmin(err)) - span
 
 
+SHOTS = (("exact bundles", "recon", ""), ("bundles + 0.2 mm noise", "recon_noisy", "_noisy"))
+NOISE_CM = 0.02
+
+
+def add_noise(src: Path, dst: Path) -> None:
+    """The shot's bundles with Gaussian noise of ``NOISE_CM`` per coordinate (a tracker's jitter), seeded."""
+    from lgi.capture.bundles import Bundles, read_bundles, write_bundles
+
+    b = read_bundles(src)
+    noisy = b.positions + np.random.default_rng(7).normal(0.0, NOISE_CM, b.positions.shape)
+    write_bundles(dst, Bundles(b.frames, b.markers, noisy))
+
+
 def evaluate(work: Path) -> tuple[list[str], dict]:
     import pandas as pd
 
@@ -89,47 +108,49 @@ def evaluate(work: Path) -> tuple[list[str], dict]:
 
     rig, _ = load_rig(work / "rig")
     truth = load_npz(work / "synth" / "truth.npz")
-    recon = load_npz(work / "recon" / "meshes.npz")["vertices"]
     true_names = [str(c) for c in truth["controls"]]
     acts = truth["activations"][:, [true_names.index(c) for c in rig.controls]].astype(np.float64)
     region = np.flatnonzero(rig.face_region())
     tv = truth["vertices"][:, region]
     rows, info = [], {}
-    curves = {}
-    for label, out in (("lgi rig-solve (--smooth 4)", work / "solved"), ("per-frame fit (--smooth 0)", work / "raw")):
-        t = pd.read_csv(out / "curves.csv")
-        c = t.pivot(index="frame", columns="control", values="value")[rig.controls].to_numpy()
-        curves[label] = c
-        play = playback(rig, c, region)
-        e_rec = np.linalg.norm(play - recon[:, region], axis=2).ravel() * 10
-        e_true = np.linalg.norm(play - tv, axis=2).ravel() * 10
-        d2 = np.diff(c, 2, axis=0)
-        dt = np.abs(np.diff(acts, axis=0))
-        held = (dt[:-1] < 1e-3) & (dt[1:] < 1e-3)  # (F-2, K): frames f-1..f+1 at rest
-        fast = np.abs(np.diff(acts, axis=0)) > 0.03
-        corr = [np.corrcoef(c[:, k], acts[:, k])[0, 1] if acts[:, k].std() > 1e-6 else np.nan
-                for k in range(rig.n_controls)]
-        rmsk = np.sqrt(np.mean((c - acts) ** 2, axis=0))
-        shifts = [best_shift(c[:, k], acts[:, k]) for k in range(rig.n_controls) if acts[:, k].std() > 0.02]
-        ms = json.loads((out / "solve.json").read_text())["ms_per_frame"]
-        info[label] = {"corr": corr, "rms": rmsk}
-        rows.append(f"| {label} | {stats(e_rec)} | {stats(e_true)} | {np.nanmean(corr):.3f} "
-                    f"(min {np.nanmin(corr):.3f}) | {np.sqrt(np.mean(rmsk**2)):.3f} | "
-                    f"{np.sqrt(np.mean(d2[held] ** 2)):.4f} | {np.sqrt(np.mean((c[1:] - acts[1:])[fast] ** 2)):.3f} | "
-                    f"{np.mean(shifts):+.2f} ({min(shifts)} to {max(shifts)}) | {ms:.0f} |")
-    e_recon = np.linalg.norm(recon[:, region] - tv, axis=2).ravel() * 10
-    rows.append(f"| (the reconstruction itself) | | {stats(e_recon)} | | | | | | |")
-    lab = "lgi rig-solve (--smooth 4)"
-    per = ["| control | correlation | RMS | correlation, per-frame fit | RMS, per-frame fit | true range |",
-           "|---|---|---|---|---|---|"]
-    raw = info["per-frame fit (--smooth 0)"]
+    for shot, recon_name, suffix in SHOTS:
+        recon = load_npz(work / recon_name / "meshes.npz")["vertices"]
+        for label, out in (("lgi rig-solve (--smooth 4)", work / f"solved{suffix}"),
+                           ("per-frame fit (--smooth 0)", work / f"raw{suffix}")):
+            t = pd.read_csv(out / "curves.csv")
+            c = t.pivot(index="frame", columns="control", values="value")[rig.controls].to_numpy()
+            play = playback(rig, c, region)
+            e_rec = np.linalg.norm(play - recon[:, region], axis=2).ravel() * 10
+            e_true = np.linalg.norm(play - tv, axis=2).ravel() * 10
+            d2 = np.diff(c, 2, axis=0)
+            dt = np.abs(np.diff(acts, axis=0))
+            held = (dt[:-1] < 1e-3) & (dt[1:] < 1e-3)  # (F-2, K): frames f-1..f+1 at rest
+            fast = dt > 0.03
+            corr = [np.corrcoef(c[:, k], acts[:, k])[0, 1] if acts[:, k].std() > 1e-6 else np.nan
+                    for k in range(rig.n_controls)]
+            rmsk = np.sqrt(np.mean((c - acts) ** 2, axis=0))
+            shifts = [best_shift(c[:, k], acts[:, k]) for k in range(rig.n_controls) if acts[:, k].std() > 0.02]
+            ms = json.loads((out / "solve.json").read_text())["ms_per_frame"]
+            info[(shot, label)] = {"corr": corr, "rms": rmsk}
+            rows.append(f"| {shot} | {label} | {stats(e_rec)} | {stats(e_true)} | {np.nanmean(corr):.3f} "
+                        f"(min {np.nanmin(corr):.3f}) | {np.sqrt(np.mean(rmsk**2)):.3f} | "
+                        f"{np.sqrt(np.mean(d2[held] ** 2)):.4f} | "
+                        f"{np.sqrt(np.mean((c[1:] - acts[1:])[fast] ** 2)):.3f} | "
+                        f"{np.mean(shifts):+.2f} ({min(shifts)} to {max(shifts)}) | {ms:.0f} |")
+        e_recon = np.linalg.norm(recon[:, region] - tv, axis=2).ravel() * 10
+        rows.append(f"| {shot} | (the reconstruction itself) | | {stats(e_recon)} | | | | | | |")
+    keys = [(SHOTS[0][0], "lgi rig-solve (--smooth 4)"), (SHOTS[1][0], "lgi rig-solve (--smooth 4)"),
+            (SHOTS[1][0], "per-frame fit (--smooth 0)")]
+    per = ["| control | exact bundles: correlation / RMS | noisy: correlation / RMS | noisy, per-frame fit: "
+           "correlation / RMS | true range |", "|---|---|---|---|---|"]
     for k, name in enumerate(rig.controls):
-        per.append(f"| {name} | {info[lab]['corr'][k]:.3f} | {info[lab]['rms'][k]:.3f} | {raw['corr'][k]:.3f} | "
-                   f"{raw['rms'][k]:.3f} | {acts[:, k].min():.2f}-{acts[:, k].max():.2f} |")
-    head = ["| curves | playback - reconstruction (RMS / p95 / max mm) | playback - truth (RMS / p95 / max mm) | "
-            "correlation with the true activations (mean over controls) | weight RMS error | held frames: RMS of "
-            "second differences | fast frames: weight RMS error | lag, frames (mean, range) | ms per frame |",
-            "|---|---|---|---|---|---|---|---|---|"]
+        cells = " | ".join(f"{info[key]['corr'][k]:.3f} / {info[key]['rms'][k]:.3f}" for key in keys)
+        per.append(f"| {name} | {cells} | {acts[:, k].min():.2f}-{acts[:, k].max():.2f} |")
+    head = ["| shot | curves | playback - reconstruction (RMS / p95 / max mm) | playback - truth "
+            "(RMS / p95 / max mm) | correlation with the true activations (mean over controls, min) | "
+            "weight RMS error | held frames: RMS of second differences | fast frames: weight RMS error | "
+            "lag, frames (mean, range) | ms per frame |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     return head + rows + [""] + per, info
 
 
@@ -154,9 +175,13 @@ def main() -> None:
     work = Path(args.work or tempfile.mkdtemp(prefix="bench-rig-solve-"))
     work.mkdir(parents=True, exist_ok=True)
     prepare(work, args.vertices, args.frames, args.actor)
-    lgi("rig-solve", str(work / "recon"), "--rig", str(work / "rig"), "--out", str(work / "solved"), "--usd",
-        str(work / "shot.usda"), "--rig-usd", str(work / "rig.usda"))
-    lgi("rig-solve", str(work / "recon"), "--rig", str(work / "rig"), "--out", str(work / "raw"), "--smooth", "0")
+    for _, recon, suffix in SHOTS:
+        if not (work / f"solved{suffix}").is_dir():
+            lgi("rig-solve", str(work / recon), "--rig", str(work / "rig"), "--out", str(work / f"solved{suffix}"),
+                "--usd", str(work / f"shot{suffix}.usda"), "--rig-usd", str(work / "rig.usda"))
+        if not (work / f"raw{suffix}").is_dir():
+            lgi("rig-solve", str(work / recon), "--rig", str(work / "rig"), "--out", str(work / f"raw{suffix}"),
+                "--smooth", "0")
     lines, _ = evaluate(work)
     print("\n".join(lines))
     if args.doc:
