@@ -495,8 +495,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "and max mm per frame), vertex_error.npz/.png (where the rig falls short) and solve.json; with "
                     "--usd, a UsdSkel animation layer over the rig's USD.",
         epilog="example: lgi rig-solve shot/recon --rig actor_rig --out shot/anim --usd shot/anim.usda "
-               "--rig-usd actor_rig.usda",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+               "--rig-usd actor_rig.usda")
     s.add_argument("recon_dir", metavar="RECON_DIR", help="the reconstruction (lgi reconstruct's meshes.npz)")
     s.add_argument("--rig", required=True, metavar="RIG_DIR", help="the actor's rig dataset (lgi rig-generate)")
     s.add_argument("--out", required=True, metavar="OUT_DIR", help="folder for curves.csv, residuals.csv, ...")
