@@ -277,7 +277,7 @@ def penalty_weights(fits: list[FrameFit], period_frames: float) -> np.ndarray:
     ``p_fk = 1 / (H_f^-1)[k, k]`` is the control's marginal precision: what the frame says about it once the
     other controls are free. Controls whose shapes overlap (the jaw's sideways moves and the opening) are
     less certain than their own ``H[k, k]`` says; penalised by ``H[k, k]`` they were over-smoothed (on the
-    noisy benchmark shot the jaw_right curve's correlation with the truth fell from 0.97 to 0.94 at T = 4; by the
+    noisy benchmark shot the jaw_right curve's correlation with the truth fell from 0.97 to 0.93 at T = 4; by the
     marginal precision it stays at 0.97 and the held frames are as calm).
     """
     k = len(fits[0].weights) if fits else 0
