@@ -106,8 +106,8 @@ class BlendRig:
 
 @dataclass
 class FrameFit:
-    """One frame's fit: control weights (K,), the Gauss-Newton Hessian (K, K) and gradient (K,) of the robust
-    cost at them (for the temporal solve), and the per-vertex robust weights of the sample."""
+    """One frame's fit: control weights (K,), the reweighted Gauss-Newton Hessian (K, K) and gradient (K,) of the
+    robust cost at them (the frame's model in the temporal solve), and the iterations it took."""
 
     weights: np.ndarray
     hessian: np.ndarray
