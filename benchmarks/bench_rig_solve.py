@@ -154,6 +154,25 @@ def evaluate(work: Path) -> tuple[list[str], dict]:
     return head + rows + [""] + per, info
 
 
+def usd_check(work: Path) -> str:
+    """UsdSkel's own bake of the noisy shot's animation at four frames against the rig's playback, and
+    UsdValidation's errors."""
+    import pandas as pd
+
+    from lgi.export.rig_anim import usd_playback, validate_usd
+    from lgi.jobs.rig_solve import load_rig, playback
+
+    rig, _ = load_rig(work / "rig")
+    t = pd.read_csv(work / "solved_noisy" / "curves.csv")
+    c = t.pivot(index="frame", columns="control", values="value")[rig.controls].to_numpy()
+    frames = [0, len(c) // 3, 2 * len(c) // 3, len(c) - 1]
+    baked = usd_playback(work / "shot_noisy.usda", frames)
+    diff = float(np.abs(baked - playback(rig, c[frames])).max())
+    errors = validate_usd(work / "shot_noisy.usda")
+    return (f"USD animation of the noisy shot: UsdSkel.BakeSkinning at frames {frames} is {diff:.1e} cm from the rig's "
+            f"playback at most; UsdValidation: {len(errors)} errors" + (f" ({errors[:2]})" if errors else ""))
+
+
 def update_doc(path: Path, lines: list[str]) -> None:
     text = path.read_text()
     body = "\n".join(lines)
@@ -183,6 +202,7 @@ def main() -> None:
             lgi("rig-solve", str(work / recon), "--rig", str(work / "rig"), "--out", str(work / f"raw{suffix}"),
                 "--smooth", "0")
     lines, _ = evaluate(work)
+    lines += ["", usd_check(work)]
     print("\n".join(lines))
     if args.doc:
         update_doc(Path(args.doc), lines)
