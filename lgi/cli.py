@@ -218,6 +218,16 @@ def cmd_rig_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_rig_solve(args: argparse.Namespace) -> int:
+    from lgi.jobs.rig_solve import RigSolveOptions, rig_solve, rig_solve_report
+
+    opts = RigSolveOptions(smooth=args.smooth, vertices=args.vertices, robust=args.robust, fps=args.fps)
+    for line in rig_solve_report(rig_solve(args.recon_dir, args.rig, args.out, opts, usd=args.usd,
+                                           rig_usd=args.rig_usd, show_progress=not args.quiet)):
+        print(line)
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from lgi.jobs.bench import BenchOptions, bench
 
@@ -723,6 +733,41 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--usd", default=None, metavar="RIG.usda", help="also write the rig as UsdSkel blend shapes")
     _quiet(g)
     s.set_defaults(func=cmd_rig_generate)
+
+    # ------------------------------------------------------------------------------------------------- rig-solve
+    s = _command(sub, "rig-solve", "a reconstructed shot as animation curves of the actor's rig",
+                 "Fit the rig's control weights (in [0, 1], correctives driven by the product of their controls') to "
+                 "each reconstructed frame over the face region (robust Gauss-Newton, warm-started), then clean the "
+                 "curves over time (a second-difference penalty solved over the shot: no lag). See docs/rigs.md.",
+                 ("lgi rig-solve shot/recon --rig actor_rig --out shot/anim --usd shot/anim.usda "
+                  "--rig-usd actor_rig.usda",),
+                 outputs="OUT_DIR/curves.csv (frame, control, value), residuals.csv (rig playback - reconstruction, "
+                         "RMS and max mm per frame), vertex_error.npz/.png (where the rig falls short), solve.json; "
+                         "with --usd, a UsdSkel animation layer over the rig's USD.")
+    g = s.add_argument_group("inputs")
+    g.add_argument("recon_dir", metavar="RECON_DIR", help="the reconstruction (lgi reconstruct's meshes.npz)")
+    g.add_argument("--rig", required=True, metavar="RIG_DIR", help="the actor's rig dataset (lgi rig-generate)")
+    g.add_argument("--rig-usd", default=None, metavar="RIG.usda",
+                   help="the rig's USD (lgi rig-generate --usd), checked against RIG_DIR and sublayered by the "
+                        "animation (default: none)")
+    g = s.add_argument_group("outputs")
+    g.add_argument("--out", required=True, metavar="OUT_DIR", help="folder for curves.csv, residuals.csv, ...")
+    g.add_argument("--usd", default=None, metavar="ANIM.usda",
+                   help="also write the shot as a UsdSkel animation of the rig (needs --rig-usd; default: none)")
+    g.add_argument("--fps", type=float, default=30.0, metavar="F",
+                   help="time codes per second of the USD animation (default %(default)s)")
+    _quiet(g)
+    g = s.add_argument_group("method")
+    g.add_argument("--smooth", type=float, default=4.0, metavar="FRAMES",
+                   help="temporal regularisation: the period in frames whose wiggles the curves' penalty halves "
+                        "(zero-phase, so no lag; default %(default)s; 0: each frame fitted on its own)")
+    g.add_argument("--vertices", type=int, default=4000, metavar="N",
+                   help="face vertices fitted per frame, an even subsample (default %(default)s; 0: every vertex "
+                        "the rig moves)")
+    g.add_argument("--robust", type=float, default=3.0, metavar="TIMES",
+                   help="Huber threshold in multiples of each frame's median vertex residual (default %(default)s; "
+                        "0: plain least squares)")
+    s.set_defaults(func=cmd_rig_solve)
 
     # --------------------------------------------------------------------------------------------------- augment
     s = _command(sub, "augment", "add in-between shapes to a dataset",

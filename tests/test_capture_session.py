@@ -31,9 +31,17 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
             shutil.copytree(h / "hmc" / cam, shots / name / cam)
     (shots / "b_broken" / "cam1" / "000002.png").unlink()  # a frame missing from one camera
     shutil.copyfile(h / "hmc" / "lip_contours.csv", shots / "a_good" / "lip_contours.csv")  # traced lips
+    from lgi.export.formats import write_usd_rig
+    from tests.test_rig_solve import PAIRS, make_rig
+
+    rig = make_rig(1500)  # the default actor's own rig, on the session's mesh
+    rig.save(tmp_path / "rig")
+    write_usd_rig(tmp_path / "rig.usda", rig.neutral, rig.face_vertices, rig.face_offsets, rig.names, rig.deltas,
+                  [None] * (len(rig.names) - len(PAIRS)) + list(PAIRS))
     t0 = datetime.now(UTC)
     s = capture_session(str(h / "hmc" / "calib"), "chessboard:9x6:12", str(shots), str(tmp_path / "idx"),
-                        str(h / "markers.csv"), str(tmp_path / "session"), fisheye=True, exr_size=16)
+                        str(h / "markers.csv"), str(tmp_path / "session"), fisheye=True, exr_size=16,
+                        rig=str(tmp_path / "rig"), rig_usd=str(tmp_path / "rig.usda"))
     assert s["failed"] == ["b_broken"]
     # What the library could not do as asked reaches the flow run's logs, where the UI shows them: 4 frames are
     # too few to estimate the bundle noise (a warning of lgi.solve.solver, which the command line prints too).
@@ -68,3 +76,6 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
     assert (out / "shots" / "a_good" / "recon" / "shot.usdc").is_file()
     assert len(list((out / "shots" / "a_good" / "exr").glob("frame_*.exr"))) == 4
     assert not (out / "shots" / "b_broken" / "recon").exists()
+    # The session names a rig: the good shot is solved onto it (lgi rig-solve), the broken one is not.
+    assert (out / "shots" / "a_good" / "anim" / "curves.csv").is_file() and good["rig_rms_mm"] < 3.0
+    assert (out / "shots" / "a_good" / "anim.usda").is_file() and not (out / "shots" / "b_broken" / "anim").exists()

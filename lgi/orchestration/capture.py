@@ -13,6 +13,8 @@ Layout of ``out``::
     shots/<shot>/bundles.csv    tracked bundles (cm) and bundles.tracks.parquet (2D tracks)
     shots/<shot>/recon/         lgi reconstruct's outputs (meshes.npz, diagnostics, shot.usdc, ...)
     shots/<shot>/exr/           displacement maps (with exr_size)
+    shots/<shot>/anim/          lgi rig-solve's outputs (with rig): curves.csv, residuals.csv, ...
+    shots/<shot>/anim.usda      the shot as a UsdSkel animation of the rig (with rig and rig_usd)
     .cache/                     the cached calibration (lgi cache ls / prune)
 """
 
@@ -101,6 +103,8 @@ def export_shot(recon: str, index_dir: str, exr: str, exr_size: int, fps: float)
     smooth="Moving average of each bundle's shape weights over this many frames (1 = none).",
     chunk_size="Frames per reconstruction task (the results do not depend on it).",
     dask_address="Run the reconstruction chunks on Dask (see reconstruct-shot); null: threads.",
+    rig="The actor's rig dataset (lgi rig-generate): each shot is also solved onto it (lgi rig-solve); null: none.",
+    rig_usd="The rig's USD (lgi rig-generate --usd): each shot also gets anim.usda, its animation; null: none.",
 )
 def capture_session(
     calibration_images: str,
@@ -118,6 +122,8 @@ def capture_session(
     smooth: int = 1,
     chunk_size: int = 60,
     dask_address: str | None = None,
+    rig: str | None = None,
+    rig_usd: str | None = None,
 ) -> dict:
     """Calibrate once, then track, reconstruct and export every shot; returns the session summary (``shots``:
     per shot its status, frames, outputs, or the error)."""
@@ -134,7 +140,12 @@ def capture_session(
         ExportOptions(exr="x", exr_size=exr_size, fps=fps)  # the values checked before any work
     folders = shot_folders(shots)
     out_dir = Path(out)
-    check_output(out_dir, "dir", inputs=[calibration_images, index_dir, markers, helmet, *folders])
+    rig, rig_usd = at(rig, "rig"), at(rig_usd, "rig_usd")
+    if rig is not None:
+        from lgi.jobs.rig_solve import load_rig
+
+        load_rig(rig)  # a bad rig is refused before any shot is reconstructed
+    check_output(out_dir, "dir", inputs=[calibration_images, index_dir, markers, helmet, rig, rig_usd, *folders])
     out_dir.mkdir(parents=True, exist_ok=True)
     calib, cal_hit = calibrate_session(calibration_images, cal_opts.to_json(), str(out_dir / "calibration.json"),
                                        str(out_dir / ".cache"), return_state=True).result()
@@ -152,6 +163,16 @@ def capture_session(
             if exr_size is not None:
                 export_shot(summary["out"], index_dir, str(shot_dir / "exr"), exr_size, fps)
                 row["exr"] = str((shot_dir / "exr").resolve())
+            if rig is not None:
+                from dataclasses import asdict
+
+                from lgi.jobs.rig_solve import RigSolveOptions
+                from lgi.orchestration.rig import rig_solve_shot
+
+                anim = rig_solve_shot(summary["out"], rig, str(shot_dir / "anim"),
+                                      str(shot_dir / "anim.usda") if rig_usd else None, rig_usd,
+                                      asdict(RigSolveOptions(fps=fps)))
+                row.update(anim=anim["out"], rig_rms_mm=round(anim["rms_mm"], 4))
         except Exception as exc:  # noqa: BLE001 - a failed shot is reported, the session goes on
             row["error"] = f"{type(exc).__name__}: {exc}"
             logger.error("shot %s failed: %s", folder.name, row["error"])

@@ -1,0 +1,147 @@
+"""A solved shot as a UsdSkel animation of the actor's rig (``lgi rig-solve --usd``).
+
+The animation is a layer of its own that sublayers the rig's USD (``lgi rig-generate --usd``) and gives the
+rig's SkelAnimation (``/Rig/Skel/Anim``) time samples of every blend shape's weight: a DCC opening it plays the
+shot on the rig, and the rig file stays as it is. UsdSkel has no combination driver, so each corrective's
+weight is written as the product of its controls' (what the rig's ``lgi:combination`` says).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from lgi.errors import InputError
+from lgi.io.atomic import atomic_file
+
+ANIM_PATH = "/Rig/Skel/Anim"
+MESH_PATH = "/Rig/Face"
+
+
+def check_rig_usd(path: str | os.PathLike[str], names: list[str], neutral: np.ndarray, deltas: np.ndarray,
+                  tol_cm: float = 1e-4) -> None:
+    """Refuse a rig USD that is not the rig dataset's: its blend shapes (names and order), mesh size, neutral or
+    offsets differ (more than ``tol_cm``).
+
+    Parameters
+    ----------
+    names : K + P shape names, in the dataset's order
+    neutral : (V, 3) float, cm
+    deltas : (K + P, V, 3) float, cm
+    """
+    from pxr import Usd, UsdGeom, UsdSkel
+
+    from lgi.export.formats import usd_name
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("rig USD file not found", path=p)
+    try:
+        stage = Usd.Stage.Open(str(p))
+    except Exception as exc:  # noqa: BLE001 - pxr raises its own Tf errors for unreadable files
+        raise InputError(f"not a readable USD file ({exc})", path=p) from None
+    mesh = stage.GetPrimAtPath(MESH_PATH)
+    anim = UsdSkel.Animation(stage.GetPrimAtPath(ANIM_PATH))
+    if not mesh or not anim:
+        raise InputError(f"no {MESH_PATH} mesh and {ANIM_PATH} SkelAnimation: not a rig written by lgi rig-generate "
+                         "--usd", path=p)
+    tokens = [usd_name(n) for n in names]
+    have = list(UsdSkel.BindingAPI(mesh).GetBlendShapesAttr().Get() or [])
+    if have != tokens or list(anim.GetBlendShapesAttr().Get() or []) != tokens:
+        raise InputError(f"its blend shapes ({len(have)}: {', '.join(have[:4])}...) are not the rig dataset's "
+                         f"({len(tokens)}: {', '.join(tokens[:4])}...): the USD belongs to another rig", path=p)
+    points = np.asarray(UsdGeom.Mesh(mesh).GetPointsAttr().Get(), np.float64)
+    if points.shape != np.shape(neutral):
+        raise InputError(f"its mesh has {len(points)} points, the rig dataset {len(neutral)} vertices", path=p)
+    off = float(np.abs(points - neutral).max(initial=0.0))
+    if off > tol_cm:
+        raise InputError(f"its neutral is {off * 10:.3g} mm from the rig dataset's: the USD belongs to another rig",
+                         path=p)
+    targets = UsdSkel.BindingAPI(mesh).GetBlendShapeTargetsRel().GetTargets()
+    for i, t in enumerate(targets):
+        o = np.asarray(UsdSkel.BlendShape(stage.GetPrimAtPath(t)).GetOffsetsAttr().Get(), np.float64)
+        if o.shape != np.shape(deltas[i]) or float(np.abs(o - deltas[i]).max(initial=0.0)) > tol_cm:
+            raise InputError(f"blend shape {tokens[i]!r} differs from the rig dataset's shape {names[i]!r}: the USD "
+                             "belongs to another rig", path=p)
+
+
+def write_rig_animation(path: str | os.PathLike[str], rig_usd: str | os.PathLike[str], weights: np.ndarray,
+                        frames: np.ndarray | None = None, fps: float = 30.0) -> Path:
+    """Write the animation layer.
+
+    Parameters
+    ----------
+    path : the animation (.usda / .usdc / .usd)
+    rig_usd : the rig's USD, sublayered (by a path relative to ``path``'s folder when it can be)
+    weights : (F, K + P) float: every blend shape's weight per frame, in the rig's blend-shape order
+    frames : (F,) int time codes (default 0..F-1)
+    fps : time codes per second
+    """
+    from pxr import Sdf, Usd, UsdGeom, Vt
+
+    path = Path(path)
+    weights = np.asarray(weights, np.float32)
+    frames = np.arange(len(weights)) if frames is None else np.asarray(frames)
+    try:
+        ref = os.path.relpath(Path(rig_usd).resolve(), path.resolve().parent)
+    except ValueError:  # another drive
+        ref = str(Path(rig_usd).resolve())
+    layer = Sdf.Layer.CreateAnonymous(path.suffix or ".usda")
+    # Composed with the absolute path (an anonymous layer has no folder to resolve a relative one from); the
+    # file keeps the relative one, so the shot and its rig can move together.
+    layer.subLayerPaths.append(str(Path(rig_usd).resolve()))
+    stage = Usd.Stage.Open(layer)
+    layer.defaultPrim = "Rig"
+    # Stage metadata is read from the root layer only: repeat the rig's units and axis.
+    rig_stage = Usd.Stage.Open(str(rig_usd))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.GetStageUpAxis(rig_stage))
+    UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.GetStageMetersPerUnit(rig_stage))
+    stage.SetStartTimeCode(float(frames[0]))
+    stage.SetEndTimeCode(float(frames[-1]))
+    stage.SetTimeCodesPerSecond(float(fps))
+    stage.SetFramesPerSecond(float(fps))
+    attr = stage.OverridePrim(ANIM_PATH).GetAttribute("blendShapeWeights")
+    if not attr:
+        raise InputError(f"the rig USD has no {ANIM_PATH}.blendShapeWeights", path=rig_usd)
+    for f, w in zip(frames, weights, strict=True):
+        attr.Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(w)), Usd.TimeCode(float(f)))
+    del stage
+    layer.subLayerPaths[0] = ref
+    with atomic_file(path, suffix=path.suffix or ".usda") as tmp:
+        layer.Export(str(tmp))
+    return path
+
+
+def usd_playback(path: str | os.PathLike[str], frames: list[float]) -> np.ndarray:
+    """(len(frames), V, 3) float64: the rig's mesh as UsdSkel bakes it (``UsdSkel.BakeSkinning``: blend shapes,
+    then skinning) at each time code, read back from the file: what a DCC shows. The file is not changed (the
+    bake goes to the stage's session layer)."""
+    from pxr import Gf, Usd, UsdGeom, UsdSkel
+
+    stage = Usd.Stage.Open(str(path))
+    session = stage.GetSessionLayer()
+    # A layer's time codes are scaled by the root layer's rate over its own (default 24): give the bake's layer
+    # the shot's rate, or its samples land at other times.
+    session.timeCodesPerSecond = stage.GetRootLayer().timeCodesPerSecond
+    session.framesPerSecond = stage.GetRootLayer().framesPerSecond
+    stage.SetEditTarget(session)
+    times = [float(t) for t in frames]
+    if not UsdSkel.BakeSkinning(UsdSkel.Root(stage.GetPrimAtPath("/Rig")), Gf.Interval(min(times), max(times))):
+        raise RuntimeError(f"UsdSkel.BakeSkinning failed on {path}")
+    points = UsdGeom.Mesh(stage.GetPrimAtPath(MESH_PATH)).GetPointsAttr()
+    return np.stack([np.asarray(points.Get(Usd.TimeCode(t)), np.float64) for t in times])
+
+
+def validate_usd(path: str | os.PathLike[str]) -> list[str]:
+    """Errors UsdValidation's registered validators find on the stage (empty: valid)."""
+    from pxr import Usd, UsdValidation
+
+    stage = Usd.Stage.Open(str(path))
+    reg = UsdValidation.ValidationRegistry()
+    validators = reg.GetOrLoadAllValidators()
+    ctx = UsdValidation.ValidationContext(validators)
+    errors = ctx.Validate(stage)
+    return [f"{e.GetName()}: {e.GetMessage()}" for e in errors
+            if e.GetType() == UsdValidation.ValidationErrorType.Error]

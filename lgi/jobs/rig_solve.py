@@ -1,0 +1,212 @@
+"""``lgi rig-solve``: a reconstructed shot as animation curves of the actor's rig.
+
+The algorithm is :mod:`lgi.retarget.solve`; this job reads the reconstruction (``meshes.npz``) and the rig
+(``lgi rig-generate``'s dataset, optionally its USD), checks the inputs and outputs before the work, and writes,
+all at once or nothing:
+
+``OUT_DIR/curves.csv``
+    frame, control, value: each control's weight in [0, 1] per frame (correctives are driven, not listed).
+``OUT_DIR/residuals.csv``
+    frame, rms_mm, max_mm: the rig's playback against the reconstruction over the face region.
+``OUT_DIR/vertex_error.npz``
+    ``rms_mm`` (V,), ``max_mm`` (V,) float32: per vertex over the shot, where the rig falls short;
+    ``region`` (V,) bool, the face region (the vertices the rig moves).
+``OUT_DIR/vertex_error.png``
+    the two maps painted on the neutral.
+``OUT_DIR/solve.json``
+    the options, the counts and the summary figures.
+``--usd ANIM.usda`` (with ``--rig-usd``)
+    a UsdSkel animation layer over the rig's USD (:mod:`lgi.export.rig_anim`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lgi.errors import InputError
+
+log = logging.getLogger(__name__)
+
+OUTPUTS = ("curves.csv", "residuals.csv", "vertex_error.npz", "vertex_error.png", "solve.json")
+
+
+@dataclass(frozen=True)
+class RigSolveOptions:
+    """Options of ``lgi rig-solve``.
+
+    Attributes
+    ----------
+    smooth : float
+        Temporal regularisation: the period in frames whose wiggles the curves' second-difference penalty
+        halves (a zero-phase low-pass, :mod:`lgi.retarget.solve`); 0 fits each frame on its own.
+    vertices : int
+        Face-region vertices fitted (an even random subsample when the region has more; 0: all of them).
+    robust : float
+        Huber threshold in multiples of each frame's median vertex residual (0: plain least squares).
+    fps : float
+        Time codes per second of the USD animation.
+    """
+
+    smooth: float = 4.0
+    vertices: int = 4000
+    robust: float = 3.0
+    fps: float = 30.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.smooth, (int, float)) or not math.isfinite(self.smooth) or \
+                not (self.smooth == 0 or self.smooth >= 2):
+            raise InputError(f"--smooth must be 0 (none) or a period of at least 2 frames, not {self.smooth!r}")
+        if isinstance(self.vertices, bool) or not isinstance(self.vertices, int) or self.vertices < 0:
+            raise InputError(f"--vertices must be a whole number >= 0 (0: every face vertex), not {self.vertices!r}")
+        if not isinstance(self.robust, (int, float)) or not math.isfinite(self.robust) or \
+                not (self.robust == 0 or self.robust >= 1):
+            raise InputError(f"--robust must be 0 (plain least squares) or at least 1, not {self.robust!r}")
+        if not isinstance(self.fps, (int, float)) or not math.isfinite(self.fps) or self.fps <= 0:
+            raise InputError(f"--fps must be a positive number, not {self.fps!r}")
+
+
+def load_rig(rig_dir: str | Path):
+    """The :class:`~lgi.retarget.solve.BlendRig` of a rig dataset, and the dataset."""
+    from lgi.dataset.shapes import ShapeDataset
+    from lgi.retarget.solve import BlendRig
+
+    if not Path(rig_dir).is_dir():
+        raise InputError("rig dataset folder not found (make it with lgi rig-generate)", path=rig_dir)
+    ds = ShapeDataset.load(rig_dir)
+    return BlendRig.from_dataset(ds, path=Path(rig_dir) / "manifest.json"), ds
+
+
+def playback(rig, curves: np.ndarray, vertices: np.ndarray | None = None, chunk: int = 64) -> np.ndarray:
+    """(F, N, 3) float32 cm: the rig's playback of ``curves`` (F, K) at ``vertices`` (default all)."""
+    d = np.asarray(rig.deltas, np.float64)
+    x0 = rig.neutral
+    if vertices is not None:
+        d, x0 = d[:, vertices], x0[vertices]
+    flat = d.reshape(len(d), -1)
+    out = np.empty((len(curves), *x0.shape), np.float32)
+    for s in range(0, len(curves), chunk):
+        b = rig.all_weights(curves[s:s + chunk])
+        out[s:s + chunk] = (x0.reshape(-1) + b @ flat).reshape(len(b), *x0.shape)
+    return out
+
+
+def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, options: RigSolveOptions | None = None,
+              usd: str | Path | None = None, rig_usd: str | Path | None = None,
+              show_progress: bool = False) -> dict[str, Any]:
+    """Solve the shot in ``recon_dir/meshes.npz`` onto the rig in ``rig_dir``; returns a summary
+    (:func:`rig_solve_report`)."""
+    import pandas as pd
+
+    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
+    from lgi.io.atomic import check_distinct, check_output, files_in, job_outputs
+    from lgi.io.npz import load_npz
+    from lgi.progress import progress
+    from lgi.retarget.solve import RigSolver, solve_shot
+
+    o = options or RigSolveOptions()
+    src = Path(recon_dir) / "meshes.npz"
+    inputs = [recon_dir, src, rig_dir, *files_in(rig_dir, DATASET_ENTRIES), rig_usd]
+    if usd is not None:
+        if Path(usd).suffix.lower() not in (".usd", ".usda", ".usdc"):
+            raise InputError("--usd takes a .usd, .usda or .usdc file name", path=usd)
+        if rig_usd is None:
+            raise InputError("--usd needs --rig-usd (the rig's USD from lgi rig-generate --usd): the animation is "
+                             "bound to it", path=usd)
+        check_output(usd, "file", inputs=inputs)
+        check_distinct({"--out": out, "--usd": usd})
+    check_output(out, "dir", inputs=inputs)
+    if not src.is_file():
+        raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)
+    t0 = time.perf_counter()
+    rig, ds = load_rig(rig_dir)
+    z = load_npz(src, required=("vertices",))
+    meshes = z["vertices"]
+    frames = np.asarray(z.get("frames", np.arange(len(meshes))))
+    if meshes.ndim != 3 or meshes.shape[2] != 3 or len(meshes) == 0:
+        raise InputError(f"vertices has shape {meshes.shape}, not (F, V, 3) with F >= 1", path=src)
+    if meshes.shape[1] != len(rig.neutral):
+        raise InputError(f"the reconstruction has {meshes.shape[1]} vertices and the rig {len(rig.neutral)}: the "
+                         "rig is on another mesh topology (generate it with this actor's index)", path=src)
+    if not np.all(np.isfinite(meshes)):
+        bad = np.flatnonzero(~np.all(np.isfinite(meshes), axis=(1, 2)))
+        raise InputError(f"{len(bad)} frames hold non-finite vertices (first: frame {int(frames[bad[0]])})", path=src)
+    if rig_usd is not None:
+        from lgi.export.rig_anim import check_rig_usd
+
+        check_rig_usd(rig_usd, rig.names, rig.neutral, rig.deltas)
+
+    region = rig.face_region()
+    idx = np.flatnonzero(region)
+    if idx.size == 0:
+        raise InputError("no rig shape moves any vertex: an empty rig", path=rig_dir)
+    sample = idx
+    if o.vertices and idx.size > o.vertices:
+        # A fixed seed: the same inputs give the same curves.
+        sample = np.sort(np.random.default_rng(0).choice(idx, o.vertices, replace=False))
+    solver = RigSolver(rig, sample, robust=o.robust)
+    t1 = time.perf_counter()
+    curves, raw, fits = solve_shot(solver, meshes, o.smooth,
+                                   progress=lambda it: progress(it, "solving", disable=not show_progress))
+    solve_s = time.perf_counter() - t1
+
+    # Residuals over the whole face region, not the fitted subsample.
+    play = playback(rig, curves, idx)
+    err = np.linalg.norm(play - meshes[:, idx].astype(np.float32), axis=2) * 10.0  # (F, R) mm
+    rms = np.sqrt(np.mean(err**2, axis=1))
+    mx = err.max(axis=1)
+    v_rms = np.zeros(len(region), np.float32)
+    v_max = np.zeros(len(region), np.float32)
+    v_rms[idx] = np.sqrt(np.mean(err**2, axis=0))
+    v_max[idx] = err.max(axis=0)
+
+    curves_df = pd.DataFrame({"frame": np.repeat(frames, rig.n_controls),
+                              "control": np.tile(np.asarray(rig.controls, object), len(frames)),
+                              "value": curves.reshape(-1).round(7)})
+    resid_df = pd.DataFrame({"frame": frames, "rms_mm": rms.round(5), "max_mm": mx.round(5)})
+    summary = {"out": str(Path(out).resolve()), "usd": None if usd is None else str(Path(usd).resolve()),
+               "frames": len(frames), "controls": rig.n_controls, "correctives": len(rig.combinations),
+               "region_vertices": int(idx.size), "fitted_vertices": int(sample.size),
+               "rms_mm": float(np.sqrt(np.mean(rms**2))), "p95_mm": float(np.percentile(err, 95)),
+               "max_mm": float(mx.max()), "worst_frame": int(frames[int(np.argmax(mx))]),
+               "iterations_mean": float(np.mean([f.iterations for f in fits])),
+               "ms_per_frame": 1000.0 * solve_s / len(frames), "options": asdict(o),
+               "seconds": 0.0}
+    from lgi.evaluation.render import heatmap_row
+    from lgi.io.csvio import write_csv
+    from lgi.io.npz import save_npz
+
+    with job_outputs(out, OUTPUTS) as stage:
+        write_csv(curves_df, stage / "curves.csv")
+        write_csv(resid_df, stage / "residuals.csv")
+        save_npz(stage / "vertex_error.npz", rms_mm=v_rms, max_mm=v_max, region=region)
+        heatmap_row(stage / "vertex_error.png", rig.neutral, ds.triangles,
+                    {"RMS over the shot": v_rms, "max over the shot": v_max}, mask=region,
+                    label="rig playback - reconstruction (mm)",
+                    title=f"where the rig falls short ({len(frames)} frames)")
+        summary["seconds"] = time.perf_counter() - t0
+        (stage / "solve.json").write_text(json.dumps(summary, indent=1))
+        if usd is not None:
+            from lgi.export.rig_anim import write_rig_animation
+
+            # Last, so that nothing after it can fail and leave a new animation beside the old outputs.
+            write_rig_animation(usd, rig_usd, rig.all_weights(curves), frames, o.fps)
+    return summary
+
+
+def rig_solve_report(s: dict[str, Any]) -> list[str]:
+    o = s["options"]
+    smooth = "off" if not o["smooth"] else format(o["smooth"], "g") + " frames"
+    return [f"solved {s['frames']} frames onto {s['controls']} controls ({s['correctives']} correctives driven), "
+            f"{s['fitted_vertices']} of {s['region_vertices']} face vertices fitted, smoothing "
+            f"{smooth}: {s['ms_per_frame']:.1f} ms per frame",
+            f"rig playback - reconstruction over the face: RMS {s['rms_mm']:.3f} mm, 95th pct {s['p95_mm']:.3f} mm, "
+            f"max {s['max_mm']:.3f} mm (frame {s['worst_frame']})",
+            f"outputs: {s['out']}" + (f"  usd: {s['usd']}" if s["usd"] else "")]
