@@ -72,10 +72,17 @@ class Finishing:
                     raise sel
                 sels.append(sel)
                 fin.frame(f, *self.blend_slots(sel), sel.jaw, sel.far_share)
-        finally:
+        except BaseException:
+            # Interrupted or failed: the chooser stops at its next frame, but it may be deep in a first call's
+            # compilation (a minute on a loaded machine); waiting for it would hold a Ctrl-C that long. It only
+            # computes choices, and as a daemon thread it ends with the process.
             stop.set()
-            worker.join()
+            worker.join(timeout=1.0)
             self._serial = False
+            raise
+        stop.set()
+        worker.join()
+        self._serial = False
         thetas = None if self.rig is None else np.stack([s.jaw for s in sels]).astype(np.float64)
         diag = self._diagnostics(sels, frames, bridged, fin.before, fin.r_final, thetas)
         return SequenceResult(np.asarray(frames), fin.out, diag, thetas, self.noise, 1, fin.before, fin.r_final)
