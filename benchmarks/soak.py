@@ -234,7 +234,11 @@ def main() -> int:
 
         with prefect_test_harness(server_startup_timeout=180):
             log = soak(args)
-    # The temporary API's own database lives in TMPDIR while it runs; only entries left after it ended count.
+    # The temporary API's own database lives in TMPDIR while it runs and goes with the server process, a moment
+    # after the harness returns: only entries still there after that count.
+    deadline = time.time() + 30
+    while any(tmp.iterdir()) and time.time() < deadline:
+        time.sleep(1)
     log["tmp_leftovers"] = sorted(str(p) for p in tmp.rglob("*"))
     ok = (not log["runs"]["rebuild"]["failed"] and not log["runs"]["shot"]["failed"] and not log["mismatches"]
           and log["rss"]["growth"] <= 0.10 and log["cache_bound_held"] and not log["leftovers"]

@@ -8,8 +8,10 @@ machine cannot make one, the case is skipped with the reason. See docs/faults.md
 from __future__ import annotations
 
 import contextlib
+import filecmp
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -237,3 +239,148 @@ def test_check_writable_probes_a_missing_folder_through_its_parent(tmp_path: Pat
         remount(disk, "ro")
         with pytest.raises(StorageError, match=r"ro/later: the stage cache cannot be written here \(read-only"):
             check_writable(disk / "later", "the stage cache", "fix it")
+
+
+# --- a killed worker ----------------------------------------------------------------------------------------
+
+SHOT_RUN = """
+import sys
+from flows.reconstruct_shot import reconstruct_shot
+
+reconstruct_shot(sys.argv[1], sys.argv[2], sys.argv[3], chunk_size=int(sys.argv[4]),
+                 dask_address=sys.argv[5] if sys.argv[5] != "-" else None)
+print("COMPLETED")
+"""
+
+
+def _dask_workers(pid: int) -> list:
+    """The worker processes of a LocalCluster started by process ``pid`` (its nannies spawn them)."""
+    import psutil
+
+    return [c for c in psutil.Process(pid).children(recursive=True)
+            if "spawn_main" in " ".join(c.cmdline()) and "resource_tracker" not in " ".join(c.cmdline())]
+
+
+@pytest.mark.slow  # about 2-3 min: three runs of a 90-frame shot, two of them on a Dask LocalCluster
+def test_killed_dask_worker_mid_shot(prefect_api: str, tmp_path: Path) -> None:
+    """SIGKILL to a Dask worker of reconstruct-shot (dask_address local:2) while its chunks run. Dask's nanny
+    starts a new worker and the scheduler runs the lost chunks again (the chunk tasks only read their inputs and
+    write their own files atomically), so the run completes, or fails with its error; either way the next run
+    gives the undisturbed run's files byte for byte, with nothing left behind."""
+    from lgi.cli import main
+
+    assert main(["synth", "--out", str(tmp_path / "s"), "--vertices", "1500", "--frames", "90", "-q"]) == 0
+    assert main(["build", str(tmp_path / "s" / "dataset"), "--markers", str(tmp_path / "s" / "markers.csv"),
+                 "--out", str(tmp_path / "index"), "-q"]) == 0
+    env = _env(tmp_path, prefect_api)
+
+    def run(out: str, dask: str) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-c", SHOT_RUN, str(tmp_path / "index"),
+                                 str(tmp_path / "s" / "bundles.csv"), str(tmp_path / out), "10", dask],
+                                cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                start_new_session=True)
+
+    clean = run("clean", "-")
+    assert clean.wait(timeout=900) == 0, clean.stderr.read()[-3000:]
+    killed = run("recon", "local:2")
+    victim = None
+    deadline = time.time() + 600
+    while time.time() < deadline and killed.poll() is None and victim is None:
+        # Once a chunk has been chosen, the workers are in the middle of the shot.
+        if list(tmp_path.glob(".recon.chunks-*/*.npz")):
+            workers = _dask_workers(killed.pid)
+            if workers:
+                victim = workers[0]
+                victim.send_signal(signal.SIGKILL)
+        time.sleep(0.2)
+    assert victim is not None, "the shot ended before a Dask worker could be killed"
+    out, err = killed.communicate(timeout=900)
+    first = "COMPLETED" if killed.returncode == 0 else "FAILED"
+    print(f"OUTCOME after SIGKILL of Dask worker {victim.pid}: {first} (exit {killed.returncode})")
+    if killed.returncode != 0:
+        assert "Traceback" in err or err  # a flow run that fails says why (the run's log)
+        again = run("recon", "local:2")
+        assert again.wait(timeout=900) == 0, again.stderr.read()[-3000:]
+    a, b = tmp_path / "clean", tmp_path / "recon"
+    assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
+    assert all(filecmp.cmp(a / f.name, b / f.name, shallow=False) for f in a.iterdir() if f.is_file())
+    assert not leftovers(tmp_path), leftovers(tmp_path)
+
+
+# --- a restarted server -------------------------------------------------------------------------------------
+
+REBUILD_RUN = """
+import sys
+from flows.rebuild_dataset import rebuild_dataset
+
+s = rebuild_dataset(sys.argv[1], sys.argv[2], markers=sys.argv[3], cache_dir=sys.argv[4])
+print("STAGES", s["stages"])
+"""
+RUN_ONLY = ("build.json", "report.md")  # describe the run (timings, cache hits), not the data
+
+
+def _server(tmp: Path, env: dict, port: int, log: str) -> subprocess.Popen:
+    from tests.test_deploy import _bin, _healthy, _start
+
+    server = _start([_bin("prefect"), "server", "start"], tmp, env, tmp / log)
+    deadline = time.time() + 300
+    while not _healthy(f"http://127.0.0.1:{port}/api"):
+        assert server.poll() is None, (tmp / log).read_text()[-3000:]
+        assert time.time() < deadline, "the Prefect server did not start within 300 s"
+        time.sleep(0.5)
+    return server
+
+
+@pytest.mark.slow  # about 3-5 min: a server started twice, three rebuilds
+def test_server_restarted_during_a_rebuild(tmp_path: Path, obj_folder: Path, layout_csv: Path) -> None:
+    """The local Prefect server stopped and started again while a rebuild flow runs against it. What must hold:
+    the run either rides it out (the client retries its API calls) or fails with its error, never hangs; the
+    outputs are whole (the earlier ones, or the new ones) with nothing partial; a re-run completes and gives the
+    bytes of an undisturbed rebuild."""
+    import httpx
+
+    from tests.test_deploy import _free_port, _stop
+
+    port = _free_port()
+    api = f"http://127.0.0.1:{port}/api"
+    env = {k: v for k, v in _env(tmp_path).items() if not k.startswith("PREFECT_API_URL")}
+    env.update(PREFECT_HOME=str(tmp_path / "server-home"), PREFECT_SERVER_API_PORT=str(port))
+    server = _server(tmp_path, env, port, "server.log")
+    run_env = dict(_env(tmp_path, api))
+    args = [str(obj_folder), str(tmp_path / "out"), str(layout_csv), str(tmp_path / "cache")]
+    try:
+        proc = subprocess.Popen([sys.executable, "-c", REBUILD_RUN, *args], cwd=ROOT, env=run_env,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        deadline = time.time() + 600
+        while time.time() < deadline and proc.poll() is None:
+            if any((d / ".complete").is_file() for d in (tmp_path / "cache").glob("read/*")):
+                break
+            time.sleep(0.1)
+        assert proc.poll() is None, "the rebuild ended before the server could be stopped"
+        t_down = time.time()
+        _stop(server)
+        time.sleep(5)
+        server = _server(tmp_path, env, port, "server2.log")
+        outage = time.time() - t_down
+        out, err = proc.communicate(timeout=900)  # never hangs
+        states = [r["state"]["type"] for r in httpx.post(f"{api}/flow_runs/filter", json={}, timeout=30).json()]
+        print(f"OUTCOME server down {outage:.0f} s: the rebuild exited {proc.returncode}; flow run states {states}")
+        for d in (tmp_path / "cache").glob("*/[!.]*"):
+            assert (d / ".complete").is_file(), d
+        assert not leftovers(tmp_path / "out") if (tmp_path / "out").exists() else True
+        if proc.returncode != 0:
+            assert err.strip() and "STAGES" not in out
+            again = subprocess.run([sys.executable, "-c", REBUILD_RUN, *args], cwd=ROOT, env=run_env,
+                                   capture_output=True, text=True, timeout=900)
+            assert again.returncode == 0, again.stderr[-3000:]
+        clean = subprocess.run([sys.executable, "-c", REBUILD_RUN, str(obj_folder), str(tmp_path / "clean"),
+                                str(layout_csv), str(tmp_path / "cache-clean")], cwd=ROOT, env=run_env,
+                               capture_output=True, text=True, timeout=900)
+        assert clean.returncode == 0, clean.stderr[-3000:]
+    finally:
+        _stop(server)
+    a, b = tmp_path / "out", tmp_path / "clean"
+    files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file() and p.name not in RUN_ONLY)
+    assert files and files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file() and p.name not in RUN_ONLY)
+    assert all(filecmp.cmp(a / f, b / f, shallow=False) for f in files)
+    assert not leftovers(tmp_path / "out") and not leftovers(tmp_path / "cache")
