@@ -384,3 +384,100 @@ def test_server_restarted_during_a_rebuild(tmp_path: Path, obj_folder: Path, lay
     assert files and files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file() and p.name not in RUN_ONLY)
     assert all(filecmp.cmp(a / f, b / f, shallow=False) for f in files)
     assert not leftovers(tmp_path / "out") and not leftovers(tmp_path / "cache")
+
+
+# --- a killed Prefect worker --------------------------------------------------------------------------------
+
+
+def test_every_deployment_sends_the_heartbeats_the_automation_waits_for() -> None:
+    import yaml
+
+    from lgi.orchestration.deploy import HEARTBEAT_SECONDS, SILENT_SECONDS
+
+    config = yaml.safe_load((ROOT / "prefect.yaml").read_text())
+    assert any("lgi.orchestration.deploy.crash_silent_runs" in step for step in config["build"])
+    for d in config["deployments"]:
+        beat = d["work_pool"]["job_variables"]["env"]["PREFECT_FLOWS_HEARTBEAT_FREQUENCY"]
+        assert int(beat) == HEARTBEAT_SECONDS < SILENT_SECONDS, d["name"]
+
+
+@pytest.mark.slow  # about 4-6 min: a server, prefect deploy, two workers, two runs of a 90-frame shot
+def test_killed_prefect_worker_mid_shot(tmp_path: Path) -> None:
+    """SIGKILL to the process worker and the flow run it started (the machine's processes gone at once, as when
+    a farm node dies) in the middle of a reconstruct-shot deployment run. What must hold: nothing partial under
+    the shot's names, and a re-run of the deployment on a new worker completes with the files of an undisturbed
+    run, byte for byte, sweeping the killed run's working folders. The killed run's state is reported (see
+    docs/faults.md: no heartbeat is configured, so the server keeps it Running)."""
+    import httpx
+
+    from lgi.cli import main
+    from lgi.orchestration.deploy import SILENT_SECONDS
+    from tests.test_deploy import _bin, _free_port, _healthy, _readme_commands, _run_deployment, _start, _stop
+
+    data = tmp_path / "data"
+    shot = data / "shots" / "shot001"
+    assert main(["synth", "--out", str(tmp_path / "s"), "--vertices", "1500", "--frames", "90", "-q"]) == 0
+    assert main(["build", str(tmp_path / "s" / "dataset"), "--markers", str(tmp_path / "s" / "markers.csv"),
+                 "--out", str(data / "datasets" / "ict" / "index"), "-q"]) == 0
+    shot.mkdir(parents=True)
+    shutil.copyfile(tmp_path / "s" / "bundles.csv", shot / "bundles.csv")
+    # The undisturbed run: the plain command with the deployment's options (the flow gives its bytes).
+    assert main(["reconstruct", str(data / "datasets" / "ict" / "index"), "--bundles", str(shot / "bundles.csv"),
+                 "--out", str(tmp_path / "clean"), "--chunk-size", "10", "-q"]) == 0
+
+    port = _free_port()
+    api = f"http://127.0.0.1:{port}/api"
+    env = {k: v for k, v in _env(tmp_path).items() if not k.startswith(("PREFECT_API_URL", "LGI_PROJECT_DIR"))}
+    env.update(PREFECT_HOME=str(tmp_path / "home"), PREFECT_SERVER_API_PORT=str(port))
+    server = _start([_bin("prefect"), "server", "start"], tmp_path, env, tmp_path / "server.log")
+    env["PREFECT_API_URL"] = api
+    worker = None
+    params = {"chunk_size": 10, "usd": False, "plot": False}
+    try:
+        deadline = time.time() + 300
+        while not _healthy(api):
+            assert server.poll() is None and time.time() < deadline, (tmp_path / "server.log").read_text()[-3000:]
+            time.sleep(1)
+        deploy, start_worker = _readme_commands()
+        r = subprocess.run([_bin("prefect"), "variable", "set", "lgi_data_root", str(data)], env=env,
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        r = subprocess.run(deploy, shell=True, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+        worker = _start(start_worker, tmp_path, env, tmp_path / "worker.log")
+        dep = httpx.get(f"{api}/deployments/name/reconstruct-shot/reconstruct-shot", timeout=10).json()
+        run = httpx.post(f"{api}/deployments/{dep['id']}/create_flow_run", json={"parameters": params},
+                         timeout=10).json()
+        deadline = time.time() + 600
+        while time.time() < deadline and not list(shot.glob(".recon.chunks-*/choice_*.npz")):
+            assert worker.poll() is None, (tmp_path / "worker.log").read_text()[-3000:]
+            time.sleep(0.2)
+        assert list(shot.glob(".recon.chunks-*/choice_*.npz")), "the run never reached its chunks"
+        # The worker and the flow run it started (the process worker starts it in a session of its own).
+        import psutil
+
+        procs = [psutil.Process(worker.pid), *psutil.Process(worker.pid).children(recursive=True)]
+        assert any("flow" in " ".join(p.cmdline()) or "prefect" in " ".join(p.cmdline()) for p in procs[1:])
+        for p in procs:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                p.kill()
+        worker.wait()
+        # Its heartbeats stop; the automation made by prefect deploy marks it Crashed.
+        t_kill, state = time.time(), "RUNNING"
+        while state == "RUNNING" and time.time() < t_kill + SILENT_SECONDS + 120:
+            time.sleep(2)
+            state = httpx.get(f"{api}/flow_runs/{run['id']}", timeout=10).json()["state"]["type"]
+        print(f"OUTCOME the killed run: {state} {time.time() - t_kill:.0f} s after SIGKILL")
+        assert state == "CRASHED", state
+        assert not (shot / "recon").exists()  # nothing under the shot's final names
+        worker = _start(start_worker, tmp_path, env, tmp_path / "worker2.log")
+        again = _run_deployment(api, "reconstruct-shot", params)
+        assert again["state"]["type"] == "COMPLETED", (again["state"], (tmp_path / "worker2.log").read_text()[-3000:])
+    finally:
+        if worker is not None:
+            _stop(worker)
+        _stop(server)
+    a, b = tmp_path / "clean", shot / "recon"
+    assert sorted(p.name for p in a.iterdir()) == sorted(p.name for p in b.iterdir())
+    assert all(filecmp.cmp(a / f.name, b / f.name, shallow=False) for f in a.iterdir())
+    assert not leftovers(data), leftovers(data)
