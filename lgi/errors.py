@@ -56,6 +56,17 @@ class InputError(LgiError):
         return f"{', '.join(where)}: {self.message}" if where else self.message
 
 
+class StorageError(LgiError):
+    """The machine would not store an output: its file system is full, over quota or read-only. Named by the
+    output's path; nothing was written under that name and what was there before is unchanged. Not retried by
+    the flows (it fails the same way until someone frees space or remounts)."""
+
+    def __init__(self, path: str | PathLike[str], reason: str, detail: str = "") -> None:
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}{detail}")
+
+
 def cell_text(value: object) -> str:
     """A table cell as the user wrote it, for messages: text quoted, numbers plain (not numpy's
     ``np.float64(0.5)``), anything else (a list in a Parquet cell) as printed."""

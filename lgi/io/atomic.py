@@ -8,6 +8,7 @@ temporaries of processes that no longer exist (a killed run's leftovers), never 
 from __future__ import annotations
 
 import contextlib
+import errno
 import fnmatch
 import os
 import shutil
@@ -16,7 +17,41 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from lgi.errors import InputError
+from lgi.errors import InputError, StorageError
+
+# Failures of the machine, not of the data: the same write fails again until space is freed or the file system
+# remounted, so they become one message naming the output instead of a writer's bare "[errno 28]".
+_STORAGE = {errno.ENOSPC: "no space left on device", errno.EDQUOT: "disk quota exceeded",
+            errno.EROFS: "read-only file system"}
+
+
+def _free_mb(path: Path) -> str:
+    for p in (path, *path.parents):
+        with contextlib.suppress(OSError):
+            st = os.statvfs(p)
+            return f" ({st.f_bavail * st.f_frsize / 1e6:.1f} MB were free)"
+    return ""
+
+
+def storage_error(exc: BaseException, path: str | os.PathLike[str]) -> StorageError | None:
+    """``exc`` (or an error it was raised from) as a :class:`StorageError` naming ``path``, when it is a full
+    disk, an exceeded quota or a read-only file system; else None. Writers that report through their own
+    ``OSError`` without an errno (Arrow's "Error writing bytes to file. Detail: [errno 28] ...") count too."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, StorageError):
+            return seen
+        if isinstance(seen, OSError):
+            code = seen.errno
+            if code is None:
+                text = str(seen)
+                code = next((c for c in _STORAGE if f"[errno {c}]" in text.lower() or os.strerror(c) in text), None)
+            if code in _STORAGE:
+                where = Path(path)
+                done = "; nothing was written under this name and what was there before is unchanged"
+                return StorageError(where, _STORAGE[code], (_free_mb(where) if code != errno.EROFS else "") + done)
+        seen = seen.__cause__ or seen.__context__
+    return None
 
 
 def _umask() -> int:
@@ -35,6 +70,21 @@ def _alive(pid: int) -> bool:
     except PermissionError:  # another user's live process
         return True
     return True
+
+
+def check_writable(folder: str | os.PathLike[str], what: str, remedy: str) -> None:
+    """Refuse ``folder`` (made later if absent: then its nearest existing parent) when no file can be created in
+    it: a read-only mount, an immutable folder, missing permission. Probed by creating an unnamed temporary
+    file, as root passes permission checks that a real write then fails; nothing is left behind."""
+    probe = Path(folder).absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    try:
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError as exc:
+        reason = _STORAGE.get(exc.errno or 0, exc.strerror or str(exc)).lower()
+        raise StorageError(folder, f"{what} cannot be written here ({reason})", f": {remedy}") from exc
 
 
 def sweep(parent: Path, prefix: str) -> int:
@@ -164,12 +214,18 @@ def atomic_dir(final: str | os.PathLike[str], owned: tuple[str, ...] | None = No
     final.parent.mkdir(parents=True, exist_ok=True)
     for prefix in (f".{final.name}.tmp-", f".{final.name}.old-"):
         sweep(final.parent, prefix)
-    tmp = make_temp_dir(final.parent, f".{final.name}.tmp-")
+    try:
+        tmp = make_temp_dir(final.parent, f".{final.name}.tmp-")
+    except OSError as exc:
+        raise (storage_error(exc, final) or exc) from exc
     try:
         yield tmp
         _fsync_tree(tmp)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
+        full = storage_error(exc, final) if isinstance(exc, Exception) else None
+        if full is not None and full is not exc:
+            raise full from exc
         raise
     old = None
     if final.exists():
@@ -192,8 +248,11 @@ def atomic_file(final: str | os.PathLike[str], suffix: str = "", durable: bool =
     check_output(final, "file")
     final.parent.mkdir(parents=True, exist_ok=True)
     sweep(final.parent, f".{final.name}.tmp-")
-    fd, name = tempfile.mkstemp(prefix=f".{final.name}.tmp-{os.getpid()}-", suffix=suffix or final.suffix,
-                                dir=final.parent)
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{final.name}.tmp-{os.getpid()}-", suffix=suffix or final.suffix,
+                                    dir=final.parent)
+    except OSError as exc:
+        raise (storage_error(exc, final) or exc) from exc
     os.close(fd)
     tmp = Path(name)
     tmp.chmod(0o666 & ~_umask())
@@ -201,8 +260,11 @@ def atomic_file(final: str | os.PathLike[str], suffix: str = "", durable: bool =
         yield tmp
         if durable:
             _fsync_tree(tmp)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        full = storage_error(exc, final) if isinstance(exc, Exception) else None
+        if full is not None and full is not exc:
+            raise full from exc
         raise
     os.replace(tmp, final)
 
@@ -234,7 +296,10 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
     out.mkdir(parents=True, exist_ok=True)
     for prefix in (".lgi-staging-", *(f".{name}.old-" for name in owned)):
         sweep(out, prefix)
-    stage = make_temp_dir(out, ".lgi-staging-")
+    try:
+        stage = make_temp_dir(out, ".lgi-staging-")
+    except OSError as exc:
+        raise (storage_error(exc, out) or exc) from exc
     try:
         yield stage
         written = {e.name for e in stage.iterdir()}
@@ -257,9 +322,26 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
             elif target.exists() or target.is_symlink():
                 target.unlink()
         stage.rmdir()
-    except BaseException:
+    except BaseException as exc:
+        full = storage_error(exc, _written(exc, stage, out)) if isinstance(exc, Exception) else None
         shutil.rmtree(stage, ignore_errors=True)
         if created:  # a failed first run leaves no empty folder behind either
             with contextlib.suppress(OSError):
                 out.rmdir()
+        if full is not None and full is not exc:
+            raise full from exc
         raise
+
+
+def _written(exc: BaseException, stage: Path, out: Path) -> Path:
+    """The output a job was writing when it failed, under its final name: the file the error names, else the
+    staged entry written last, else ``out`` itself (read before the staging folder goes)."""
+    name = getattr(exc, "filename", None)
+    with contextlib.suppress(ValueError, TypeError):
+        if name:
+            return out / Path(name).resolve().relative_to(stage.resolve())
+    with contextlib.suppress(OSError, ValueError):
+        entries = [p for p in stage.rglob("*") if p.is_file()]
+        if entries:
+            return out / max(entries, key=lambda p: p.stat().st_mtime_ns).relative_to(stage)
+    return out

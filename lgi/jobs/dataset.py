@@ -136,7 +136,8 @@ def check_rebuild(shapes_dir: str | Path, out: str | Path, options: ImportOption
                   jaw_rig: str | Path | None = None, cache_dir: str | Path | None = None) -> None:
     """The rebuild's checks before any work (the rebuild-dataset flow and ``lgi import --flow``): ``out`` and the
     folders it publishes there (``dataset``, ``dataset_augmented``, ``index``, ``verification``) can be written
-    and replace none of the inputs, and the marker file parses."""
+    and replace none of the inputs, the marker file parses, and the stage cache (``cache_dir``, and
+    ``out/.cache``, which holds the publishing locks) can be written."""
     from lgi.io.atomic import check_output, files_in
 
     inputs = [shapes_dir, options.neutral, options.identity, markers, jaw_rig, cache_dir]
@@ -152,6 +153,14 @@ def check_rebuild(shapes_dir: str | Path, out: str | Path, options: ImportOption
 
         mesh = neutral_mesh(shapes_dir, options.neutral)
         read_layout(markers, triangulate(mesh.face_vertices, mesh.face_offsets)[0])
+    # Last, so a refusal for anything above leaves no trace. The stage cache holds every stage's result and the
+    # publishing locks (always in OUT/.cache): a cache that cannot be written is refused before any work, rather
+    # than failing after hours of computing or silently recomputing every night.
+    from lgi.io.atomic import check_writable
+
+    for folder in dict.fromkeys(p for p in (cache_dir, Path(out) / ".cache") if p):
+        check_writable(folder, "the stage cache", "give cache_dir (lgi import --flow: --cache-dir) on a writable "
+                       "disk, or make this folder writable")
 
 
 def dataset_summary(ds, out: str | Path, seconds: float | None = None) -> dict[str, Any]:

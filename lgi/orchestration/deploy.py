@@ -58,6 +58,43 @@ def record_project() -> dict[str, str]:
             "shipped": str(shipped("markers_ict.csv").parent)}
 
 
+# Seconds between a flow run's heartbeats (PREFECT_FLOWS_HEARTBEAT_FREQUENCY in the deployments' environment),
+# and how long the server waits for the next before it calls the run crashed.
+HEARTBEAT_SECONDS = 30
+SILENT_SECONDS = 3 * HEARTBEAT_SECONDS
+SILENT_RUNS_AUTOMATION = "lgi: crash silent flow runs"
+
+
+def crash_silent_runs() -> dict[str, str]:
+    """Build step: the server marks a flow run Crashed when its heartbeats stop for ``SILENT_SECONDS`` (its
+    process killed with the worker's, a node lost). Without it such a run stays Running for ever, and the
+    rebuild's concurrency limit of one would then queue every later nightly rebuild behind it. Made once (an
+    automation of that name already there is left as it is); returns its id."""
+    from datetime import timedelta
+
+    from prefect.automations import Automation, ChangeFlowRunState, EventTrigger, Posture
+    from prefect.client.schemas.objects import StateType
+
+    try:
+        existing = Automation.read(name=SILENT_RUNS_AUTOMATION)
+    except ValueError:
+        existing = None
+    if existing is not None:
+        return {"automation": str(existing.id)}
+    ends = {f"prefect.flow-run.{s}" for s in ("Completed", "Failed", "Cancelled", "Crashed")}
+    made = Automation(
+        name=SILENT_RUNS_AUTOMATION,
+        description=f"A flow run with no heartbeat for {SILENT_SECONDS} s is marked Crashed (lgi prefect.yaml).",
+        trigger=EventTrigger(after={"prefect.flow-run.heartbeat"}, expect={"prefect.flow-run.heartbeat", *ends},
+                             match={"prefect.resource.id": ["prefect.flow-run.*"]},
+                             for_each={"prefect.resource.id"}, posture=Posture.Proactive, threshold=1,
+                             within=timedelta(seconds=SILENT_SECONDS)),
+        actions=[ChangeFlowRunState(state=StateType.CRASHED, message=f"no heartbeat for {SILENT_SECONDS} s: its "
+                                    "process is gone (a killed worker or a lost node); run it again")],
+    ).create()
+    return {"automation": str(made.id)}
+
+
 def project_directory(recorded: str) -> dict[str, str]:
     """Pull step of ``prefect.yaml``: move into the project directory before Prefect loads the flow from its
     entry point (``flows/...``): ``$LGI_PROJECT_DIR`` when the worker's environment sets it, else ``recorded``,
