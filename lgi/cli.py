@@ -135,6 +135,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
             summary["review"] = review_beside(args.out, args.index_dir, {**summary, "options": opts.to_json()},
                                               ReviewOptions(fps=args.fps), warned)["page"]
+        else:
+            from lgi.jobs.review import remove_review
+
+            remove_review(args.out)  # an earlier run's page would show that run, not this one
     report = report_lines
     if opts.method == "blendshape":
         from lgi.jobs.blendshape import blendshape_report as report

@@ -100,6 +100,20 @@ def test_method_blendshape_is_the_baseline_fit(shot, capsys):
     assert "compare" in capsys.readouterr().out
 
 
+def test_a_rerun_without_review_removes_the_earlier_page(shot, tmp_path):
+    """A run owns the outputs it writes: a re-run without --review leaves no page of the earlier run behind, and
+    a folder named review holding anything else is left alone."""
+    t, out = shot, tmp_path / "rec"
+    args = ["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(out), "-q"]
+    assert main([*args, "--review"]) == 0 and (out / "review" / "index.html").is_file()
+    assert main(args) == 0
+    assert not (out / "review").exists() and (out / "meshes.npz").is_file()
+    (out / "review").mkdir()
+    (out / "review" / "notes.txt").write_text("mine")
+    assert main(args) == 0
+    assert (out / "review" / "notes.txt").read_text() == "mine"
+
+
 def test_method_blendshape_refuses_lgi_only_options(shot, tmp_path, capsys):
     assert main(["reconstruct", str(shot / "idx"), "--bundles", str(shot / "bundles.csv"), "--out",
                  str(tmp_path / "r"), "--method", "blendshape", "--max-gap", "3"]) == 2

@@ -215,6 +215,10 @@ def reconstruct_shot(
         shutil.rmtree(work, ignore_errors=True)
     if review:
         summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, fps)
+    else:
+        from lgi.jobs.review import remove_review
+
+        remove_review(out)  # an earlier run's page would show that run, not this one
     _report(summary, out)
     logger = get_run_logger()
     for line in job.report_lines(summary):
