@@ -114,6 +114,14 @@ def test_a_rerun_without_review_removes_the_earlier_page(shot, tmp_path):
     assert (out / "review" / "notes.txt").read_text() == "mine"
 
 
+def test_method_blendshape_says_which_options_it_ignores(shot, tmp_path, capsys):
+    t = shot
+    assert main(["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(tmp_path / "b"),
+                 "--method", "blendshape", "--smooth", "5", "--far-field", "off", "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "--smooth, --far-field" in err and "ignored by the blendshape fit" in err, err
+
+
 def test_method_blendshape_refuses_lgi_only_options(shot, tmp_path, capsys):
     assert main(["reconstruct", str(shot / "idx"), "--bundles", str(shot / "bundles.csv"), "--out",
                  str(tmp_path / "r"), "--method", "blendshape", "--max-gap", "3"]) == 2

@@ -11,7 +11,9 @@ each seen bundle's status is ``fitted`` and each hidden one's ``missing``.
 
 from __future__ import annotations
 
+import logging
 import time
+from dataclasses import fields
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -22,6 +24,11 @@ import pandas as pd
 from lgi.errors import InputError
 from lgi.units import MM_PER_CM
 
+log = logging.getLogger(__name__)
+
+#: Options of LGI's own solve: the blendshape fit has no use for them, and says so when they are set.
+LGI_ONLY = ("noise", "smooth", "jaw_smooth", "temporal_weight", "spatial_weight", "far_field")
+
 
 def check_options(options) -> None:
     """Refuse the reconstruct options that have no meaning for the blendshape fit (they shape LGI's solve)."""
@@ -31,6 +38,11 @@ def check_options(options) -> None:
                                     ("--contours", bool(o.contours))) if on]
     if unused:
         raise InputError(f"--method blendshape fits the bundles as given: {', '.join(unused)} do not apply to it")
+    defaults = {f.name: f.default for f in fields(type(o))}
+    ignored = [f"--{n.replace('_', '-')}" for n in LGI_ONLY if n in defaults and getattr(o, n) != defaults[n]]
+    if ignored:
+        log.warning("--method blendshape: %s shape LGI's solve and are ignored by the blendshape fit",
+                    ", ".join(ignored))
 
 
 def fit_shot(index, positions: np.ndarray, show_progress: bool = False):
