@@ -3,7 +3,7 @@ blendshape fit of the same frames.
 
     python benchmarks/bench_speed.py [--work DIR] [--shapes 100,500,2000] [--frames 1000] [--repeat 3]
                                      [--stage-config 500,rig,clean] [--cold] [--cprofile N] [--kinds clean,noisy]
-                                     [--given-noise] [--blas-threads N] [--doc docs/speed.md]
+                                     [--given-noise] [--blas-threads N] [--doc docs/benchmarks.md] [--stages-only]
 
 1. Test material, built in ``--work`` (default: a temporary directory, removed at the end) through the
    ``lgi`` command line, and reused when it is already there (a second run with the same ``--work`` only
@@ -36,7 +36,9 @@ blendshape fit of the same frames.
    library calls it makes, on the long shot; ms per frame per stage. ``--cprofile N`` adds a cProfile
    run (top N functions by own time). ``--cold``: the short shot in one process with an empty numba cache
    (``NUMBA_CACHE_DIR`` set to a new directory for that process only): the first run after an install.
-4. ``--doc FILE`` (repeatable) rewrites the table between ``<!-- table:speed -->`` and ``<!-- /table -->`` in FILE.
+4. ``--doc FILE`` (repeatable) rewrites the tables between ``<!-- table:speed -->`` (the configurations) or
+   ``<!-- table:stages -->`` (the per-stage breakdown) and ``<!-- /table -->`` in FILE. ``--stages-only`` runs
+   the per-stage breakdown (and ``--cold``) without timing the configurations.
 
 The children inherit this process's environment as a user's shell would give it; the thread variables
 seen (``OPENBLAS_NUM_THREADS`` etc.) are printed. ``--blas-threads N`` sets ``OPENBLAS_NUM_THREADS`` and
@@ -72,6 +74,7 @@ from common import (
     log,
     manifest,
     run_process,
+    write_marked,
 )
 from common import lgi as run_lgi  # python -m lgi ARGS, exits with its output on failure
 
@@ -412,31 +415,32 @@ def time_fit(mat: Material, index: Path, kind: str, repeat: int, env: dict[str, 
 
 
 def stage_breakdown(index: Path, warm: Path, bundles: Path, frames: int, env: dict[str, str], scratch: Path,
-                    cprofile: int, extra: list[str]) -> None:
-    """Print ms per frame per stage of ``lgi reconstruct`` run in one process (see the module docstring)."""
+                    cprofile: int, extra: list[str]) -> str | None:
+    """ms per frame per stage of ``lgi reconstruct`` run in one process (see the module docstring), as
+    Markdown; None when the run failed (said on stdout)."""
     cfg = {"index": str(index), "warm": str(warm), "bundles": str(bundles), "out": str(scratch / "stage-recon"),
            "stages": STAGES, "cprofile": cprofile, "extra": extra}
     r = run_process([sys.executable, "-c", STAGE_CHILD, json.dumps(cfg)], env)
     if r.returncode != 0:
         print(f"stage breakdown failed (status {r.returncode}):\n{r.stderr[-3000:]}")
-        return
+        return None
     res = json.loads(r.stdout.strip().splitlines()[-1])
     timers, total = res["timers"], res["total_s"]
-    print(f"Process: python start-up not included; `import lgi.cli` {res['import_s']:.2f} s; first call (short shot, "
-          f"imports of the solver's modules, numba cache load) {res['first_s']:.2f} s; the timed call below "
-          f"{total:.2f} s = {total / frames * 1e3:.2f} ms per frame ({frames / total:.0f} frames/s); peak RSS of "
-          f"the process {r.peak_mib:.0f} MiB.\n")
-    print("| stage | calls | s | ms per frame | % of the call |")
-    print("|---|---|---|---|---|")
+    out = [f"Process: python start-up not included; `import lgi.cli` {res['import_s']:.2f} s; first call (short "
+           f"shot, imports of the solver's modules, numba cache load) {res['first_s']:.2f} s; the timed call below "
+           f"{total:.2f} s = {total / frames * 1e3:.2f} ms per frame ({frames / total:.0f} frames/s); peak RSS of "
+           f"the process {r.peak_mib:.0f} MiB.\n",
+           "| stage | calls | s | ms per frame | % of the call |",
+           "|---|---|---|---|---|"]
 
     def row(depth: int, label: str, calls: str, secs: float) -> None:
-        print(f"| {'. ' * depth}{label} | {calls} | {secs:.3f} | {secs / frames * 1e3:.3f} | "
-              f"{100 * secs / total:.1f} |")
+        out.append(f"| {'. ' * depth}{label} | {calls} | {secs:.3f} | {secs / frames * 1e3:.3f} | "
+                   f"{100 * secs / total:.1f} |")
 
     pending: dict[int, list] = {}  # row -> "rest of" rows printed after it (after a parent's last descendant)
     for i, (depth, label, _, _) in enumerate(STAGES):
         if not res["found"].get(label):
-            print(f"| {'. ' * depth}{label} | absent | | | |")
+            out.append(f"| {'. ' * depth}{label} | absent | | | |")
         else:
             secs, calls = timers[label]
             row(depth, label, str(calls), secs)
@@ -456,13 +460,15 @@ def stage_breakdown(index: Path, warm: Path, bundles: Path, frames: int, env: di
             row(d, lab, "", secs)
     top = sum(timers[label][0] for d, label, _, _ in STAGES if d == 0 and res["found"].get(label))
     row(0, "(rest of lgi reconstruct: arguments, prints)", "", total - top)
-    print("\nWithout smoothing, `select_sequence` runs on a second thread while the main thread "
-          "blends the frames already chosen (`_Finisher.frame`), so the stages under `solve_prepared` add up to "
-          "more than its wall time. `(rest of _Finisher.frame)` is marker evaluation and residuals; "
-          "`(rest of select_frame)` includes unskinning the bundles with a rig.")
+    out.append("\nWithout smoothing, `select_sequence` runs on a second thread while the main thread "
+               "blends the frames already chosen (`_Finisher.frame`), so the stages under `solve_prepared` add up "
+               "to more than its wall time. `(rest of _Finisher.frame)` is marker evaluation and residuals; "
+               "`(rest of select_frame)` includes unskinning the bundles with a rig.")
+    table = "\n".join(out)
     if res["profile"]:
-        print(f"\ncProfile of a third call (same shot; timings inflated by the profiler):\n```\n"
+        print(f"{table}\n\ncProfile of a third call (same shot; timings inflated by the profiler):\n```\n"
               f"{res['profile'].strip()}\n```")
+    return table
 
 
 def cold_run(index: Path, bundles: Path, frames: int, env: dict[str, str], scratch: Path, extra: list[str]) -> None:
@@ -514,6 +520,8 @@ def main() -> int:
                     "copies (default: --noise auto, which may call unrelated poses exact)")
     ap.add_argument("--stage-config", default="500,rig,clean", help="SHAPES,rig|norig,KIND for the per-stage "
                     "breakdown, or 'none' (500,rig,clean)")
+    ap.add_argument("--stages-only", action="store_true", help="only the per-stage breakdown (and --cold): no "
+                    "configuration timing, the speed table left as it is")
     ap.add_argument("--cprofile", type=int, default=0, metavar="N", help="also cProfile the stage run: top N")
     ap.add_argument("--cold", action="store_true", help="also one run with an empty numba cache")
     ap.add_argument("--blas-threads", type=int, default=None, help="set OPENBLAS_NUM_THREADS/OMP_NUM_THREADS for "
@@ -554,6 +562,39 @@ def main() -> int:
     return 0
 
 
+def stages(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: list[str], env: dict[str, str],
+           scratch: Path) -> None:
+    """The per-stage breakdown of ``--stage-config``: printed, and written into each ``--doc`` that has a
+    ``<!-- table:stages -->`` marker."""
+    if args.stage_config == "none":
+        return
+    n, with_rig, kind = parse_config(args.stage_config, shapes, kinds)
+    what = KINDS[kind].format(noise=f"{args.noise_mm:g}")
+    head = (f"Per stage: {n} shapes, {'rig' if with_rig else 'no rig'}, {what}; the continuous {mat.frames}-frame "
+            f"shot (`bench_speed.py --stage-config {args.stage_config}`, 1-minute load average "
+            f"{os.getloadavg()[0]:.2f} before the run).")
+    print(f"## {head}\n")
+    log(f"stage breakdown: {n} shapes, {'rig' if with_rig else 'no rig'}, {kind}")
+    table = stage_breakdown(mat.indexes[(n, with_rig)], mat.files[(kind, mat.short)], mat.files[(kind, mat.frames)],
+                            mat.frames, env, scratch, args.cprofile, noise_args(kind, args))
+    if table is None:
+        return
+    print(table)
+    for doc in args.doc:
+        write_marked(doc, "stages", f"{head}\n\n{table}")
+
+
+def cold(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: list[str], env: dict[str, str],
+         scratch: Path) -> None:
+    """``--cold``: the first run after an install, for the ``--stage-config`` configuration."""
+    n, with_rig, kind = parse_config(args.stage_config if args.stage_config != "none" else "500,rig,clean",
+                                     shapes, kinds)
+    log("cold run (empty numba cache)")
+    print()
+    cold_run(mat.indexes[(n, with_rig)], mat.files[(kind, mat.short)], mat.short, env, scratch,
+             noise_args(kind, args))
+
+
 def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: list[str], env: dict[str, str],
             work: Path, records: Records) -> None:
     """Time every configuration and print the tables."""
@@ -565,6 +606,12 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
     first = run_process(reconstruct_argv(mat.indexes[(shapes[0], True)], mat.files[(kinds[0], mat.short)],
                                          scratch / "recon", []), env)
     shutil.rmtree(scratch / "recon", ignore_errors=True)
+    if args.stages_only:
+        stages(args, mat, shapes, kinds, env, scratch)
+        if args.cold:
+            cold(args, mat, shapes, kinds, env, scratch)
+        shutil.rmtree(scratch, ignore_errors=True)
+        return
     load0 = os.getloadavg()[0]
     results, fits = {}, {}
     for kind in kinds:
@@ -612,14 +659,7 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
         "|---|---|---|---|---|---|---|---|---|---|", *rows])
     print(table + "\n")
     for doc in args.doc:
-        text = doc.read_text()
-        new, n_sub = re.subn(r"<!-- table:speed -->\n.*?<!-- /table -->",
-                             lambda m: f"<!-- table:speed -->\n{table}\n<!-- /table -->", text, flags=re.S)
-        if n_sub:
-            doc.write_text(new)
-            log(f"wrote the speed table into {doc}")
-        else:
-            log(f"{doc} has no <!-- table:speed --> marker; nothing written")
+        write_marked(doc, "speed", table)
     for kind in kinds:
         print(f"| shapes | rig | bundles | build s | build peak MiB | {mat.short} frames s | {mat.frames} frames s "
               "| contained % | fitted % | noise treated as |")
@@ -643,20 +683,9 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
               f"{dir_mib(idx):.0f} |")
     print()
 
-    if args.stage_config != "none":
-        n, with_rig, kind = parse_config(args.stage_config, shapes, kinds)
-        what = KINDS[kind].format(noise=f"{args.noise_mm:g}")
-        print(f"## Per stage: {n} shapes, {'rig' if with_rig else 'no rig'}, {frames_text}, {what}\n")
-        log(f"stage breakdown: {n} shapes, {'rig' if with_rig else 'no rig'}, {kind}")
-        stage_breakdown(mat.indexes[(n, with_rig)], mat.files[(kind, mat.short)], mat.files[(kind, mat.frames)],
-                        mat.frames, env, scratch, args.cprofile, noise_args(kind, args))
+    stages(args, mat, shapes, kinds, env, scratch)
     if args.cold:
-        n, with_rig, kind = parse_config(args.stage_config if args.stage_config != "none" else "500,rig,clean",
-                                         shapes, kinds)
-        log("cold run (empty numba cache)")
-        print()
-        cold_run(mat.indexes[(n, with_rig)], mat.files[(kind, mat.short)], mat.short, env, scratch,
-                 noise_args(kind, args))
+        cold(args, mat, shapes, kinds, env, scratch)
     shutil.rmtree(scratch, ignore_errors=True)
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -183,3 +184,18 @@ def lgi_timed(*args: str, env: dict[str, str] | None = None) -> Run:
 def log(msg: str) -> None:
     """Progress line on stderr (the tables go to stdout)."""
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+def write_marked(doc: Path, name: str, body: str) -> bool:
+    """Replace the text between ``<!-- table:NAME -->`` and ``<!-- /table -->`` in ``doc`` with ``body``, so
+    that a table in the docs is the script's own output. False (and a log line) when ``doc`` has no such
+    markers."""
+    text = doc.read_text()
+    new, n = re.subn(rf"<!-- table:{re.escape(name)} -->\n.*?<!-- /table -->",
+                     lambda _: f"<!-- table:{name} -->\n{body}\n<!-- /table -->", text, flags=re.S)
+    if not n:
+        log(f"{doc} has no <!-- table:{name} --> marker; nothing written")
+        return False
+    doc.write_text(new)
+    log(f"wrote the {name} table into {doc}")
+    return True

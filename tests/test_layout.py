@@ -66,3 +66,22 @@ def test_every_subpackage_of_lgi_is_in_the_readme_tree() -> None:
                       if "__pycache__" not in p.parts)
     absent = [p for p in packages if p not in named]
     assert not absent, f"subpackages of lgi/ missing from README.md's layout: {absent}"
+
+
+def test_benchmark_index_is_the_scripts() -> None:
+    """docs/benchmarks.md's index of the benchmark scripts is generated from them (scripts/make_bench_index.py):
+    a script added, or a docstring changed, without regenerating it fails here; and every row names a
+    script that exists, every script has a row."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, str(ROOT / "scripts" / "make_bench_index.py"), "--check"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    doc = (ROOT / "docs" / "benchmarks.md").read_text()
+    block = doc.split("<!-- table:scripts -->", 1)[1].split("<!-- /table -->", 1)[0]
+    named = set(re.findall(r"^\| `([\w.]+\.py)` \|", block, flags=re.M))
+    scripts = {p.name for p in (ROOT / "benchmarks").glob("*.py")} - {"common.py", "__init__.py"}
+    assert named == scripts
+    for target in re.findall(r"\]\(([^)#]+)\)", block):
+        assert (ROOT / "docs" / target).resolve().is_file(), target
