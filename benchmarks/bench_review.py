@@ -1,6 +1,6 @@
 """Size and load time of the shot review page (``lgi review``): 300 synthetic frames and 1000 ICT frames.
 
-    python benchmarks/bench_review.py [--work DIR] [--repeat 3] [--skip-ict]
+    python benchmarks/bench_review.py [--work DIR] [--repeat 3] [--skip-ict] [--doc docs/review.md --doc README.md]
 
 1. Material, built through the ``lgi`` command line in ``--work`` (default: a temporary directory) and reused
    when it is already there:
@@ -15,13 +15,15 @@
    ``file://``: until the data scripts are parsed, the decode of the first block of frames, the first frame
    drawn, every frame decoded (the page is in use meanwhile), and the time per frame to step through 60
    frames (recompute normals, upload, draw): the median of ``--repeat`` page loads.
-   Rough figures on a shared 2-core machine.
+   ``--doc FILE`` (repeatable) writes the table between ``<!-- table:review -->`` and ``<!-- /table -->`` in
+   FILE, with the machine's load average before and after the loads.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -31,6 +33,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import write_marked  # noqa: E402
 
 
 def lgi(*args: str) -> float:
@@ -120,6 +125,8 @@ def main() -> int:
     ap.add_argument("--work", type=Path, help="material folder (default: a temporary one)")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--skip-ict", action="store_true")
+    ap.add_argument("--doc", type=Path, action="append", default=[], help="write the table into this Markdown "
+                    "file's <!-- table:review --> markers (repeatable)")
     a = ap.parse_args()
     from lgi.paths import shared_data
 
@@ -133,6 +140,7 @@ def main() -> int:
     else:
         cases.append(("ICT, 1000 frames x 26,719 vertices", *ict(work, ict_dir)))
     rows = []
+    load0 = os.getloadavg()[0]
     for name, page, t_review in cases:
         meta = json.loads((page / "review_meta.js").read_text().split("=", 1)[1].rstrip().rstrip(";"))
         size = sum(p.stat().st_size for p in page.iterdir())
@@ -142,13 +150,20 @@ def main() -> int:
                "lgi review s": t_review, **load_times(page, a.repeat)}
         rows.append(row)
         print(json.dumps(row, indent=1))
-    print("\n| page | MB | MB / 1000 frames | lgi review (s) | scripts parsed (ms) | first block decoded (ms) "
-          "| first frame (ms) | all frames (ms) | ms per frame step |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    lines = [f"Headless Chromium (Debian's, through Playwright; WebGL on the CPU with SwiftShader), the page opened "
+             f"from `file://`, median of {a.repeat} loads; {os.cpu_count()} cores, 1-minute load average "
+             f"{load0:.2f} before the loads and {os.getloadavg()[0]:.2f} after. Times from the start of the page.\n",
+             "| page | size | per 1000 frames | `lgi review` | data scripts parsed | first block decoded | "
+             "first frame drawn | all frames decoded | per frame step |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        print(f"| {r['page']} | {r['MB']:.1f} | {r['MB per 1000 frames']:.1f} | {r['lgi review s']:.1f} | "
-              f"{r['scripts_ms']:.0f} | {r['decode_ms']:.0f} | {r['first_frame_ms']:.0f} | {r['all_frames_ms']:.0f} | "
-              f"{r['step_ms']:.1f} |")
+        lines.append(f"| {r['page']} | {r['MB']:.1f} MB | {r['MB per 1000 frames']:.0f} MB | "
+                     f"{r['lgi review s']:.1f} s | {r['scripts_ms'] / 1e3:.2f} s | {r['decode_ms'] / 1e3:.2f} s | "
+                     f"{r['first_frame_ms'] / 1e3:.2f} s | {r['all_frames_ms'] / 1e3:.2f} s | {r['step_ms']:.1f} ms |")
+    table = "\n".join(lines)
+    print("\n" + table)
+    for doc in a.doc:
+        write_marked(doc, "review", table)
     return 0
 
 
