@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from _review_checks import check_marker_colours
 
 from lgi.cli import main
 from lgi.review.pack import blob, decode_codes, dequantise_frames, encode_codes, quantise_frames, quantise_map, unblob
@@ -289,21 +290,12 @@ def test_marker_status_colour_matches_the_diagnostics(page, shot, tmp_path):
         rows = diag[diag.frame == frames[frame_pos]].set_index("marker")
         screen = np.array([page.evaluate(f"window.lgiReview.markerScreen({m})") for m in range(len(markers))])
         img = _pixels(page.locator("#gl").screenshot(path=str(tmp_path / f"markers_{frame_pos}.png")))
-        gaps = np.linalg.norm(screen[:, None] - screen[None], axis=2) + np.eye(len(markers)) * 1e9
-        for m in np.flatnonzero(gaps.min(axis=1) > 14):  # markers with room around them
-            status = rows.loc[markers[m], "status"]
-            if rows.loc[markers[m]].get("constraint", "") == "ray":
-                status = "ray"
-            want = np.round(np.array(page.evaluate(f"window.lgiReview.statusColour('{status}')")) * 255)
-            x, y = np.round(screen[m]).astype(int)
-            if not (2 <= x < img.shape[1] - 2 and 2 <= y < img.shape[0] - 2):
-                continue
-            got = img[y - 1:y + 2, x - 1:x + 2].reshape(-1, 3)
-            assert np.abs(got - want).max(axis=1).min() <= 3, (frame_pos, markers[m], status, got, want)
-            checked.add(status)
+        got, roomy = check_marker_colours(img, screen, rows, markers,
+                                          lambda s: page.evaluate(f"window.lgiReview.statusColour('{s}')"))
+        checked |= got
     assert {"missing", "fitted"} <= checked or len(checked) >= 2, checked
     # Hovering a marker shows its name and its diagnostics row.
-    m = int(np.flatnonzero(gaps.min(axis=1) > 14)[0])
+    m = int(roomy[0])
     x, y = page.evaluate(f"window.lgiReview.markerScreen({m})")
     box = page.locator("#gl").bounding_box()
     page.mouse.move(box["x"] + x, box["y"] + y)
