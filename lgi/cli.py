@@ -570,12 +570,14 @@ def build_parser() -> argparse.ArgumentParser:
                  "Reconstruct every frame of a shot: a global fit of the jaw and shape weights, refitted per "
                  "bundle over its natural neighbours, natural-neighbour blend, skinning, and a correction through "
                  "every bundle. Writes OUT_DIR/meshes.npz (vertices (F, V, 3) float32, frames, and jaw (F, 4) "
-                 "with a rig), OUT_DIR/diagnostics.csv (per frame and bundle), OUT_DIR/per_frame.csv and, as "
-                 "asked, OUT_DIR/obj/frame_NNNNN.obj, OUT_DIR/shot.usdc, OUT_DIR/per_frame.png. A run replaces "
+                 "with a rig), OUT_DIR/diagnostics.csv (per frame and bundle), OUT_DIR/per_frame.csv, "
+                 "OUT_DIR/run.json (method, options, noise used and estimated; lgi review shows it) and, as asked, "
+                 "OUT_DIR/obj/frame_NNNNN.obj, OUT_DIR/shot.usdc, OUT_DIR/per_frame.png. A run replaces "
                  "the outputs of an earlier one (and removes those it does not write); other files in OUT_DIR are "
                  "left alone.",
                  ("lgi reconstruct synth/index --bundles synth/bundles.csv --out synth/recon --obj --smooth 3",),
-                 outputs="OUT_DIR/meshes.npz, OUT_DIR/diagnostics.csv, OUT_DIR/per_frame.csv; with --obj OUT_DIR/obj/,"
+                 outputs="OUT_DIR/meshes.npz, OUT_DIR/diagnostics.csv, OUT_DIR/per_frame.csv, OUT_DIR/run.json; with "
+                         "--obj OUT_DIR/obj/,"
                          " --usd OUT_DIR/shot.usdc, --plot OUT_DIR/per_frame.png; with --observations "
                          "OUT_DIR/bundles_constrained.parquet.")
     g = s.add_argument_group("inputs")
@@ -943,7 +945,7 @@ def build_parser() -> argparse.ArgumentParser:
                  ("lgi demo --out lgi-demo --vertices 5000 --frames 60",),
                  outputs="DIR/dataset/, DIR/markers.csv, DIR/bundles.csv, DIR/jaw_rig.npz, DIR/truth.npz (the "
                          "synthetic actor), DIR/index/, and the reconstruction: DIR/meshes.npz, DIR/diagnostics.csv, "
-                         "DIR/per_frame.csv.")
+                         "DIR/per_frame.csv, DIR/run.json, and its review page DIR/review/.")
     g = s.add_argument_group("outputs")
     g.add_argument("--out", default="lgi-demo", metavar="DIR", help="output directory (default %(default)s)")
     _quiet(g)

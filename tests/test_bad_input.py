@@ -655,7 +655,7 @@ def test_rerun_leaves_exactly_what_it_wrote(world: Path, tmp_path: Path, capsys)
     alive.mkdir()
     assert run(base, capsys)[0] == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted(["meshes.npz", "diagnostics.csv", "per_frame.csv", alive.name]), names
+    assert names == sorted(["meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json", alive.name]), names
     alive.rmdir()
     # A failed re-run leaves the earlier outputs untouched.
     snap = {p.name: p.read_bytes() for p in out.iterdir()}
@@ -774,9 +774,9 @@ def test_signal_at_a_stage_leaves_nothing(world: Path, long_shot: Path, tmp_path
 
 
 def _assert_complete(world: Path, out: Path) -> None:
-    """OUT holds a whole reconstruction of the 12-frame shot: its three files, every frame and bundle, and meshes
+    """OUT holds a whole reconstruction of the 12-frame shot: its four files, every frame and bundle, and meshes
     through every bundle (measured on the meshes, so a run cut short while writing cannot pass)."""
-    assert sorted(q.name for q in out.iterdir()) == ["diagnostics.csv", "meshes.npz", "per_frame.csv"]
+    assert sorted(q.name for q in out.iterdir()) == ["diagnostics.csv", "meshes.npz", "per_frame.csv", "run.json"]
     assert np.load(out / "meshes.npz")["frames"].tolist() == list(range(12))
     assert len(pd.read_csv(out / "per_frame.csv")) == 12
     bundles = pd.read_csv(world / "s" / "bundles.csv")
@@ -827,7 +827,7 @@ def test_sigkill_then_rerun_cleans_up(world: Path, long_shot: Path, tmp_path: Pa
     rerun = ["reconstruct", str(world / "idx"), "--bundles", str(world / "s" / "bundles.csv"), "--out", str(out), "-q"]
     r = subprocess.run([sys.executable, "-m", "lgi", *rerun], cwd=tmp_path, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    assert sorted(q.name for q in out.iterdir()) == ["diagnostics.csv", "meshes.npz", "per_frame.csv"]
+    assert sorted(q.name for q in out.iterdir()) == ["diagnostics.csv", "meshes.npz", "per_frame.csv", "run.json"]
 
 
 def test_closed_pipe_is_quiet(world: Path, tmp_path: Path, capsys) -> None:

@@ -12,7 +12,7 @@ import pytest
 from lgi.cli import main
 from lgi.jobs.reconstruct import ReconstructOptions
 
-FILES = ("meshes.npz", "diagnostics.csv", "per_frame.csv")
+FILES = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json")
 
 
 @pytest.fixture(scope="module")
@@ -131,3 +131,22 @@ def test_slot_labels_match_python_formatting() -> None:
         assert shape_text[r] == ";".join(names[k] for k in shapes[r][used])
         assert weight_text[r] == " ".join(f"{w:.4f}" for w in weights[r][used])
     assert slot_labels(shapes[:0], weights[:0], names)[0].shape == (0,)
+
+
+def test_run_record_beside_the_outputs_and_on_the_review_page(shot: Path) -> None:
+    """run.json records the method, the options and the noise the solve used and estimated; a later
+    ``lgi review`` of the folder shows them, as ``lgi reconstruct --review`` does."""
+    import json
+
+    out = shot / "rec-record"
+    assert main(["reconstruct", str(shot / "idxr"), "--bundles", str(shot / "noisy.csv"), "--out", str(out),
+                 "--smooth", "3", "-q"]) == 0
+    rec = json.loads((out / "run.json").read_text())
+    assert rec["method"] == "local" and rec["options"]["smooth"] == 3 and "chunk_size" not in rec["options"]
+    # 0.3 mm of noise per coordinate was added: the estimate finds it and the solve uses it.
+    assert rec["noise_estimated"] and 0.2 < rec["noise_estimate_mm"] < 0.4 and rec["noise_mm"] > 0.1
+    assert main(["review", str(out), "--index", str(shot / "idxr"), "--out", str(shot / "page-record")]) == 0
+    meta = json.loads((shot / "page-record" / "review_meta.js").read_text().split("=", 1)[1].strip().rstrip(";"))
+    rows = dict((label, text) for label, text in meta["summary"] if label != "report")
+    assert rows["noise estimate"].startswith(f"{rec['noise_estimate_mm']:.4f} mm")
+    assert "smooth=3" in rows["options"] and rows["method"] == "local"

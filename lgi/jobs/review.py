@@ -11,6 +11,7 @@ The command line, ``lgi demo``, ``lgi reconstruct --review`` and the flows all c
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import math
 import shutil
@@ -230,6 +231,8 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     check_output(out, "dir", owned=REVIEW_ENTRIES, what="lgi review folder", inputs=inputs)
     meshes = _read_meshes(recon, "RECON_DIR")
     diag = _read_diagnostics(recon)
+    if summary is None:
+        summary = _run_record(recon)
     index = LGIIndex.load(index_dir)
     a = index.arrays
     verts, frames = meshes["vertices"], np.asarray(meshes["frames"], np.int64)
@@ -350,6 +353,20 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
             "quantisation_error_mm": q.error_bound_cm * MM_PER_CM, "moving_vertices": int(len(q.moving))}
 
 
+def _run_record(recon: Path) -> dict[str, Any] | None:
+    """The reconstruction's ``run.json`` (its method, options and noise), or None when it has none or it cannot
+    be read (the page then says so; a review does not fail on it)."""
+    path = recon / "run.json"
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        log.warning("%s: not read (%s); the page shows no options or noise estimate", path, exc)
+        return None
+    return record if isinstance(record, dict) else None
+
+
 def _summary(recon: Path, index_dir: str | Path, index, diag: pd.DataFrame, per_frame: pd.DataFrame,
              summary: dict[str, Any] | None, o: ReviewOptions, n_f: int, n_v: int) -> list[list[str]]:
     """(label, text) rows of the run's summary for the page."""
@@ -364,7 +381,10 @@ def _summary(recon: Path, index_dir: str | Path, index, diag: pd.DataFrame, per_
         if summary.get("noise_estimate_mm") is not None:
             rows.append(["noise estimate", f"{summary['noise_estimate_mm']:.4f} mm (coherence "
                                            f"{summary.get('noise_coherence', float('nan')):.2f})"])
-        rows.append(["noise used", f"{summary.get('noise_mm', float('nan')):.4f} mm"])
+        if summary.get("noise_mm") is not None:
+            rows.append(["noise used", f"{summary['noise_mm']:.4f} mm"])
+        if summary.get("method"):
+            rows.append(["method", str(summary["method"])])
         if summary.get("options"):
             rows.append(["options", ", ".join(f"{k}={v}" for k, v in summary["options"].items())])
         try:
@@ -372,7 +392,7 @@ def _summary(recon: Path, index_dir: str | Path, index, diag: pd.DataFrame, per_
         except (KeyError, TypeError, ValueError):
             pass  # a summary from another version: its figures above are enough
     else:
-        rows.append(["noise estimate", "not stored with the reconstruction (lgi reconstruct --review records it)"])
+        rows.append(["noise estimate", "not stored with the reconstruction (no run.json: written by an older lgi)"])
     counts = index.manifest.get("counts", {})
     if counts:
         rows.append(["index counts", ", ".join(f"{k} {v}" for k, v in counts.items())])

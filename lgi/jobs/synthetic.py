@@ -215,7 +215,7 @@ def demo(out: str | Path, options: DemoOptions | None = None, show_progress: boo
     t = time.perf_counter()
     res = shot.run(show_progress)
     dt = time.perf_counter() - t
-    write_reconstruction(out, res, index.arrays, opts)
+    write_reconstruction(out, res, index.arrays, opts, noise_estimate=shot.solver.noise_estimate)
     err = np.linalg.norm(res.vertices - r["truth"], axis=2) * MM_PER_CM
     s = {"frames_per_second": o.frames / dt, "warm_up_s": warm, "rms_mm": float(np.sqrt(np.mean(err**2))),
          "p95_mm": float(np.percentile(err, 95)), "max_mm": float(err.max()),
@@ -225,7 +225,7 @@ def demo(out: str | Path, options: DemoOptions | None = None, show_progress: boo
         f"frames: {warm:.1f} s); error against the truth: RMS {s['rms_mm']:.3f} mm, 95th pct {s['p95_mm']:.3f} mm, "
         f"max {s['max_mm']:.2f} mm; max bundle residual {s['max_residual_mm']:.1e} mm")
     log(f"outputs in {out.resolve()}: dataset/, markers.csv, bundles.csv, truth.npz, index/, meshes.npz, "
-        f"diagnostics.csv, per_frame.csv, review/")
+        f"diagnostics.csv, per_frame.csv, run.json, review/")
     from lgi.jobs.reconstruct import summarise
     from lgi.jobs.review import ReviewOptions, review_beside
 

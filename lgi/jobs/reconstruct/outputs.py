@@ -1,8 +1,10 @@
-"""What a reconstruction writes (``meshes.npz``, ``diagnostics.csv``, ``per_frame.csv`` and the asked extras):
-the one writer, its per-frame table, and the output folder's check before any work."""
+"""What a reconstruction writes (``meshes.npz``, ``diagnostics.csv``, ``per_frame.csv``, ``run.json`` and the
+asked extras): the one writer, its per-frame table, and the output folder's check before any work."""
 
 from __future__ import annotations
 
+import json
+import math
 import shutil
 from pathlib import Path
 from typing import Any
@@ -14,7 +16,7 @@ from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.jobs.reconstruct.rays import CONSTRAINED
 
 #: Every entry a reconstruction writes into its output directory (see :func:`lgi.io.atomic.job_outputs`).
-OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "per_frame.png", "shot.usdc", "obj",
+OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json", "per_frame.png", "shot.usdc", "obj",
            "bundles_constrained.parquet")
 #: What the output folders hold (anything else there is someone else's: the run refuses to replace it).
 OUTPUT_CONTENTS = {"obj": ("frame_*.obj", "*.mtl")}
@@ -76,10 +78,29 @@ def plot_per_frame(per_frame: pd.DataFrame, path: Path) -> None:
     plt.close(fig)
 
 
+def run_record(options: ReconstructOptions, noise_mm: float | None, estimate=None) -> dict[str, Any]:
+    """What a reconstruction was made with, stored beside it as ``run.json`` so that a later ``lgi review`` shows
+    it: the method and options (not the scheduling: the results do not depend on it), the noise used and, when
+    it was estimated, the estimate (mm) and its neighbour coherence. Nothing that varies between runs of the same
+    job (no times, no absolute paths): the flow and the command line write the same file."""
+    from lgi import __version__
+
+    def number(x: float | None) -> float | None:  # JSON has no NaN: an estimate that failed is null
+        return None if x is None or not math.isfinite(float(x)) else float(x)
+
+    opts = {k: v for k, v in options.to_json().items() if k != "chunk_size"}
+    return {"lgi": __version__, "method": options.method, "options": opts, "noise_mm": number(noise_mm),
+            "noise_estimated": estimate is not None,
+            "noise_estimate_mm": None if estimate is None else number(estimate.noise_mm),
+            "noise_coherence": None if estimate is None else number(estimate.coherence)}
+
+
 def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], options: ReconstructOptions,
-                         constrained: Path | None = None) -> None:
+                         constrained: Path | None = None, noise_estimate=None) -> None:
     """The one writer of a reconstruction: ``meshes.npz`` (vertices (F, V, 3) float32 cm, frames, jaw (F, 4)
-    with a rig), ``diagnostics.csv``, ``per_frame.csv`` and, as asked, ``obj/``, ``shot.usdc``,
+    with a rig), ``diagnostics.csv``, ``per_frame.csv``, ``run.json`` (:func:`run_record`; ``noise_estimate``
+    is the solver's :class:`~lgi.solve.noise.NoiseEstimate` when it estimated one) and, as asked, ``obj/``,
+    ``shot.usdc``,
     ``per_frame.png`` and ``bundles_constrained.parquet`` (the bundles with the rays' points: ``constrained``);
     through :func:`lgi.io.atomic.job_outputs` (an earlier run's outputs not written now are
     removed)."""
@@ -95,6 +116,8 @@ def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], op
         write_csv(res.diagnostics, stage / "diagnostics.csv")
         per_frame = per_frame_table(res.diagnostics)
         per_frame.to_csv(stage / "per_frame.csv", index=False, float_format="%.6g")
+        record = run_record(options, getattr(res, "noise", None), noise_estimate)
+        (stage / "run.json").write_text(json.dumps(record, indent=1, sort_keys=True, allow_nan=False) + "\n")
         if options.plot:
             plot_per_frame(per_frame, stage / "per_frame.png")
         if options.obj:

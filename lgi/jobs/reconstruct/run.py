@@ -37,7 +37,7 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
     res = shot.run(show_progress)
     t2 = time.perf_counter()
     if not options.observations:
-        write_reconstruction(out, res, shot.index.arrays, options)
+        write_reconstruction(out, res, shot.index.arrays, options, noise_estimate=shot.solver.noise_estimate)
         return summarise(res, shot, out, {"load": t1 - t0, "solve": t2 - t1, "write": time.perf_counter() - t2})
     from lgi.io.atomic import make_temp_dir, sweep
 
@@ -51,7 +51,8 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
         shot = Shot(index_dir, work / CONSTRAINED, options)
         res = shot.run(show_progress)
         t4 = time.perf_counter()
-        write_reconstruction(out, res, shot.index.arrays, options, shot.constrained_file)
+        write_reconstruction(out, res, shot.index.arrays, options, shot.constrained_file,
+                             noise_estimate=shot.solver.noise_estimate)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     s = summarise(res, shot, out, {"load": t1 - t0, "solve": (t2 - t1) + (t4 - t3), "rays": t3 - t2,

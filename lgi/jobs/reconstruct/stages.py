@@ -241,5 +241,6 @@ def assemble(index_dir: str, bundles: str, options: ReconstructOptions, parts: l
     diag = pd.concat([x[2] for x in p], ignore_index=True)
     res = SequenceResult(np.asarray(shot.frames), np.concatenate([x[0] for x in p]), diag, jaw,
                          shot.solver.noise, options.smooth)
-    write_reconstruction(out, res, shot.index.arrays, options, shot.constrained_file)
+    write_reconstruction(out, res, shot.index.arrays, options, shot.constrained_file,
+                         noise_estimate=shot.solver.noise_estimate)
     return summarise(res, shot, out, {"finish": time.perf_counter() - t0})
