@@ -106,8 +106,11 @@ def test_a_rerun_without_review_removes_the_earlier_page(shot, tmp_path):
     t, out = shot, tmp_path / "rec"
     args = ["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(out), "-q"]
     assert main([*args, "--review"]) == 0 and (out / "review" / "index.html").is_file()
+    # A comparison with scans in OUT/compare (where the flows write it) measured these meshes: it goes too.
+    assert main(["compare", str(out), "--index", str(t / "idx"), "--pairs", str(_scans(t)), "--out",
+                 str(out / "compare")]) == 0
     assert main(args) == 0
-    assert not (out / "review").exists() and (out / "meshes.npz").is_file()
+    assert not (out / "review").exists() and not (out / "compare").exists() and (out / "meshes.npz").is_file()
     (out / "review").mkdir()
     (out / "review" / "notes.txt").write_text("mine")
     assert main(args) == 0
