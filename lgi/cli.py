@@ -139,6 +139,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
             from lgi.jobs.review import remove_review
 
             remove_review(args.out)  # an earlier run's page would show that run, not this one
+        from lgi.jobs.compare import IN_SHOT, remove_outputs
+
+        remove_outputs(f"{args.out}/{IN_SHOT}")  # as the flow does: they measured the earlier meshes
     report = report_lines
     if opts.method == "blendshape":
         from lgi.jobs.blendshape import blendshape_report as report
@@ -263,7 +266,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_review(args: argparse.Namespace) -> int:
     from lgi.jobs.review import ReviewOptions, review, review_report
 
-    opts = ReviewOptions(truth=args.truth, compare=args.compare, fps=args.fps, step_um=args.step)
+    opts = ReviewOptions(truth=args.truth, compare=args.compare, fps=args.fps, step_um=args.step, scans=args.scans)
     for line in review_report(review(args.recon_dir, args.index, args.out, opts)):
         print(line)
     return 0
@@ -961,10 +964,12 @@ def build_parser() -> argparse.ArgumentParser:
     s = _command(sub, "review", "write a shot's review page (3D, colour maps, markers, curves)",
                  "Write REVIEW_DIR/index.html and its data scripts: the reconstruction in 3D (orbit, zoom, pan; "
                  "play, step, slider, speed), colour maps in mm (distance to the truth, the correction's size, the "
-                 "distance from another reconstruction), the markers coloured by their status per frame (the "
-                 "diagnostics row on hover or click), per-frame curves and the run's summary. Open it from the "
-                 "file system: no server, no network. See docs/review.md.",
-                 ("lgi review lgi-demo --index lgi-demo/index --truth lgi-demo/truth.npz --out lgi-demo/review",),
+                 "distance from another reconstruction, the distance to scans on the frames lgi compare measured), "
+                 "the markers coloured by their status per frame (the diagnostics row on hover or click), per-frame "
+                 "curves and the run's summary. Open it from the file system: no server, no network. See "
+                 "docs/review.md.",
+                 ("lgi review lgi-demo --index lgi-demo/index --truth lgi-demo/truth.npz --out lgi-demo/review",
+                  "lgi review recon --index index --scans recon/compare --out recon/review"),
                  outputs="REVIEW_DIR/index.html, viewer.js, review_meta.js, review_frames.js (replaced as a whole).")
     g = s.add_argument_group("inputs")
     g.add_argument("recon_dir", metavar="RECON_DIR", help="a reconstruction (lgi reconstruct's OUT_DIR)")
@@ -976,6 +981,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--compare", metavar="OTHER_RECON_DIR",
                    help="another reconstruction of the shot on the same mesh (e.g. --method blendshape): adds the "
                         "distance between the two (mm) as a colour map (default: none)")
+    g.add_argument("--scans", metavar="COMPARE_DIR",
+                   help="the folder lgi compare --out wrote for this reconstruction: adds the distance to the scan "
+                        "(mm) as a colour map on the frames compared with one (vertices the scan does not cover in "
+                        "grey) and marks those frames on the curves (default: none)")
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="REVIEW_DIR",
                    help="the page's folder (replaced as a whole; required, no default)")

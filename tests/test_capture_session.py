@@ -38,10 +38,21 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
     rig.save(tmp_path / "rig")
     write_usd_rig(tmp_path / "rig.usda", rig.neutral, rig.face_vertices, rig.face_offsets, rig.names, rig.deltas,
                   [None] * (len(rig.names) - len(PAIRS)) + list(PAIRS))
+    # A scan of the good shot's frame 1 (its true surface remeshed), compared by the shot's flow.
+    from lgi.dataset.shapes import ShapeDataset
+    from lgi.evaluation.compare import remeshed_scan
+    from lgi.io.obj import write_obj
+
+    truth_z = np.load(h / "truth.npz")
+    sv, st = remeshed_scan(truth_z["vertices"][1].astype(np.float64),
+                           ShapeDataset.load(h / "dataset").triangles.astype(np.int64), 0.3)
+    write_obj(tmp_path / "scan1.obj", sv, st.ravel(), np.arange(0, 3 * len(st) + 1, 3))
+    (tmp_path / "scans.csv").write_text(f"shot,frame,scan\na_good,{int(truth_z['frames'][1])},scan1.obj\n")
     t0 = datetime.now(UTC)
     s = capture_session(str(h / "hmc" / "calib"), "chessboard:9x6:12", str(shots), str(tmp_path / "idx"),
                         str(h / "markers.csv"), str(tmp_path / "session"), fisheye=True, exr_size=16,
-                        rig=str(tmp_path / "rig"), rig_usd=str(tmp_path / "rig.usda"))
+                        rig=str(tmp_path / "rig"), rig_usd=str(tmp_path / "rig.usda"),
+                        scans=str(tmp_path / "scans.csv"))
     assert s["failed"] == ["b_broken"]
     # What the library could not do as asked reaches the flow run's logs, where the UI shows them: 4 frames are
     # too few to estimate the bundle noise (a warning of lgi.solve.solver, which the command line prints too).
@@ -54,6 +65,8 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
     assert any("b_broken failed" in log.message for log in logs)
     good, bad = s["shots"]
     assert good["status"] == "done" and good["frames"] == 4
+    assert good["scans"] == "1 compared" and "scans" not in bad
+    assert (tmp_path / "session" / "shots" / "a_good" / "recon" / "compare" / "vertex_distances.parquet").is_file()
     assert "000002.png" in bad["error"] or "cam1" in bad["error"], bad
     out = tmp_path / "session"
     assert (out / "calibration.json").is_file()

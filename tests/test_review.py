@@ -107,8 +107,11 @@ def test_a_rerun_without_review_removes_the_earlier_page(shot, tmp_path):
     t, out = shot, tmp_path / "rec"
     args = ["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--out", str(out), "-q"]
     assert main([*args, "--review"]) == 0 and (out / "review" / "index.html").is_file()
+    # A comparison with scans in OUT/compare (where the flows write it) measured these meshes: it goes too.
+    assert main(["compare", str(out), "--index", str(t / "idx"), "--pairs", str(_scans(t)), "--out",
+                 str(out / "compare")]) == 0
     assert main(args) == 0
-    assert not (out / "review").exists() and (out / "meshes.npz").is_file()
+    assert not (out / "review").exists() and not (out / "compare").exists() and (out / "meshes.npz").is_file()
     (out / "review").mkdir()
     (out / "review" / "notes.txt").write_text("mine")
     assert main(args) == 0
@@ -172,6 +175,180 @@ def test_review_refuses_a_folder_of_other_files(shot, tmp_path, capsys):
     (out / "notes.txt").write_text("mine")
     assert main(["review", str(shot / "rec"), "--index", str(shot / "idx"), "--out", str(out)]) == 2
     assert "notes.txt" in capsys.readouterr().err and (out / "notes.txt").read_text() == "mine"
+
+
+# ------------------------------------------------------------------------------------------------ scans
+SCANNED = (5, 12)  # positions in the shot of the frames with a scan
+HOLE = (0.0, 6.0, 1.6, 1.2)  # a forehead hole in the scans: centre x, y (cm), half width, half height
+
+
+def _scans(t: Path) -> Path:
+    """Scans of the shot's SCANNED frames (their true surfaces remeshed, with a forehead hole) and their pairs
+    CSV (relative paths)."""
+    from lgi.dataset.shapes import ShapeDataset
+    from lgi.evaluation.compare import remeshed_scan
+    from lgi.io.obj import write_obj
+
+    folder = t / "scans"
+    if (folder / "pairs.csv").is_file():
+        return folder / "pairs.csv"
+    folder.mkdir()
+    truth = np.load(t / "s" / "truth.npz")
+    tri = ShapeDataset.load(t / "s" / "dataset").triangles.astype(np.int64)
+    rows = []
+    for k in SCANNED:
+        x = truth["vertices"][k].astype(np.float64)
+        v, g = remeshed_scan(x, tri, 0.25, HOLE)
+        write_obj(folder / f"take_{k}.obj", v, g.ravel(), np.arange(0, 3 * len(g) + 1, 3))
+        rows.append({"frame": int(truth["frames"][k]), "scan": f"take_{k}.obj"})
+    pd.DataFrame(rows).to_csv(folder / "pairs.csv", index=False)
+    return folder / "pairs.csv"
+
+
+@pytest.fixture(scope="module")
+def scanned(shot) -> Path:
+    """lgi compare of the shot's SCANNED frames (face region) and its review page with --scans."""
+    pairs = _scans(shot)
+    assert main(["compare", str(shot / "rec"), "--index", str(shot / "idx"), "--pairs", str(pairs), "--region",
+                 "face", "--out", str(shot / "compare")]) == 0
+    assert main(["review", str(shot / "rec"), "--index", str(shot / "idx"), "--scans", str(shot / "compare"),
+                 "--out", str(shot / "page_scans")]) == 0
+    return shot
+
+
+def _payload(path: Path) -> dict:
+    import json
+
+    text = path.read_text()
+    return json.loads(text[text.index("=") + 1:].rstrip().rstrip(";"))
+
+
+def test_scan_map_packs_the_scanned_frames_only(scanned):
+    """The scan map holds codes for the frames with a scan only; covered vertices carry their distance (within
+    half a code step), uncovered ones (the scans' forehead hole) and those outside the compared region their own
+    codes, never 0 mm; the RMS curve and the marks are at the scanned frames and nowhere else."""
+    from lgi.review.pack import NOT_COVERED, NOT_MEASURED, TOP_WITH_GAPS
+
+    t = scanned
+    data = _payload(t / "page_scans" / "review_frames.js")
+    meta = _payload(t / "page_scans" / "review_meta.js")
+    m = next(mp for mp in data["maps"] if mp["key"] == "scan")
+    slots = np.array(m["slots"])
+    assert np.flatnonzero(slots >= 0).tolist() == list(SCANNED) and slots[list(SCANNED)].tolist() == [0, 1]
+    codes = np.concatenate([unblob(b) for b in m["blocks"]])
+    assert codes.shape == (2, meta["n_vertices"]) and codes.dtype == np.uint8
+    table = pd.read_parquet(t / "compare" / "vertex_distances.parquet")
+    frames = meta["frames"]
+    neutral = np.load(t / "s" / "truth.npz")["vertices"][0]
+    for k, pos in enumerate(SCANNED):
+        rows = table[table.frame == frames[pos]]
+        c = codes[k]
+        cov = rows[rows.covered]
+        step = m["vmax_mm"] / TOP_WITH_GAPS
+        got = c[cov.vertex].astype(float) * step
+        want = np.minimum(cov.distance_mm.to_numpy(), m["vmax_mm"])
+        assert np.abs(got - want).max() <= step / 2 + 1e-6
+        assert (c[cov.vertex] <= TOP_WITH_GAPS).all()
+        unc = rows[~rows.covered].vertex.to_numpy()
+        assert unc.size > 20 and (c[unc] == NOT_COVERED).all()
+        # The scans' forehead hole is among the uncovered vertices.
+        cx, cy, hx, hy = HOLE
+        x = neutral
+        hole = np.flatnonzero((np.abs(x[:, 0] - cx) < hx - 0.3) & (np.abs(x[:, 1] - cy) < hy - 0.3) & (x[:, 2] > 0))
+        assert hole.size and np.isin(hole, unc).all()
+        outside = np.setdiff1d(np.arange(c.size), rows.vertex.to_numpy())
+        assert outside.size > 0 and (c[outside] == NOT_MEASURED).all()
+    curve = next(cv for cv in meta["curves"] if cv["key"] == "scan_rms")
+    summary = pd.read_csv(t / "compare" / "summary.csv")
+    have = [i for i, v in enumerate(curve["values"]) if v is not None]
+    assert have == list(SCANNED)
+    assert np.allclose([curve["values"][i] for i in have], summary.rms_mm)
+    assert meta["marks"] == [{"label": "scan", "frames": list(SCANNED)}]
+
+
+def test_scans_of_another_reconstruction_are_refused(scanned, tmp_path, capsys):
+    """Distances measured on other meshes than the page's (here the truth, on the same frames) are refused, the
+    file named; so is a folder that is not lgi compare's."""
+    from lgi.io.npz import save_npz
+
+    t = scanned
+    truth = np.load(t / "s" / "truth.npz")
+    (tmp_path / "true").mkdir()
+    save_npz(tmp_path / "true" / "meshes.npz", vertices=truth["vertices"], frames=truth["frames"])
+    assert main(["compare", str(tmp_path / "true"), "--index", str(t / "idx"), "--pairs",
+                 str(t / "scans" / "pairs.csv"), "--out", str(tmp_path / "c_true")]) == 0
+    capsys.readouterr()
+    out = tmp_path / "page"
+    assert main(["review", str(t / "rec"), "--index", str(t / "idx"), "--scans", str(tmp_path / "c_true"),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(tmp_path / "c_true" / "summary.json") in err and "other vertices" in err and not out.exists()
+    assert main(["review", str(t / "rec"), "--index", str(t / "idx"), "--scans", str(t / "s"),
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(t / "s") in err and "lgi compare --out" in err and not out.exists()
+
+
+def test_shot_flow_compares_its_scans(prefect_harness, scanned, tmp_path):
+    """The reconstruct-shot flow given scans runs lgi compare's job into OUT/compare (the same files as the
+    command), links its table and heat maps in the report, and puts the scan map on its review page. A scan that
+    covers no part of the face is reported (table artifact, report, page warning) and the reconstruction kept;
+    a scan file that is not there is refused before any work."""
+    import filecmp
+
+    from prefect.artifacts import Artifact
+
+    from flows.reconstruct_shot import reconstruct_shot
+    from lgi.errors import InputError
+    from lgi.orchestration import artifact_key
+
+    t = scanned
+    pairs = t / "scans" / "pairs.csv"
+    out = tmp_path / "flow"
+    summary = reconstruct_shot(index_dir=str(t / "idx"), bundles=str(t / "bundles.csv"), out=str(out), noise=0,
+                               chunk_size=10, scans=str(pairs), scan_region="face")
+    assert summary["compare"]["status"] == "done"
+    assert main(["compare", str(out), "--index", str(t / "idx"), "--pairs", str(pairs), "--region", "face",
+                 "--out", str(tmp_path / "cli")]) == 0
+    for name in ("summary.csv", "summary.json", "vertex_distances.parquet", "scan_distances.parquet"):
+        assert filecmp.cmp(out / "compare" / name, tmp_path / "cli" / name, shallow=False), name
+    assert sorted(p.name for p in (out / "compare" / "heatmaps").iterdir()) == \
+        sorted(p.name for p in (tmp_path / "cli" / "heatmaps").iterdir())
+    assert '"key":"scan"' in (out / "review" / "review_frames.js").read_text()
+    report = Artifact.get(artifact_key("shot-report", out)).data
+    assert (out / "compare" / "summary.csv").as_uri() in report and report.count("data:image/png;base64,") >= 3
+    table = Artifact.get(artifact_key("shot-compare", out))
+    assert table is not None and "take_5.obj" in table.data
+    # A scan of the wrong moment (shifted 30 cm): the comparison fails, the shot is reconstructed all the same.
+    from lgi.io.obj import read_obj, write_obj
+
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    mesh = read_obj(t / "scans" / "take_5.obj")
+    write_obj(bad / "take_5.obj", mesh.vertices + [30.0, 0, 0], mesh.face_vertices, mesh.face_offsets)
+    pd.DataFrame([{"frame": int(np.load(t / "s" / "truth.npz")["frames"][5]), "scan": "take_5.obj"}]).to_csv(
+        bad / "pairs.csv", index=False)
+    out2 = tmp_path / "flow_bad"
+    s2 = reconstruct_shot(index_dir=str(t / "idx"), bundles=str(t / "bundles.csv"), out=str(out2), noise=0,
+                          chunk_size=10, scans=str(bad / "pairs.csv"))
+    assert s2["compare"]["status"] == "failed" and "covers no part of the face" in s2["compare"]["error"]
+    assert str(bad / "take_5.obj") in s2["compare"]["error"]
+    assert (out2 / "meshes.npz").is_file() and not (out2 / "compare").exists()
+    table = Artifact.get(artifact_key("shot-compare", out2))
+    assert "failed" in table.data and "covers no part of the face" in table.data
+    assert "scan comparison failed" in Artifact.get(artifact_key("shot-report", out2)).data
+    meta = (out2 / "review" / "review_meta.js").read_text()
+    assert "scan comparison failed" in meta and '"key":"scan"' not in (out2 / "review" / "review_frames.js").read_text()
+    # A scan file that is not there: refused before the reconstruction.
+    out3 = tmp_path / "flow_missing"
+    with pytest.raises(InputError, match="scan not found"):
+        reconstruct_shot(index_dir=str(t / "idx"), bundles=str(t / "bundles.csv"), out=str(out3),
+                         scans=[[int(np.load(t / "s" / "truth.npz")["frames"][5]), str(bad / "nope.obj")]])
+    assert not out3.exists()
+    # A re-run without scans removes the earlier comparison, which measured the earlier meshes.
+    reconstruct_shot(index_dir=str(t / "idx"), bundles=str(t / "bundles.csv"), out=str(out), noise=0,
+                     chunk_size=10, review=False)
+    assert not (out / "compare").exists()
 
 
 def test_shot_flow_writes_and_links_the_page(prefect_harness, shot):
@@ -329,3 +506,61 @@ def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_
         shots.append(_pixels(pg.locator("#gl").screenshot()))
         pg.close()
     assert np.abs(shots[0] - shots[1]).max() <= 2
+
+
+def test_scan_map_in_the_browser(browser, scanned, tmp_path):
+    """On a frame with a scan the scan map paints the face: covered vertices in the ramp's colour of their
+    distance, uncovered ones (the scan's hole) in the gap colour, those outside the compared region as the shaded
+    skin; the note names the scan. On a frame without one the picture is the shaded face and the note says there
+    is no scan for the frame."""
+    from lgi.review.pack import NOT_COVERED, TOP_WITH_GAPS
+
+    t = scanned
+    pg = browser.new_page(viewport={"width": 1000, "height": 700}, device_scale_factor=1)
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.goto((t / "page_scans" / "index.html").resolve().as_uri())
+    pg.wait_for_function("window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)",
+                         timeout=60_000)
+    assert pg.evaluate("window.lgiReview.error") is None and errors == []
+    pg.uncheck("#showMarkers")
+    assert "scan" in pg.evaluate("window.lgiReview.maps")
+    assert pg.evaluate("window.lgiReview.marked()") == [list(SCANNED)]
+    pos = SCANNED[0]
+    pg.evaluate(f"window.lgiReview.setFrame({pos})")
+    shaded = _pixels(pg.locator("#gl").screenshot())
+    pg.select_option("#map", "scan")
+    coloured = _pixels(pg.locator("#gl").screenshot(path=str(tmp_path / "scan_map.png")))
+    assert np.any(np.abs(coloured - shaded) > 20, axis=2).mean() > 0.05
+    assert "take_5.obj" in pg.evaluate("window.lgiReview.mapNote()") and pg.is_visible("#cbar")
+    frame = _payload(t / "page_scans" / "review_meta.js")["frames"][pos]
+    rows = pd.read_parquet(t / "compare" / "vertex_distances.parquet").query("frame == @frame")
+    m = next(mp for mp in _payload(t / "page_scans" / "review_frames.js")["maps"] if mp["key"] == "scan")
+    codes = np.concatenate([unblob(b) for b in m["blocks"]])[0]
+    shade = [0.78, 0.74, 0.70]
+    gap = pg.evaluate(f"window.lgiReview.gapColour({NOT_COVERED})")
+    cov = rows[rows.covered].vertex.to_numpy()[::97]
+    for v in cov:
+        want = pg.evaluate(f"window.lgiReview.rampColour({codes[v] / TOP_WITH_GAPS})")
+        assert np.allclose(pg.evaluate(f"window.lgiReview.vertexColour({v})"), want, atol=1e-5)
+    for v in rows[~rows.covered].vertex.to_numpy()[:20]:
+        assert np.allclose(pg.evaluate(f"window.lgiReview.vertexColour({v})"), gap, atol=1e-5)
+    # The gap colour is none of the ramp's: a hole never reads as a distance.
+    ramp = np.array([pg.evaluate(f"window.lgiReview.rampColour({k / 50})") for k in range(51)])
+    assert np.abs(ramp - gap).max(axis=1).min() > 0.1
+    outside = np.setdiff1d(np.arange(codes.size), rows.vertex.to_numpy())[:20]
+    for v in outside:
+        assert np.allclose(pg.evaluate(f"window.lgiReview.vertexColour({v})"), shade, atol=1e-5)
+    # A frame without a scan: no map colours, and the note says so.
+    pg.evaluate("window.lgiReview.setFrame(0)")
+    note = pg.evaluate("window.lgiReview.mapNote()")
+    assert "no scan for frame" in note and str(frame) in note and not pg.is_visible("#cbar")
+    for v in cov:
+        assert np.allclose(pg.evaluate(f"window.lgiReview.vertexColour({v})"), shade, atol=1e-5)
+    pg.screenshot(path=str(tmp_path / "no_scan_page.png"))
+    # The picture alone (the colour bar's box with the note lies over the canvas).
+    pg.evaluate("document.getElementById('colourbar').style.visibility = 'hidden'")
+    scan_at_0 = _pixels(pg.locator("#gl").screenshot())
+    pg.select_option("#map", "none")
+    assert np.abs(scan_at_0 - _pixels(pg.locator("#gl").screenshot())).max() <= 2
+    pg.close()

@@ -40,6 +40,11 @@ log = logging.getLogger(__name__)
 OUTPUTS = ("summary.csv", "summary.json", "vertex_distances.parquet", "scan_distances.parquet", "heatmaps")
 OUTPUT_CONTENTS = {"heatmaps": ("*.png",)}
 REGIONS = ("all", "face", "marked", "lips")
+#: The folder, inside a reconstruction's, where the reconstruct-shot flow writes its comparison with scans (a
+#: re-run of the reconstruction removes it: it measured the earlier meshes).
+IN_SHOT = "compare"
+#: Row fields in summary.json only (not summary.csv columns).
+JSON_ONLY = ("transform_cm", "vertices_sha256")
 #: Below this share of the region covered a warning says the scan hardly overlaps the frame.
 LOW_COVERAGE = 0.1
 
@@ -222,7 +227,51 @@ def region_mask(spec: str, topo: Topology, vertices: np.ndarray) -> tuple[np.nda
     return layout_region(ds, spec, "--region")
 
 
-def _pair_name(frame: int, scan: Path) -> str:
+def checked_pairs(options: CompareOptions) -> list[tuple[int, Path]]:
+    """The ``(frame, scan path)`` pairs of ``options`` (``--pairs`` CSV or ``--frame``/``--scan``), each scan file
+    there; what can be checked before the reconstruction exists (the flows call it before reconstructing)."""
+    o = options
+    pairs = read_pairs(o.pairs) if o.pairs else [(int(f), Path(s)) for f, s in zip(o.frames, o.scans, strict=True)]
+    for _, s in pairs:
+        if not s.is_file():
+            raise InputError("scan not found", path=s)
+    return pairs
+
+
+def check_outputs(recon_dir: str | Path, options: CompareOptions, pairs: list[tuple[int, Path]]) -> None:
+    """Refuse, before any work, an ``--out`` that cannot hold the outputs or would replace an input."""
+    from lgi.io.atomic import check_contents, check_output
+
+    o = options
+    if not o.out:
+        return
+    inputs = [recon_dir, o.index, o.pairs, *(s for _, s in pairs)]
+    check_output(o.out, "dir", inputs=inputs)
+    check_contents(o.out, OUTPUT_CONTENTS)
+    for name in OUTPUTS:
+        check_output(Path(o.out) / name, "dir" if name == "heatmaps" else "file", inputs=inputs)
+
+
+def remove_outputs(folder: str | Path) -> None:
+    """Remove ``folder`` if it holds only what :func:`compare` writes (a flow re-run without scans: the earlier
+    run's distances were measured on other meshes); a folder holding anything else is left alone."""
+    import shutil
+
+    p = Path(folder)
+    if p.is_dir() and all(e.name in OUTPUTS for e in p.iterdir()):
+        shutil.rmtree(p)
+
+
+def frame_fingerprint(vertices: np.ndarray) -> str:
+    """SHA-256 of a frame's vertices as ``meshes.npz`` stores them (float32, little-endian): ``lgi review --scans``
+    checks with it that the distances were measured on the frames it shows."""
+    import hashlib
+
+    v = np.ascontiguousarray(vertices, np.dtype("<f4"))
+    return hashlib.sha256(v.tobytes()).hexdigest()
+
+
+def heatmap_name(frame: int, scan: Path) -> str:
     return f"frame_{frame:05d}_{scan.stem}"
 
 
@@ -230,17 +279,11 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
     """``lgi compare``: each (frame, scan) pair measured; with ``options.out``, the tables and heat maps written
     there (all at the end, atomically: nothing on failure). Returns the summary (:func:`compare_report`)."""
     from lgi.evaluation.compare import compare_frame, read_scan, rotation_deg, stats_mm
-    from lgi.io.atomic import check_contents, check_output
     from lgi.io.npz import load_npz
 
     o = options
-    pairs = read_pairs(o.pairs) if o.pairs else [(int(f), Path(s)) for f, s in zip(o.frames, o.scans, strict=True)]
-    if o.out:
-        inputs = [recon_dir, o.index, o.pairs, *(s for _, s in pairs)]
-        check_output(o.out, "dir", inputs=inputs)
-        check_contents(o.out, OUTPUT_CONTENTS)
-        for name in OUTPUTS:
-            check_output(Path(o.out) / name, "dir" if name == "heatmaps" else "file", inputs=inputs)
+    pairs = checked_pairs(o)
+    check_outputs(recon_dir, o, pairs)
     src = Path(recon_dir) / "meshes.npz"
     if not src.is_file():
         raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)
@@ -254,9 +297,6 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
         if f not in row:
             raise InputError(f"frame {f} is not in the reconstruction (frames {frames.min()}-{frames.max()})",
                              path=src)
-    for _, s in pairs:
-        if not s.is_file():
-            raise InputError("scan not found", path=s)
     topo = load_topology(recon_dir, o.index, pairs[0][0])
     if topo.n_vertices != vertices.shape[1]:
         raise InputError(f"the reconstruction has {vertices.shape[1]} vertices, the mesh of {topo.source} "
@@ -298,6 +338,7 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
             "rotation_deg": rotation_deg(res.transform),
             "translation_mm": float(np.linalg.norm(res.transform[:3, 3]) * MM_PER_CM),
             "icp_steps": res.icp_steps, "transform_cm": res.transform.tolist(),
+            "vertices_sha256": frame_fingerprint(vertices[row[f]]),
         }
         rows.append(r)
         if o.out:
@@ -309,7 +350,7 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
             scan_tables.append(pd.DataFrame({
                 "frame": f, "scan": str(scan_path), "scan_vertex": scan.file_index,
                 "distance_mm": (res.scan_distance * MM_PER_CM).astype(np.float32), "inside": res.inside}))
-            pictures.append((_pair_name(f, scan_path), v, np.where(res.covered, res.distance * MM_PER_CM, 0.0),
+            pictures.append((heatmap_name(f, scan_path), v, np.where(res.covered, res.distance * MM_PER_CM, 0.0),
                              res.covered, f"frame {f} vs {scan_path.name}\nRMS {fwd['rms_mm']:.3f}, p95 "
                              f"{fwd['p95_mm']:.3f}, max {fwd['max_mm']:.3f} mm ({share * 100:.0f} % covered)"))
     s: dict[str, Any] = {"recon": str(Path(recon_dir).resolve()), "topology": topo.source, "region": region_text,
@@ -326,7 +367,7 @@ def _write(out: str | Path, rows: list[dict[str, Any]], vertex_tables: list[pd.D
     from lgi.io.atomic import job_outputs
 
     with job_outputs(out, OUTPUTS, OUTPUT_CONTENTS) as stage:
-        table = pd.DataFrame([{k: v for k, v in r.items() if k != "transform_cm"} for r in rows])
+        table = pd.DataFrame([{k: v for k, v in r.items() if k not in JSON_ONLY} for r in rows])
         table.to_csv(stage / "summary.csv", index=False, float_format="%.6g")
         (stage / "summary.json").write_text(json.dumps(rows, indent=1))
         pd.concat(vertex_tables, ignore_index=True).to_parquet(stage / "vertex_distances.parquet", index=False)

@@ -52,6 +52,9 @@ class ReviewOptions:
     compare : str or None
         Another reconstruction of the same shot on the same mesh (e.g. ``--method blendshape``): adds the
         distance-between-them colour map.
+    scans : str or None
+        The folder ``lgi compare --out`` wrote for this reconstruction: adds the distance-to-the-scan colour map
+        (mm) on the frames compared with a scan, and its RMS as points on the curves.
     fps : float
         The shot's frame rate, frames per second: the page's playback rate at speed 1.
     step_um : float, um
@@ -62,6 +65,7 @@ class ReviewOptions:
     truth: str | None = None
     compare: str | None = None
     fps: float = 30.0
+    scans: str | None = None
     step_um: float = 10.0
 
     def __post_init__(self) -> None:
@@ -168,12 +172,10 @@ def _aligned(other: np.ndarray, other_frames: np.ndarray | None, frames: np.ndar
 
 
 def _map(values: np.ndarray, label: str, note: str) -> dict[str, Any]:
-    from lgi.review.pack import blob, quantise_map
+    from lgi.review.pack import blob, colour_top, quantise_map
 
     finite = values[np.isfinite(values)]
-    # The 99.9th percentile: one wild vertex should not wash the whole shot into one colour.
-    vmax = float(np.percentile(finite, 99.9)) if finite.size else 0.0
-    vmax = vmax if vmax > 0 else max(float(finite.max()) if finite.size else 0.0, 1e-3)
+    vmax = colour_top(finite)
     return {"label": label, "note": note, "vmax_mm": vmax, "max_mm": float(finite.max()) if finite.size else 0.0,
             "blocks": [blob(quantise_map(values[lo:lo + BLOCK], vmax)) for lo in range(0, len(values), BLOCK)]}
 
@@ -227,7 +229,7 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     o = options or ReviewOptions()
     t0 = time.perf_counter()
     recon, out = Path(recon_dir), Path(out)
-    inputs = [recon, index_dir] + [p for p in (o.truth, o.compare) if p]
+    inputs = [recon, index_dir] + [p for p in (o.truth, o.compare, o.scans) if p]
     check_output(out, "dir", owned=REVIEW_ENTRIES, what="lgi review folder", inputs=inputs)
     meshes = _read_meshes(recon, "RECON_DIR")
     diag = _read_diagnostics(recon)
@@ -265,6 +267,11 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
         c = Path(o.compare)
         cm = _read_meshes(c, "--compare")
         compare = _aligned(cm["vertices"], cm["frames"], frames, c / "meshes.npz", n_v, "--compare's reconstruction")
+    scans = None
+    if o.scans:
+        from lgi.review.scans import read_scan_map
+
+        scans = read_scan_map(o.scans, frames, verts)
 
     # ---- the frames, quantised
     from lgi.dataset.mesh import triangulate
@@ -282,6 +289,10 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     if compare is not None:
         dist = np.linalg.norm(verts.astype(np.float32) - compare.astype(np.float32), axis=2) * MM_PER_CM
         maps.append({"key": "compare", **_map(dist, "distance from --compare", str(Path(o.compare)))})
+    if scans is not None:
+        from lgi.review.scans import page_map
+
+        maps.append(page_map(scans, o.scans, BLOCK))
 
     # ---- markers: status codes per frame, diagnostics in (frame, marker) order
     fi, mi = _rows(diag, frames, markers)
@@ -322,10 +333,19 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
                        "values": np.sqrt(np.mean(e**2, axis=1)).tolist()})
         curves.append({"key": "error_max", "label": "error against the truth, max", "unit": "mm",
                        "values": e.max(axis=1).tolist()})
+    if scans is not None:
+        # Points, not a line: the frames with a scan are usually a few, far apart.
+        curves.append({"key": "scan_rms", "label": "distance to the scan, RMS of the covered vertices", "unit": "mm",
+                       "values": scans.rms_mm.tolist(), "points": True, "missing": "no scan at this frame"})
 
     # ---- summary and warnings
     info = _summary(recon, index_dir, index, diag, per_frame, summary, o, n_f, n_v)
     warn = list(warnings or []) + _warnings(diag, per_frame, len(markers), summary)
+    if scans is not None:
+        from lgi.review.scans import summary_rows
+
+        info += summary_rows(scans, o.scans)
+        warn += scans.warnings
 
     meta = {
         "format": "lgi-review", "version": 1, "fps": o.fps,
@@ -335,6 +355,9 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
         "marker_weights": blob(a["marker_weights"].astype(np.float32).ravel()),
         "status": blob(status.ravel()), "diag_present": blob(present.astype(np.uint8)), "diagnostics": dcols,
         "curves": curves, "summary": info, "warnings": warn,
+        # Frames marked on the curves (positions in the shot): those compared with a scan.
+        "marks": [{"label": "scan", "frames": np.flatnonzero(scans.slots >= 0).tolist()}] if scans is not None
+        else [],
         "quantisation": {"scale_cm": q.scale, "error_bound_mm": q.error_bound_cm * MM_PER_CM,
                          "moving_vertices": int(len(q.moving))},
     }

@@ -56,6 +56,24 @@ def shot_folders(shots: str | list[str]) -> list[Path]:
     return folders
 
 
+def session_scans(path: str, shots: list[str]) -> dict[str, list[tuple[int, str]]]:
+    """Per shot name, its ``(frame, scan path)`` pairs from a session's scans CSV (columns ``shot, frame, scan``;
+    scan paths relative to the CSV's folder); a shot the session does not have is refused."""
+    from lgi.errors import InputError
+    from lgi.io.csvio import read_table
+
+    d = read_table(path, "scans file", ("shot", "frame", "scan"), numeric=("frame",))
+    out: dict[str, list[tuple[int, str]]] = {}
+    for r, (shot, f, scan) in enumerate(zip(d["shot"].astype(str), d["frame"], d["scan"].astype(str), strict=True)):
+        if shot not in shots:
+            raise InputError(f"shot {shot!r} is not one of the session's ({', '.join(shots)})", path=path, line=r + 2)
+        if f != int(f):
+            raise InputError(f"frame {f!r} is not a whole number", path=path, line=r + 2)
+        p = Path(scan.strip())
+        out.setdefault(shot, []).append((int(f), str(p if p.is_absolute() else Path(path).parent / p)))
+    return out
+
+
 @task(name="calibrate-session", cache_policy=NO_CACHE, persist_result=False, retries=1,
       retry_condition_fn=transient_only, timeout_seconds=3600)
 def calibrate_session(images: str, options: dict, out: str, cache_dir: str):
@@ -105,6 +123,10 @@ def export_shot(recon: str, index_dir: str, exr: str, exr_size: int, fps: float)
     dask_address="Run the reconstruction chunks on Dask (see reconstruct-shot); null: threads.",
     rig="The actor's rig dataset (lgi rig-generate): each shot is also solved onto it (lgi rig-solve); null: none.",
     rig_usd="The rig's USD (lgi rig-generate --usd): each shot also gets anim.usda, its animation; null: none.",
+    scans="A CSV of scans to compare shots with (columns shot, frame, scan; scan paths relative to the CSV): each "
+          "shot's pairs go to its reconstruct-shot run (shots/<shot>/recon/compare, and its review page); a scan "
+          "that fails is reported in the session's table (column scans); null: none.",
+    scan_units="Units of the scan files (mm, cm, m, in).",
 )
 def capture_session(
     calibration_images: str,
@@ -124,6 +146,8 @@ def capture_session(
     dask_address: str | None = None,
     rig: str | None = None,
     rig_usd: str | None = None,
+    scans: str | None = None,
+    scan_units: str = "cm",
 ) -> dict:
     """Calibrate once, then track, reconstruct and export every shot; returns the session summary (``shots``:
     per shot its status, frames, outputs, or the error)."""
@@ -139,6 +163,8 @@ def capture_session(
     if exr_size is not None:
         ExportOptions(exr="x", exr_size=exr_size, fps=fps)  # the values checked before any work
     folders = shot_folders(shots)
+    scans = at(scans, "scans")
+    shot_scans = session_scans(scans, [f.name for f in folders]) if scans else {}
     out_dir = Path(out)
     rig, rig_usd = at(rig, "rig"), at(rig_usd, "rig_usd")
     if rig is not None:
@@ -156,10 +182,14 @@ def capture_session(
         row: dict = {"shot": folder.name, "status": "failed", "frames": 0, "error": "", "review": ""}
         state = reconstruct_shot(index_dir, str(shot_dir / "bundles.csv"), str(shot_dir / "recon"), smooth=smooth,
                                  usd=usd, fps=fps, chunk_size=chunk_size, footage=str(folder), calib=calib,
-                                 markers=markers, helmet=helmet, dask_address=dask_address, return_state=True)
+                                 markers=markers, helmet=helmet, dask_address=dask_address,
+                                 scans=shot_scans.get(folder.name), scan_units=scan_units, return_state=True)
         try:
             summary = state.result()
             row.update(status="done", frames=summary["frames"], recon=summary["out"], review=summary.get("review", ""))
+            if "compare" in summary:
+                c = summary["compare"]
+                row["scans"] = f"{len(c['pairs'])} compared" if c["status"] == "done" else f"failed: {c['error']}"
             if exr_size is not None:
                 export_shot(summary["out"], index_dir, str(shot_dir / "exr"), exr_size, fps)
                 row["exr"] = str((shot_dir / "exr").resolve())
@@ -184,6 +214,8 @@ def capture_session(
         f"# Capture session\n\ncalibration: `{calib}` ({'cached' if cal_hit else 'computed'})\n\n"
         f"{len(rows) - len(failed)} of {len(rows)} shots reconstructed"
         + ("".join(f"\n- **{r['shot']}** failed: {r['error']}" for r in failed) if failed else "")
+        + "".join(f"\n- **{r['shot']}**: scan comparison {r['scans']}" for r in rows
+                  if r.get("scans", "").startswith("failed"))
         + "".join(f"\n- {r['shot']}: review page [{r['review']}]({Path(r['review']).as_uri()})"
                   for r in rows if r.get("review")) + "\n"))
     logger.info("%d of %d shots reconstructed%s", len(rows) - len(failed), len(rows),

@@ -23,6 +23,7 @@ from prefect.artifacts import (
 from prefect.cache_policies import NO_CACHE
 
 from lgi.jobs import reconstruct as job
+from lgi.jobs.compare import IN_SHOT, CompareOptions, compare_report
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
@@ -89,11 +90,41 @@ def write_shot(index_dir: str, bundles: str, options: dict, parts: list[str], ou
 
 
 @task(name="review-page", **_T)
-def review_task(out: str, index_dir: str, summary: dict, fps: float) -> str:
-    """The shot's review page in ``out/review`` (see :func:`lgi.jobs.review.review`); returns its path."""
+def review_task(out: str, index_dir: str, summary: dict, fps: float, scans: str | None = None,
+                warnings: list[str] | None = None) -> str:
+    """The shot's review page in ``out/review`` (see :func:`lgi.jobs.review.review`), with the scan map of the
+    compare folder ``scans``; returns its path."""
     from lgi.jobs.review import ReviewOptions, review_beside
 
-    return review_beside(out, index_dir, summary, ReviewOptions(fps=fps))["page"]
+    return review_beside(out, index_dir, summary, ReviewOptions(fps=fps, scans=scans), warnings)["page"]
+
+
+@task(name="compare-scans", **_T)
+def compare_task(recon: str, options: dict) -> dict:
+    """The shot's frames against their scans: ``lgi compare``'s job (:func:`lgi.jobs.compare.compare`), its
+    tables and heat maps in ``options["out"]``."""
+    from lgi.jobs.compare import CompareOptions, compare
+
+    return compare(recon, CompareOptions.from_json(options))
+
+
+def scan_options(scans: str | list | None, index_dir: str, out: str, units: str, align: str, region: str,
+                 gate: float) -> CompareOptions | None:
+    """The compare job's options for the flow's ``scans`` (a pairs CSV, or ``[frame, scan]`` pairs), writing into
+    ``out/compare``; None without scans."""
+    if scans is None or (isinstance(scans, (list, tuple)) and not scans):
+        return None
+    common = dict(index=index_dir, align=align, region=region, gate_mm=gate, units=units,
+                  out=str(Path(out) / IN_SHOT))
+    if isinstance(scans, (str, Path)):
+        return CompareOptions(pairs=str(scans), **common)
+    from lgi.errors import InputError
+
+    try:
+        frames, files = zip(*((int(f), str(s)) for f, s in scans), strict=True)
+    except (TypeError, ValueError):
+        raise InputError(f"scans: give a pairs CSV or a list of [frame, scan] pairs, not {scans!r}") from None
+    return CompareOptions(frames=frames, scans=files, **common)
 
 
 @flow(name="reconstruct-shot")
@@ -119,7 +150,17 @@ def review_task(out: str, index_dir: str, summary: dict, fps: float) -> str:
                         "local cluster of N worker processes (null: threads in this process). Results are the "
                         "same bit for bit.",
            review="Also write the shot's review page into OUT/review (index.html: the shot in 3D with its "
-                  "markers, colour maps and curves; opens from the file system) and link it in the report.")
+                  "markers, colour maps and curves; opens from the file system) and link it in the report.",
+           scans="Scans of some of the shot's moments to compare the reconstruction with (lgi compare): a pairs "
+                 "CSV (columns frame, scan; paths relative to the CSV) or a list of [frame, scan] pairs. Written "
+                 "to OUT/compare, linked in the report and shown on the review page. A scan that does not load or "
+                 "covers no part of the face is reported (table artifact, error log, report, page) and the "
+                 "reconstruction kept; a missing scan file or frame is refused before any work.",
+           scan_units="Units of the scan files (mm, cm, m, in).",
+           scan_align="rigid: move each scan onto its frame by ICP first; none: compare as given.",
+           scan_region="Vertices to compare (lgi compare --region): all, face, marked, lips, FIRST:LAST or a "
+                       "vertex index file.",
+           scan_gate="Closest points farther than this, mm, count as not covered by the scan.")
 def reconstruct_shot(
     index_dir: str,
     bundles: str,
@@ -147,6 +188,11 @@ def reconstruct_shot(
     helmet: str | None = None,
     dask_address: str | None = None,
     review: bool = True,
+    scans: str | list[tuple[int, str]] | None = None,
+    scan_units: str = "cm",
+    scan_align: str = "none",
+    scan_region: str = "all",
+    scan_gate: float = 10.0,
 ) -> dict:
     """Reconstruct a shot into ``out``: the options of ``lgi reconstruct`` (:class:`~lgi.jobs.reconstruct.
     ReconstructOptions`), with the work in chunks of ``chunk_size`` frames.
@@ -160,6 +206,8 @@ def reconstruct_shot(
     jaw = at(jaw, "jaw", ("auto", "none"))
     observations, calib, contours = at(observations, "observations"), at(calib, "calib"), at(contours, "contours")
     footage, markers, helmet = at(footage, "footage"), at(markers, "markers"), at(helmet, "helmet")
+    if scans is not None:
+        scans = at(scans, "scans") if isinstance(scans, str) else [(f, at(s, "scans")) for f, s in scans]
     params = dict(locals())
     if footage and not (calib and markers):
         raise ValueError("a shot from footage needs calib and markers")
@@ -168,6 +216,14 @@ def reconstruct_shot(
     opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
     job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
                            contours))
+    # Scans are checked before any work (files there, frames in the shot), their loading and coverage after.
+    scan_opts = scan_options(scans, index_dir, out, scan_units, scan_align, scan_region, scan_gate)
+    scan_pairs = None
+    if scan_opts is not None:
+        from lgi.jobs.compare import check_outputs, checked_pairs
+
+        scan_pairs = checked_pairs(scan_opts)
+        check_outputs(out, scan_opts, scan_pairs)
     tracking = None
     if footage:
         # The actor's index is at hand: the head pose is solved with the face (lgi track --index).
@@ -176,6 +232,8 @@ def reconstruct_shot(
                               key=artifact_key("shot-tracking", out),
                               description="footage to bundles: tracking summary")
     n = job.preflight(index_dir, bundles, opts)
+    if scan_pairs:
+        _check_scan_frames(scan_pairs, job.prepared_shot(index_dir, bundles, opts).frames, scan_opts)
     runner = task_runner(dask_address)
     bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
     # One working folder per run: two runs into the same OUT never touch each other's chunk files, and a killed
@@ -213,8 +271,19 @@ def reconstruct_shot(
     finally:
         job.forget_parts(work)
         shutil.rmtree(work, ignore_errors=True)
+    page_warnings = []
+    if scan_opts is not None:
+        summary["compare"] = _compare_scans(out, scan_opts, scan_pairs)
+        if summary["compare"]["status"] != "done":
+            page_warnings.append(f"scan comparison failed: {summary['compare']['error']}")
+    else:
+        from lgi.jobs.compare import remove_outputs
+
+        remove_outputs(Path(out) / IN_SHOT)  # an earlier run's distances were measured on other meshes
     if review:
-        summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, fps)
+        done = summary.get("compare", {}).get("status") == "done"
+        summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, fps,
+                                        scan_opts.out if done else None, page_warnings)
     else:
         from lgi.jobs.review import remove_review
 
@@ -226,6 +295,37 @@ def reconstruct_shot(
     if tracking:
         summary["tracking"] = tracking
     return summary
+
+
+def _check_scan_frames(pairs: list[tuple[int, Path]], frames, options: CompareOptions) -> None:
+    """Refuse a scan of a frame the shot does not have, before the reconstruction."""
+    from lgi.errors import InputError
+
+    have = {int(f) for f in frames}
+    for f, scan in pairs:
+        if f not in have:
+            raise InputError(f"scan {scan} is of frame {f}, which the shot's bundles do not have (frames "
+                             f"{min(have)}-{max(have)})", path=options.pairs or scan)
+
+
+def _compare_scans(out: str, options: CompareOptions, pairs: list[tuple[int, Path]]) -> dict:
+    """Run the compare job on the reconstructed shot; a scan that fails (bad input: it does not load, covers no
+    part of the face) is logged as an error and returned as ``status: failed`` with the message: the
+    reconstruction is sound and stays. A bug still fails the flow."""
+    from lgi.errors import LgiError
+
+    logger = get_run_logger()
+    try:
+        result = compare_task(out, options.to_json())
+    except LgiError as exc:
+        logger.error("scan comparison failed (the reconstruction in %s is kept): %s", out, exc)
+        # The job writes all or nothing: the scan the error names failed, the others were not measured.
+        return {"status": "failed", "error": str(exc), "out": None,
+                "pairs": [{"frame": f, "scan": str(s), "status": "failed" if str(s) == getattr(exc, "path", None)
+                           else "not measured"} for f, s in pairs]}
+    for line in compare_report(result):
+        logger.info(line)
+    return {"status": "done", "error": "", "out": result["out"], "pairs": result["pairs"]}
 
 
 def task_runner(dask_address: str | None):
@@ -298,6 +398,43 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
         blas.restore_original_limits()
 
 
+#: Heat maps carried inside the report (each about a hundred kB); the others are linked.
+EMBEDDED_HEATMAPS = 3
+
+
+def _scan_report(summary: dict, out: str) -> str:
+    """The scan comparison's table artifact (a row per pair: its figures, or that it failed) and its section of
+    the shot's report ("" without scans)."""
+    from lgi.jobs.compare import heatmap_name
+
+    c = summary.get("compare")
+    if not c:
+        return ""
+    cols = ("covered_share", "rms_mm", "p95_mm", "max_mm", "hausdorff_mm")
+    rows = [{"frame": r["frame"], "scan": str(r["scan"]), "status": r.get("status", "done"),
+             **{k: round(float(r[k]), 4) for k in cols if k in r}} for r in c["pairs"]]
+    for r in rows:
+        r["error"] = c["error"] if r["status"] == "failed" else ""
+    create_table_artifact(table=rows, key=artifact_key("shot-compare", out),
+                          description="the shot's frames against their scans (lgi compare; mm)" if c["status"] ==
+                          "done" else f"scan comparison FAILED: {c['error']}")
+    if c["status"] != "done":
+        return f"\n## Scans\n\n**The scan comparison failed** (the reconstruction is kept): {c['error']}\n"
+    folder = Path(c["out"])
+    table = folder / "summary.csv"
+    lines = ["", "## Scans", "", f"lgi compare's tables: [{table}]({table.as_uri()})", "",
+             "| frame | scan | covered | RMS mm | p95 mm | max mm | Hausdorff mm |", "|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['frame']} | {Path(r['scan']).name} | {r['covered_share']:.1%} | {r['rms_mm']:.3f} | "
+              f"{r['p95_mm']:.3f} | {r['max_mm']:.3f} | {r['hausdorff_mm']:.3f} |" for r in c["pairs"]]
+    lines.append("")
+    for k, r in enumerate(c["pairs"]):
+        png = folder / "heatmaps" / f"{heatmap_name(int(r['frame']), Path(r['scan']))}.png"
+        if png.is_file():
+            lines.append(embedded_png(png, f"frame {r['frame']} against {Path(r['scan']).name}")
+                         if k < EMBEDDED_HEATMAPS else f"- heat map: [{png.name}]({png.as_uri()})")
+    return "\n".join(lines) + "\n"
+
+
 def _report(summary: dict, out: str) -> None:
     """Per-marker table and a markdown report as artifacts."""
     import pandas as pd
@@ -329,6 +466,6 @@ def _report(summary: dict, out: str) -> None:
         "|---|---|---|---|---|\n"
         f"| {summary['contained_share']:.1%} | {summary['projected_share']:.1%} | {summary['neighbour_share']:.1%} "
         f"| {summary['missing_share']:.1%} | {summary['max_residual_mm']:.2e} mm |\n\n"
-        f"{plot}Diagnostics: `diagnostics.csv`, `per_frame.csv`\n"
+        f"{plot}Diagnostics: `diagnostics.csv`, `per_frame.csv`\n" + _scan_report(summary, out)
         + (f"\nReview page (open in a browser): [{summary['review']}]({Path(summary['review']).as_uri()})\n"
            if summary.get("review") else "")))

@@ -99,11 +99,37 @@ def decode_codes(data: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return np.cumsum(d, axis=0, dtype=np.int16) if d.size else d
 
 
-def quantise_map(values: np.ndarray, vmax: float) -> np.ndarray:
-    """A colour map's values (any shape, mm) as uint8 codes over [0, vmax] (clamped; NaN -> 255 is avoided:
-    NaN becomes 0). The page reads code k as k / 255 * vmax mm."""
+def quantise_map(values: np.ndarray, vmax: float, top: int = 255) -> np.ndarray:
+    """A colour map's values (any shape, mm) as uint8 codes over [0, vmax] (clamped; NaN becomes 0). The page
+    reads code k <= top as k / top * vmax mm; ``top`` below 255 leaves the codes above it for "no value"
+    (:data:`NOT_COVERED`, :data:`NOT_MEASURED`)."""
     v = np.nan_to_num(np.asarray(values, np.float64), nan=0.0)
-    return np.rint(np.clip(v / max(vmax, 1e-12), 0.0, 1.0) * 255).astype(np.uint8)
+    return np.rint(np.clip(v / max(vmax, 1e-12), 0.0, 1.0) * top).astype(np.uint8)
+
+
+def colour_top(values: np.ndarray) -> float:
+    """Top of a colour map's bar (mm) for ``values`` (any shape, mm): their 99.9th percentile, so that one wild
+    vertex does not wash the whole shot into one colour (the largest value when that is 0; 1e-3 with none)."""
+    finite = np.asarray(values)[np.isfinite(values)]
+    top = float(np.percentile(finite, 99.9)) if finite.size else 0.0
+    return top if top > 0 else max(float(finite.max()) if finite.size else 0.0, 1e-3)
+
+
+#: Codes of a map with missing values (the scan map): values take 0..TOP_WITH_GAPS, and two codes above say why a
+#: vertex has none. The page paints them in colours outside its ramp, so a gap never reads as 0 mm.
+TOP_WITH_GAPS = 253
+NOT_COVERED = 254
+NOT_MEASURED = 255
+
+
+def quantise_gaps(values: np.ndarray, covered: np.ndarray, measured: np.ndarray, vmax: float) -> np.ndarray:
+    """Codes of a map with gaps: ``values`` (any shape, mm) over [0, vmax] as 0..:data:`TOP_WITH_GAPS` where
+    ``covered``; :data:`NOT_COVERED` where ``measured`` but not covered (the scan has no surface there: a hole,
+    its outline); :data:`NOT_MEASURED` where not ``measured`` (outside the compared region)."""
+    codes = quantise_map(values, vmax, TOP_WITH_GAPS)
+    codes[~covered] = NOT_COVERED
+    codes[~measured] = NOT_MEASURED
+    return codes
 
 
 def blob(array: np.ndarray, compress: bool = True) -> dict[str, Any]:

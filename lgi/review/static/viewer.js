@@ -71,8 +71,15 @@
     const i = Math.min(RAMP.length - 2, Math.floor(t)), f = t - i, a = RAMP[i], b = RAMP[i + 1];
     return [a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f];
   }
-  const LUT = new Float32Array(256 * 3);
-  for (let k = 0; k < 256; k++) { const c = ramp(k / 255); LUT.set(c, 3 * k); }
+  // A map's codes 0..top are its ramp; codes above top (a map with gaps: the scan map) say why a vertex has no
+  // value, in colours outside the ramp, so that a gap never reads as 0 mm.
+  const SHADED = [0.78, 0.74, 0.70];
+  const GAP_RGB = { 254: [0.30, 0.30, 0.32], 255: SHADED };
+  function lut(top) {
+    const out = new Float32Array(256 * 3);
+    for (let k = 0; k < 256; k++) out.set(k <= top ? ramp(k / top) : (GAP_RGB[k] || SHADED), 3 * k);
+    return out;
+  }
 
   // ---------------------------------------------------------------- state
   const S = { frame: 0, loaded: 1, playing: false, speed: 1, map: "none", showMarkers: true, yaw: 0, pitch: 0, dist: 1,
@@ -88,7 +95,19 @@
       decode(META.marker_vertices), decode(META.marker_weights), decode(META.status), decode(META.diag_present)]);
     scale = DATA.scale;
     codes = new Int16Array(nF * moving.length * 3);
-    for (const m of DATA.maps) maps[m.key] = { ...m, values: new Uint8Array(nF * nV) };
+    for (const m of DATA.maps) {
+      const mm = { ...m, top: m.top || 255 };
+      mm.lut = lut(mm.top);
+      if (m.slots) {
+        // A sparse map (frames with a scan only): slot k of the values is the k-th such frame; a block's codes go
+        // at its first slot.
+        mm.blockStart = [];
+        let n = 0;
+        for (let f = 0; f < nF; f++) { if (f % DATA.block === 0) mm.blockStart.push(n); if (m.slots[f] >= 0) n++; }
+        mm.values = new Uint8Array(n * nV);
+      } else mm.values = new Uint8Array(nF * nV);
+      maps[m.key] = mm;
+    }
     await loadBlock(0);
     S.loaded = Math.min(nF, DATA.block);
     const diagCodes = await Promise.all(META.diagnostics.map((c) => decode(c.data)));
@@ -112,7 +131,10 @@
     const per = moving.length * 3, lo = k * DATA.block;
     const [c, ...mapped] = await Promise.all([decode(DATA.blocks[k]), ...DATA.maps.map((m) => decode(m.blocks[k]))]);
     codes.set(deltaPlanes(c, per), lo * per);
-    DATA.maps.forEach((m, i) => maps[m.key].values.set(mapped[i], lo * nV));
+    DATA.maps.forEach((m, i) => {
+      const mm = maps[m.key];
+      mm.values.set(mapped[i], (mm.slots ? mm.blockStart[k] : lo) * nV);
+    });
   }
   async function loadRest() {
     // A few blocks at a time: the browser inflates them side by side.
@@ -150,12 +172,14 @@
       mpos[3 * m + k] = s;
     }
   }
+  // The frame's row of a map's values, or -1 where the map has none (a frame without a scan).
+  function slotOf(m, f) { return m ? (m.slots ? m.slots[f] : f) : -1; }
   function frameColours(f) {
-    const m = maps[S.map];
-    if (!m) { for (let i = 0; i < nV * 3; i += 3) { col[i] = 0.78; col[i + 1] = 0.74; col[i + 2] = 0.70; } }
+    const m = maps[S.map], slot = slotOf(m, f);
+    if (slot < 0) { for (let i = 0; i < nV * 3; i += 3) col.set(SHADED, i); }
     else {
-      const vals = m.values, base = f * nV;
-      for (let v = 0; v < nV; v++) { const k = 3 * vals[base + v]; col[3 * v] = LUT[k]; col[3 * v + 1] = LUT[k + 1]; col[3 * v + 2] = LUT[k + 2]; }
+      const vals = m.values, base = slot * nV, L = m.lut;
+      for (let v = 0; v < nV; v++) { const k = 3 * vals[base + v]; col[3 * v] = L[k]; col[3 * v + 1] = L[k + 1]; col[3 * v + 2] = L[k + 2]; }
     }
     for (let i = 0; i < nM; i++) {
       const c = STATUS_RGB[META.statuses[status[f * nM + i]]] || STATUS_RGB.other; mcol.set(c, 3 * i);
@@ -285,6 +309,25 @@
     g.textAlign = "center"; g.fillText(short(m.vmax_mm / 2), 110, 28);
     g.textAlign = "right"; g.fillText(`>= ${short(m.vmax_mm)} mm`, 210, 28);
     c.title = `${m.label}: ${m.note}; largest ${fmt(m.max_mm)} mm`;
+    mapNote();
+  }
+  // Under the colour bar: what a sparse map shows at this frame (which scan), or that the frame has none, and
+  // the colours of its gaps.
+  function mapNote() {
+    const m = maps[S.map], el = $("cbarNote");
+    if (!m || !m.slots) { el.innerHTML = ""; $("cbar").style.display = "block"; return; }
+    const slot = m.slots[S.frame];
+    $("cbar").style.display = slot < 0 ? "none" : "block";
+    if (slot < 0) {
+      const listed = m.pairs.slice(0, 12).map((p) => p.frame).join(", ") + (m.pairs.length > 12 ? ", ..." : "");
+      el.innerHTML = `<b>no scan for frame ${META.frames[S.frame]}</b>: ${esc(m.label)} only on the frames ` +
+        `compared with one (${esc(listed)}; marked on the curves)`;
+      return;
+    }
+    const p = m.pairs[slot], swatch = (c) => `<i style="background:rgb(${c.map((v) => Math.round(v * 255))})"></i>`;
+    el.innerHTML = `${esc(p.scan)}` + (p.covered_share != null ? `, ${(100 * p.covered_share).toFixed(1)} % covered` : "") +
+      (p.rms_mm != null ? `, RMS ${p.rms_mm.toFixed(3)} mm` : "") + "<br>" +
+      m.gaps.map((g) => `<span>${swatch(GAP_RGB[g.code])}${esc(g.label)}</span>`).join(" ");
   }
   function legend() {
     const used = new Set(status);
@@ -317,19 +360,30 @@
       const y0 = i * rowH, vals = cv.values.map((v) => (v === null ? NaN : v));
       const fin = vals.filter(Number.isFinite), lo = Math.min(0, ...fin), hi = Math.max(...fin, lo + 1e-9);
       g.strokeStyle = "#333"; g.beginPath(); g.moveTo(0, y0 + rowH - 0.5); g.lineTo(w, y0 + rowH - 0.5); g.stroke();
-      g.strokeStyle = CURVE_RGB[i % CURVE_RGB.length]; g.lineWidth = 1.5; g.beginPath();
-      let on = false;
-      vals.forEach((v, f) => {
-        if (!Number.isFinite(v)) { on = false; return; }
-        const y = y0 + rowH - 3 - (rowH - 6) * (v - lo) / (hi - lo);
-        if (on) g.lineTo(xOf(f), y); else g.moveTo(xOf(f), y); on = true;
-      });
-      g.stroke();
-      const now = vals[S.frame];
-      const text = `${cv.label} (${cv.unit}): ${fmt(now)}   [max ${fmt(Math.max(...fin))}]`;
+      const rgb = CURVE_RGB[i % CURVE_RGB.length], yOf = (v) => y0 + rowH - 3 - (rowH - 6) * (v - lo) / (hi - lo);
+      if (cv.points) {
+        // A few frames far apart (the frames with a scan): dots, as a line between them would invent values.
+        g.fillStyle = rgb;
+        vals.forEach((v, f) => { if (Number.isFinite(v)) { g.beginPath(); g.arc(xOf(f), yOf(v), 3, 0, 2 * Math.PI); g.fill(); } });
+      } else {
+        g.strokeStyle = rgb; g.lineWidth = 1.5; g.beginPath();
+        let on = false;
+        vals.forEach((v, f) => {
+          if (!Number.isFinite(v)) { on = false; return; }
+          if (on) g.lineTo(xOf(f), yOf(v)); else g.moveTo(xOf(f), yOf(v)); on = true;
+        });
+        g.stroke();
+      }
+      const now = vals[S.frame], nowText = Number.isFinite(now) ? fmt(now) : (cv.missing || "");
+      const text = `${cv.label} (${cv.unit}): ${nowText}   [max ${fmt(Math.max(...fin))}]`;
       g.fillStyle = "rgba(23, 25, 28, 0.8)"; g.fillRect(left + 1, y0 + 1, g.measureText(text).width + 6, 14);
       g.fillStyle = "#ccc"; g.fillText(text, left + 4, y0 + 12);
     });
+    // Marked frames (those compared with a scan): a faint line across the curves and a tick at the bottom.
+    for (const mk of META.marks || []) for (const f of mk.frames) {
+      g.strokeStyle = "rgba(255, 170, 80, 0.35)"; g.lineWidth = 1; g.beginPath(); g.moveTo(xOf(f), 0); g.lineTo(xOf(f), h); g.stroke();
+      g.fillStyle = "#fa5"; g.beginPath(); g.moveTo(xOf(f), h - 7); g.lineTo(xOf(f) - 4, h); g.lineTo(xOf(f) + 4, h); g.fill();
+    }
     if (S.loaded < nF) { g.fillStyle = "rgba(0, 0, 0, 0.45)"; g.fillRect(xOf(S.loaded), 0, w - xOf(S.loaded), h); }
     g.strokeStyle = "#fff"; g.lineWidth = 1; g.beginPath(); g.moveTo(xOf(S.frame), 0); g.lineTo(xOf(S.frame), h); g.stroke();
   }
@@ -340,7 +394,8 @@
     f = Math.max(0, Math.min(S.loaded - 1, Math.round(f)));
     S.frame = f; $("slider").value = f; dirty.geom = true;
     $("frameLabel").textContent = `frame ${META.frames[f]} (${f + 1}/${nF})`;
-    drawCurves(); showMarker(); draw();
+    if (maps[S.map] && maps[S.map].slots) dirty.colour = true;
+    drawCurves(); showMarker(); mapNote(); draw();
   }
   function setMap(key) { S.map = maps[key] ? key : "none"; $("map").value = S.map; dirty.colour = true; colourBar(); draw(); }
   function pick(ev) {
@@ -425,6 +480,10 @@
         frame: () => S.frame, markerScreen: (m) => { draw(); return markerScreen(m); },
         statusColour: (s) => STATUS_RGB[s], markerStatus: (f, m) => META.statuses[status[f * nM + m]],
         diagnostics, pinMarker: (m) => { S.pinned = m; showMarker(); },
+        // The colour vertex v is given in this frame under the current map (before shading), and the note.
+        vertexColour: (v) => Array.from(col.subarray(3 * v, 3 * v + 3)), gapColour: (code) => GAP_RGB[code],
+        rampColour: (t) => ramp(t), mapNote: () => $("cbarNote").innerText,
+        marked: () => (META.marks || []).map((mk) => mk.frames),
       });
       S.last = performance.now(); requestAnimationFrame(tick);
       await loadRest();
