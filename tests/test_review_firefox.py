@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 from _firefox import FIREFOX, BiDiError, Firefox
 from _review_checks import check_marker_colours
-from test_review import _pixels, shot  # noqa: F401 - the shot fixture, shared with the Chromium tests
+from test_review import SCANNED, _pixels, scanned, shot  # noqa: F401 - fixtures shared with the Chromium tests
 
 READY = "window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)"
 
@@ -121,3 +121,20 @@ def test_clicking_a_curve_jumps_to_its_frame(page):
     assert page.evaluate("window.lgiReview.frame()") == 19
     page.evaluate("document.querySelector('#back').click()")
     assert page.evaluate("window.lgiReview.frame()") == 18
+
+
+def test_scan_map(firefox, scanned, tmp_path):  # noqa: F811
+    """The scan map (lgi review --scans) paints a scanned frame and says that a frame without a scan has none."""
+    ff = firefox
+    ff.errors.clear()
+    ff.goto((scanned / "page_scans" / "index.html").resolve().as_uri())
+    ff.wait_for(READY)
+    assert ff.evaluate("window.lgiReview.error") is None and ff.errors == []
+    _uncheck_markers(ff)
+    ff.evaluate(f"window.lgiReview.setFrame({SCANNED[0]})")
+    shaded = _canvas(ff)
+    _set(ff, "#map", "scan", "change")
+    coloured = _canvas(ff, tmp_path / "scan_map.png")
+    assert np.any(np.abs(coloured - shaded) > 20, axis=2).mean() > 0.05
+    ff.evaluate("window.lgiReview.setFrame(0)")
+    assert "no scan for frame" in ff.evaluate("window.lgiReview.mapNote()")
