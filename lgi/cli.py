@@ -750,8 +750,8 @@ def build_parser() -> argparse.ArgumentParser:
                  ("lgi rig-solve shot/recon --rig actor_rig --out shot/anim --usd shot/anim.usda "
                   "--rig-usd actor_rig.usda",),
                  outputs="OUT_DIR/curves.csv or .parquet (frame, control, value), residuals.csv (rig playback - "
-                         "reconstruction, RMS and max mm per frame), vertex_error.npz/.png (where the rig falls short), solve.json; "
-                         "with --usd, a UsdSkel animation layer over the rig's USD.")
+                         "reconstruction, RMS and max mm per frame), vertex_error.npz/.png (where the rig falls "
+                         "short), solve.json; with --usd, a UsdSkel animation layer over the rig's USD.")
     g = s.add_argument_group("inputs")
     g.add_argument("recon_dir", metavar="RECON_DIR", help="the reconstruction (lgi reconstruct's meshes.npz)")
     g.add_argument("--rig", required=True, metavar="RIG_DIR", help="the actor's rig dataset (lgi rig-generate)")

@@ -225,14 +225,31 @@ def jaw_rig(tmp_path_factory) -> dict:
     return {"dir": d, "ds": ds, "rig": load_rig(d / "rig")[0]}
 
 
-def jaw_shot(r, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Weights (n, K) and jaw parameters (n, 4): the jaw open 4-20 degrees, yawed and rolled either way, slid."""
+def jaw_shot(r, n: int, seed: int, jaw: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Weights (n, K) and jaw parameters (n, 4): the jaw open 4-20 degrees, yawed and rolled either way, slid; the
+    jaw controls' weights those the joint drives (as the rig plays)."""
+    from lgi.retarget.solve import jaw_control_weights
+
     rng = np.random.default_rng(seed)
     w = rng.uniform(0, 1, (n, r.n_controls))
     w[rng.uniform(size=w.shape) < 0.4] = 0.0
     w[rng.uniform(size=w.shape) < 0.1] = 1.0
-    jaw = np.c_[rng.uniform(4, 20, n), rng.uniform(-5, 5, n), rng.uniform(-3, 3, n), rng.uniform(-0.1, 0.3, n)]
+    if jaw is None:
+        jaw = np.c_[rng.uniform(4, 20, n), rng.uniform(-5, 5, n), rng.uniform(-3, 3, n), rng.uniform(-0.1, 0.3, n)]
+    w[:, r.jaw_controls] = jaw_control_weights(r, jaw)
     return w, jaw
+
+
+def test_jaw_controls_follow_the_joint(jaw_rig) -> None:
+    """The jaw controls are jaw_open, jaw_left, jaw_right, jaw_forward (their poses move the jaw); a jaw open 11
+    degrees and turned left gives jaw_open 0.5, jaw_left its share and jaw_right 0."""
+    from lgi.retarget.solve import jaw_control_weights
+
+    r = jaw_rig["rig"]
+    assert [r.controls[i] for i in r.jaw_controls] == ["jaw_open", "jaw_left", "jaw_right", "jaw_forward"]
+    pose = 0.5 * r.jaw_poses[A.C["jaw_open"]] + 0.3 * r.jaw_poses[A.C["jaw_left"]]
+    got = jaw_control_weights(r, pose[None])[0]
+    np.testing.assert_allclose(got, [0.5, 0.3, 0.0, 0.0], atol=1e-4)
 
 
 def test_exact_curves_and_jaw_from_a_mesh_the_rig_made(jaw_rig, tmp_path) -> None:
@@ -247,6 +264,7 @@ def test_exact_curves_and_jaw_from_a_mesh_the_rig_made(jaw_rig, tmp_path) -> Non
     meshes = np.stack([r.evaluate(x, t) for x, t in zip(w, jaw, strict=True)]).astype(np.float32)
     rig_dir = str(jaw_rig["dir"] / "rig")
     for name, start in (("off", jaw + JAW_START_ERROR), ("none", None), ("fixed", jaw + JAW_START_ERROR)):
+        # the jaw from the reconstruction's jaw 3 degrees off, from the closed jaw, and held at the wrong one
         recon = tmp_path / name
         recon.mkdir()
         arrays = {"vertices": meshes, "frames": np.arange(len(meshes))}
@@ -284,8 +302,8 @@ def test_usd_animation_plays_the_jaw_joint(jaw_rig) -> None:
     from lgi.jobs.rig_solve import JAW_CURVES, playback, read_curves
 
     r, d = jaw_rig["rig"], jaw_rig["dir"]
-    w, jaw = jaw_shot(r, 8, 9)
-    jaw[:, 0] = np.linspace(0.0, 20.0, len(jaw))  # an opening the smoothing keeps
+    jaw = np.c_[np.linspace(0.0, 20.0, 8), np.linspace(-4, 4, 8), np.zeros(8), np.linspace(0, 0.2, 8)]
+    w, jaw = jaw_shot(r, 8, 9, jaw)  # an opening the smoothing keeps
     recon = write_recon(d / "usd", np.stack([r.evaluate(x, t) for x, t in zip(w, jaw, strict=True)]))
     out, anim = d / "usd_out", d / "anim" / "shot.usda"
     assert main(["rig-solve", str(recon), "--rig", str(d / "rig"), "--out", str(out), "--usd", str(anim),

@@ -293,6 +293,7 @@ def _jaw_summary(rig, curves: np.ndarray, jaw_in: np.ndarray | None, mode: str) 
         return None
     k = rig.n_controls
     out: dict[str, Any] = {"mode": mode if jaw_in is not None else "fit from closed",
+                           "driven_controls": [rig.controls[i] for i in rig.jaw_controls],
                            "range": {n: [float(curves[:, k + i].min()), float(curves[:, k + i].max())]
                                      for i, n in enumerate(JAW_CURVES)}}
     if jaw_in is not None:
