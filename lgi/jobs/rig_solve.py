@@ -215,10 +215,11 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
         sample = np.sort(np.random.default_rng(0).choice(idx, o.vertices, replace=False))
     solver = RigSolver(rig, sample, robust=o.robust)
     t1 = time.perf_counter()
-    fit_jaw = rig.jaw is not None and jaw_in is not None
+    # The reconstruction's jaw starts (or holds) the rig's jaw joint; a rig without one solves the weights only.
+    jaw_start = jaw_in if rig.jaw is not None else None
     curves, raw, fits = solve_shot(solver, meshes, o.smooth,
                                    progress=lambda it: progress(it, "solving", disable=not show_progress),
-                                   jaw=jaw_in if fit_jaw else None, fix_jaw=o.jaw == "fixed")
+                                   jaw=jaw_start, fix_jaw=o.jaw == "fixed")
     solve_s = time.perf_counter() - t1
     names = [*rig.controls, *(JAW_CURVES if rig.jaw is not None else ())]
 
