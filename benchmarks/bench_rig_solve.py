@@ -6,7 +6,8 @@ Setup, all through the command line: ``lgi synth --actor 1`` (a 300-frame perfor
 dataset, markers, true jaw rig and truth), ``lgi build`` with its jaw rig, the actor's rig from the default actor's
 template (its 13 controls and its own combination shapes of the pairs ``--correctives auto`` picks, as
 ``bench_rig.py``) with ``lgi rig-generate --correctives auto --usd``, the shot with ``lgi reconstruct``, then
-``lgi rig-solve`` with the default smoothing and with ``--smooth 0`` (each frame on its own). A second shot adds
+``lgi rig-solve`` with the default smoothing, with ``--smooth 0`` (each frame on its own) and with ``--jaw fixed`` (the
+rig's jaw joint held at the reconstruction's jaw instead of fitted with the weights). A second shot adds
 0.2 mm of Gaussian noise per coordinate to the bundles (a tracker's jitter) before ``lgi reconstruct`` (its
 ``--noise auto``): synthetic bundles are exact, so only the noisy shot shows what the temporal term is for.
 
@@ -17,6 +18,8 @@ Figures, over the rig's face region (the vertices some rig shape moves), mm:
   0.001); the RMS of the solved curve's second difference there (chatter);
 - fast frames: where the true activation changes by more than 0.03 per frame; the curve's RMS error there and
   the lag (the shift in frames, in [-3, 3], that best aligns the curve with the truth, per control);
+- the jaw joint (the index has a jaw rig, so the rig's jaw is a joint): the solved jaw parameters against the true
+  ones (``truth.npz`` ``jaw``), correlation and RMS (degrees; the slide in mm), beside the reconstruction's own jaw;
 - the solve's time per frame (measured on a shared, loaded 2-core machine).
 """
 
@@ -101,25 +104,32 @@ def add_noise(src: Path, dst: Path) -> None:
 
 
 def evaluate(work: Path) -> tuple[list[str], dict]:
-    import pandas as pd
 
     from lgi.io.npz import load_npz
-    from lgi.jobs.rig_solve import load_rig, playback
+    from lgi.jobs.rig_solve import JAW_CURVES, load_rig, playback, read_curves
 
     rig, _ = load_rig(work / "rig")
     truth = load_npz(work / "synth" / "truth.npz")
+    true_jaw = np.asarray(truth["jaw"], np.float64)
+    jaw_rows = []
     true_names = [str(c) for c in truth["controls"]]
     acts = truth["activations"][:, [true_names.index(c) for c in rig.controls]].astype(np.float64)
     region = np.flatnonzero(rig.face_region())
     tv = truth["vertices"][:, region]
     rows, info = [], {}
     for shot, recon_name, suffix in SHOTS:
-        recon = load_npz(work / recon_name / "meshes.npz")["vertices"]
+        z = load_npz(work / recon_name / "meshes.npz")
+        recon = z["vertices"]
+        if rig.jaw is not None:
+            jaw_rows.append(jaw_row(shot, "(the reconstruction's jaw)", np.asarray(z["jaw"], np.float64), true_jaw))
         for label, out in (("lgi rig-solve (--smooth 4)", work / f"solved{suffix}"),
-                           ("per-frame fit (--smooth 0)", work / f"raw{suffix}")):
-            t = pd.read_csv(out / "curves.csv")
-            c = t.pivot(index="frame", columns="control", values="value")[rig.controls].to_numpy()
-            play = playback(rig, c, region)
+                           ("per-frame fit (--smooth 0)", work / f"raw{suffix}"),
+                           ("--jaw fixed (--smooth 4)", work / f"fixed{suffix}")):
+            c = read_curves(out, rig.controls)
+            jaw = read_curves(out, list(JAW_CURVES)) if rig.jaw is not None else np.zeros((len(c), 0))
+            if rig.jaw is not None:
+                jaw_rows.append(jaw_row(shot, label, jaw, true_jaw))
+            play = playback(rig, np.c_[c, jaw], region)
             e_rec = np.linalg.norm(play - recon[:, region], axis=2).ravel() * 10
             e_true = np.linalg.norm(play - tv, axis=2).ravel() * 10
             d2 = np.diff(c, 2, axis=0)
@@ -151,26 +161,41 @@ def evaluate(work: Path) -> tuple[list[str], dict]:
             "weight RMS error | held frames: RMS of second differences | fast frames: weight RMS error | "
             "lag, frames (mean, range) | ms per frame |",
             "|---|---|---|---|---|---|---|---|---|---|"]
-    return head + rows + [""] + per, info
+    jaw_head = ["| shot | jaw | open: correlation / RMS deg | yaw: correlation / RMS deg | roll: correlation / RMS deg "
+                "| forward slide: correlation / RMS mm |", "|---|---|---|---|---|---|"]
+    jaw_part = ["", *jaw_head, *jaw_rows] if jaw_rows else []
+    return head + rows + [""] + per + jaw_part, info
+
+
+def jaw_row(shot: str, label: str, jaw: np.ndarray, truth: np.ndarray) -> str:
+    """A row of the jaw table: each parameter (F,) against the truth, correlation and RMS (the slide in mm)."""
+    cells = []
+    for i, unit in enumerate((1.0, 1.0, 1.0, 10.0)):
+        c = np.corrcoef(jaw[:, i], truth[:, i])[0, 1] if truth[:, i].std() > 1e-9 else np.nan
+        cells.append(f"{c:.3f} / {np.sqrt(np.mean((jaw[:, i] - truth[:, i]) ** 2)) * unit:.3f}")
+    return f"| {shot} | {label} | " + " | ".join(cells) + " |"
 
 
 def usd_check(work: Path) -> str:
     """UsdSkel's own bake of the noisy shot's animation at four frames against the rig's playback, and
     UsdValidation's errors."""
-    import pandas as pd
-
     from lgi.export.rig_anim import usd_playback, validate_usd
-    from lgi.jobs.rig_solve import load_rig, playback
+    from lgi.jobs.rig_solve import JAW_CURVES, load_rig, playback, read_curves
 
     rig, _ = load_rig(work / "rig")
-    t = pd.read_csv(work / "solved_noisy" / "curves.csv")
-    c = t.pivot(index="frame", columns="control", values="value")[rig.controls].to_numpy()
-    frames = [0, len(c) // 3, 2 * len(c) // 3, len(c) - 1]
+    c = read_curves(work / "solved_noisy", rig.controls)
+    if rig.jaw is not None:
+        c = np.c_[c, read_curves(work / "solved_noisy", list(JAW_CURVES))]
+    # Four frames spread over the shot, and the widest jaw opening.
+    frames = sorted({0, len(c) // 3, 2 * len(c) // 3, len(c) - 1,
+                     int(np.argmax(c[:, rig.n_controls])) if rig.jaw is not None else 0})
     baked = usd_playback(work / "shot_noisy.usda", frames)
     diff = float(np.abs(baked - playback(rig, c[frames])).max())
     errors = validate_usd(work / "shot_noisy.usda")
-    return (f"USD animation of the noisy shot: UsdSkel.BakeSkinning at frames {frames} is {diff:.1e} cm from the rig's "
-            f"playback at most; UsdValidation: {len(errors)} errors" + (f" ({errors[:2]})" if errors else ""))
+    jaw = "" if rig.jaw is None else (f" (the jaw joint open {c[frames, rig.n_controls].min():.1f} to "
+                                      f"{c[frames, rig.n_controls].max():.1f} deg there)")
+    return (f"USD animation of the noisy shot: UsdSkel.BakeSkinning at frames {frames}{jaw} is {diff:.1e} cm from the "
+            f"rig's playback at most; UsdValidation: {len(errors)} errors" + (f" ({errors[:2]})" if errors else ""))
 
 
 def update_doc(path: Path, lines: list[str]) -> None:
@@ -201,6 +226,9 @@ def main() -> None:
         if not (work / f"raw{suffix}").is_dir():
             lgi("rig-solve", str(work / recon), "--rig", str(work / "rig"), "--out", str(work / f"raw{suffix}"),
                 "--smooth", "0")
+        if not (work / f"fixed{suffix}").is_dir():
+            lgi("rig-solve", str(work / recon), "--rig", str(work / "rig"), "--out", str(work / f"fixed{suffix}"),
+                "--jaw", "fixed")
     lines, _ = evaluate(work)
     lines += ["", usd_check(work)]
     print("\n".join(lines))

@@ -228,7 +228,8 @@ def cmd_rig_generate(args: argparse.Namespace) -> int:
 def cmd_rig_solve(args: argparse.Namespace) -> int:
     from lgi.jobs.rig_solve import RigSolveOptions, rig_solve, rig_solve_report
 
-    opts = RigSolveOptions(smooth=args.smooth, vertices=args.vertices, robust=args.robust, fps=args.fps)
+    opts = RigSolveOptions(smooth=args.smooth, vertices=args.vertices, robust=args.robust, fps=args.fps,
+                           jaw=args.jaw, format=args.format)
     for line in rig_solve_report(rig_solve(args.recon_dir, args.rig, args.out, opts, usd=args.usd,
                                            rig_usd=args.rig_usd, show_progress=not args.quiet)):
         print(line)
@@ -740,7 +741,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "interpolate exactly)")
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="RIG_DIR", help="the actor's rig, as a shape dataset")
-    g.add_argument("--usd", default=None, metavar="RIG.usda", help="also write the rig as UsdSkel blend shapes")
+    g.add_argument("--usd", default=None, metavar="RIG.usda",
+                   help="also write the rig as UsdSkel: blend shapes and, with a jaw-rigged index, a jaw joint "
+                        "(default: none)")
     _quiet(g)
     s.set_defaults(func=cmd_rig_generate)
 
@@ -748,12 +751,13 @@ def build_parser() -> argparse.ArgumentParser:
     s = _command(sub, "rig-solve", "a reconstructed shot as animation curves of the actor's rig",
                  "Fit the rig's control weights (in [0, 1], correctives driven by the product of their controls') to "
                  "each reconstructed frame over the face region (robust Gauss-Newton, warm-started), then clean the "
-                 "curves over time (a second-difference penalty solved over the shot: no lag). See docs/rigs.md.",
+                 "curves over time (a second-difference penalty solved over the shot: no lag). A rig with a jaw "
+                 "joint also gets the jaw's rotation and slide per frame. See docs/rigs.md.",
                  ("lgi rig-solve shot/recon --rig actor_rig --out shot/anim --usd shot/anim.usda "
                   "--rig-usd actor_rig.usda",),
-                 outputs="OUT_DIR/curves.csv (frame, control, value), residuals.csv (rig playback - reconstruction, "
-                         "RMS and max mm per frame), vertex_error.npz/.png (where the rig falls short), solve.json; "
-                         "with --usd, a UsdSkel animation layer over the rig's USD.")
+                 outputs="OUT_DIR/curves.csv or .parquet (frame, control, value), residuals.csv (rig playback - "
+                         "reconstruction, RMS and max mm per frame), vertex_error.npz/.png (where the rig falls "
+                         "short), solve.json; with --usd, a UsdSkel animation layer over the rig's USD.")
     g = s.add_argument_group("inputs")
     g.add_argument("recon_dir", metavar="RECON_DIR", help="the reconstruction (lgi reconstruct's meshes.npz)")
     g.add_argument("--rig", required=True, metavar="RIG_DIR", help="the actor's rig dataset (lgi rig-generate)")
@@ -766,8 +770,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write the shot as a UsdSkel animation of the rig (needs --rig-usd; default: none)")
     g.add_argument("--fps", type=float, default=30.0, metavar="F",
                    help="time codes per second of the USD animation (default %(default)s)")
+    g.add_argument("--format", choices=["csv", "parquet"], default="csv",
+                   help="the curves' file: curves.csv or curves.parquet, columns frame, control, value (weights in "
+                        "[0, 1]; the jaw joint's jaw_open_deg, jaw_yaw_deg, jaw_roll_deg in degrees and "
+                        "jaw_forward_cm in cm; default %(default)s)")
     _quiet(g)
     g = s.add_argument_group("method")
+    g.add_argument("--jaw", choices=["fit", "fixed"], default="fit",
+                   help="for a rig with a jaw joint: fit the jaw's rotation and slide (degrees, cm) per frame with the "
+                        "weights, started from the reconstruction's jaw, or hold them at the reconstruction's "
+                        "(default %(default)s)")
     g.add_argument("--smooth", type=float, default=4.0, metavar="FRAMES",
                    help="temporal regularisation: the period in frames whose wiggles the curves' penalty halves "
                         "(zero-phase, so no lag; default %(default)s; 0: each frame fitted on its own)")

@@ -91,4 +91,48 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
     assert not (out / "shots" / "b_broken" / "recon").exists()
     # The session names a rig: the good shot is solved onto it (lgi rig-solve), the broken one is not.
     assert (out / "shots" / "a_good" / "anim" / "curves.csv").is_file() and good["rig_rms_mm"] < 3.0
+    assert good["rig_status"] == "done" and bad["rig_status"] == "not run" and s["rig_failed"] == []
     assert (out / "shots" / "a_good" / "anim.usda").is_file() and not (out / "shots" / "b_broken" / "anim").exists()
+
+
+def test_a_failed_rig_solve_leaves_the_shot_reconstructed(prefect_harness, tmp_path: Path) -> None:
+    """A rig of another topology fails the shot's rig solve, not the shot: the row says the reconstruction is done
+    and the rig solve failed, with the error naming the reconstruction, and the flow run's logs carry a warning."""
+    from prefect import flow, get_run_logger
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import LogFilter, LogFilterTimestamp
+    from prefect.logging.handlers import APILogHandler
+
+    from lgi.io.npz import save_npz
+    from lgi.orchestration.capture import solve_rig_row
+    from tests.test_rig_solve import make_rig
+
+    rig = make_rig(1500)
+    rig.save(tmp_path / "rig")
+    recon = tmp_path / "shot" / "recon"
+    recon.mkdir(parents=True)
+    save_npz(recon / "meshes.npz", vertices=np.zeros((3, 1400, 3), np.float32))  # another mesh
+    good = tmp_path / "good" / "recon"
+    good.mkdir(parents=True)
+    save_npz(good / "meshes.npz", vertices=np.stack([rig.neutral] * 3).astype(np.float32))
+
+    @flow(name="rig-row-test")
+    def run() -> list[dict]:
+        rows = []
+        for name, where in (("shot", recon), ("good", good)):
+            row = {"shot": name, "status": "done", "error": "", "rig_status": "not run", "rig_error": ""}
+            solve_rig_row(row, str(where), str(tmp_path / "rig"), where.parent, None, 30.0, get_run_logger())
+            rows.append(row)
+        return rows
+
+    t0 = datetime.now(UTC)
+    bad_row, good_row = run()
+    assert bad_row["status"] == "done" and bad_row["error"] == "" and bad_row["rig_status"] == "failed"
+    assert "meshes.npz" in bad_row["rig_error"] and "topology" in bad_row["rig_error"], bad_row
+    assert not (tmp_path / "shot" / "anim").exists()
+    assert good_row["rig_status"] == "done" and good_row["rig_rms_mm"] < 1e-3
+    APILogHandler().flush()
+    with get_client(sync_client=True) as client:
+        logs = client.read_logs(LogFilter(timestamp=LogFilterTimestamp(after_=t0)))
+    hits = [log for log in logs if "reconstructed but its rig solve failed" in log.message]
+    assert hits and all(log.level == 30 for log in hits), [log.message for log in logs]

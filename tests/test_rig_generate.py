@@ -83,6 +83,17 @@ def test_generated_controls_beat_the_naive_transfer(setup) -> None:
     x0 = actor.neutral
     true = actor.evaluate(eye[A.C[a]] + eye[A.C[b]]) - actor.evaluate(eye[A.C[a]]) - actor.evaluate(eye[A.C[b]]) + x0
     assert np.linalg.norm(rig.corrective_deltas[0] - true) < 0.5 * np.linalg.norm(true)
+    # The jaw as the rig's joint: unskinned, each control skinned with its own jaw pose is its generated shape,
+    # and a combination skinned with its pose is the combination; the opening's rotation leaves its blend shape.
+    u, e = rig.unskinned(tt.rig)
+    for k in range(len(A.CONTROLS)):
+        np.testing.assert_allclose(tt.rig.skin(x0 + u[k], rig.jaw[k]), rig.shapes[k], atol=1e-4)
+    for i, (a, b) in enumerate(setup["pairs"]):
+        whole = x0 + u[A.C[a]] + u[A.C[b]] + e[i]
+        np.testing.assert_allclose(tt.rig.skin(whole, rig.jaw[len(A.CONTROLS) + i]), rig.combinations[i], atol=1e-4)
+    k = A.C["jaw_open"]
+    assert rig.jaw[k, 0] > 15.0 and np.abs(rig.jaw[A.C["smile_L"]]).max() < 0.5
+    assert np.linalg.norm(u[k], axis=1).max() < 0.3 * np.linalg.norm(rig.shapes[k] - x0, axis=1).max()
 
 
 def test_a_combination_outside_the_actors_dataset_takes_the_templates_corrective(setup, caplog) -> None:
@@ -141,6 +152,23 @@ def test_cli_writes_a_tagged_dataset_and_a_usd_that_reads_back(setup, tmp_path: 
     assert list(combo) == ["pucker", "jaw_open"]
     points = np.asarray(UsdGeom.Mesh(stage.GetPrimAtPath("/Rig/Face")).GetPointsAttr().Get())
     np.testing.assert_allclose(points, ds.neutral, atol=1e-5)
+    # The index has a jaw rig: the dataset carries it (its shapes unskinned, each control's jaw pose in its
+    # metadata) and the USD's skeleton has the jaw joint at its hinge, the mesh bound with weights [1 - w, w].
+    from lgi.solve.jaw import JawRig
+
+    index_rig = JawRig.load(d / "actor" / "jaw_rig.npz")
+    np.testing.assert_allclose(ds.jaw_pivot, index_rig.pivot)
+    np.testing.assert_allclose(ds.jaw_weights, index_rig.weights)
+    assert ds.shape_meta[A.C["jaw_open"]].extra["jaw"][0] > 15.0
+    skel = UsdSkel.Skeleton(stage.GetPrimAtPath("/Rig/Skel"))
+    assert list(skel.GetJointsAttr().Get()) == ["root", "root/jaw"]
+    np.testing.assert_allclose(skel.GetBindTransformsAttr().Get()[1].ExtractTranslation(), index_rig.pivot, atol=1e-6)
+    assert binding.GetJointWeightsPrimvar().GetElementSize() == 2
+    w = np.asarray(binding.GetJointWeightsPrimvar().Get()).reshape(-1, 2)
+    np.testing.assert_allclose(w[:, 1], index_rig.weights, atol=1e-7)
+    np.testing.assert_allclose(w.sum(1), 1.0, atol=1e-6)
+    jaw = stage.GetPrimAtPath("/Rig/Face/jaw_open").GetAttribute("lgi:jaw").Get()
+    np.testing.assert_allclose(list(jaw), ds.shape_meta[A.C["jaw_open"]].extra["jaw"], atol=1e-5)
 
 
 @pytest.mark.parametrize("case, words", [

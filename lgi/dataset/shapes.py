@@ -101,6 +101,10 @@ class ShapeDataset:
         Material groups of the source mesh (kept for export and region selection).
     info
         Dataset-level metadata (name, where it was imported from, the rigid vertices used).
+    jaw_pivot : (3,) float64, cm, optional; jaw_weights : (V,) float64 in [0, 1], optional
+        The jaw rig (:class:`lgi.solve.jaw.JawRig`) the shapes are unskinned with, when they are (an actor's
+        rig from ``lgi rig-generate`` on a jaw-rigged index): the displacements are then in the jaw-closed
+        space and a pose skins them with its jaw parameters.
     """
 
     neutral: np.ndarray
@@ -115,9 +119,18 @@ class ShapeDataset:
     face_material: np.ndarray | None = None
     materials: list[str] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    jaw_pivot: np.ndarray | None = None
+    jaw_weights: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.neutral = np.asarray(self.neutral, np.float64)
+        if (self.jaw_pivot is None) != (self.jaw_weights is None):
+            raise ValueError("a jaw rig needs both its pivot and its weights")
+        if self.jaw_pivot is not None:
+            self.jaw_pivot = np.asarray(self.jaw_pivot, np.float64).reshape(3)
+            self.jaw_weights = np.asarray(self.jaw_weights, np.float64)
+            if self.jaw_weights.shape != (len(self.neutral),):
+                raise ValueError(f"jaw weights {self.jaw_weights.shape} for {len(self.neutral)} vertices")
         if self.deltas.dtype != np.float32:
             self.deltas = np.asarray(self.deltas, np.float32)
         if self.deltas.ndim != 3 or self.deltas.shape[1:] != self.neutral.shape:
@@ -174,6 +187,7 @@ class ShapeDataset:
             face_vertices=self.face_vertices, face_offsets=self.face_offsets, uvs=self.uvs,
             face_uvs=self.face_uvs, units=self.units, shape_meta=[self.shape_meta[i] for i in idx],
             face_material=self.face_material, materials=list(self.materials), info=dict(self.info),
+            jaw_pivot=self.jaw_pivot, jaw_weights=self.jaw_weights,
         )
 
     # ------------------------------------------------------------------ hashing
@@ -184,6 +198,9 @@ class ShapeDataset:
         for arr in (self.neutral, self.face_vertices, self.face_offsets, self.uvs, self.face_uvs):
             _hash_array(h, arr)
         _hash_array(h, np.asarray(self.deltas))
+        if self.jaw_pivot is not None:  # unskinned shapes mean another surface with another rig
+            _hash_array(h, self.jaw_pivot)
+            _hash_array(h, self.jaw_weights)
         h.update(json.dumps(self._identity_json(), sort_keys=True).encode())
         return h.hexdigest()
 
@@ -216,6 +233,9 @@ class ShapeDataset:
                 arrays["face_uvs"] = np.asarray(self.face_uvs, np.int32)
             if self.face_material is not None:
                 arrays["face_material"] = np.asarray(self.face_material, np.int16)
+            if self.jaw_pivot is not None:
+                arrays["jaw_pivot"] = self.jaw_pivot
+                arrays["jaw_weights"] = self.jaw_weights
             save_npz(tmp / "mesh.npz", **arrays)
             np.save(tmp / "deltas.npy", np.ascontiguousarray(self.deltas, np.float32))
             manifest = {
@@ -268,6 +288,7 @@ class ShapeDataset:
                              f"({manifest['n_vertices']}, 3) (a damaged dataset: re-import it)",
                              path=directory / "mesh.npz")
         check_mesh(arrays, manifest["n_vertices"], directory / "mesh.npz")
+        jaw = _jaw_arrays(arrays, manifest["n_vertices"], directory / "mesh.npz")
         deltas = load_npy(directory / "deltas.npy", mmap)
         if not np.all(np.isfinite(arrays["neutral"])) or not np.all(np.isfinite(deltas)):
             raise InputError("non-finite positions or displacements (a damaged dataset: re-import it)",
@@ -282,6 +303,7 @@ class ShapeDataset:
             uvs=arrays.get("uvs"), face_uvs=arrays.get("face_uvs"), units=manifest.get("units", "cm"),
             shape_meta=[ShapeMeta.from_json(s) for s in shapes], face_material=arrays.get("face_material"),
             materials=list(manifest.get("materials", [])), info=dict(manifest.get("info", {})),
+            jaw_pivot=jaw[0], jaw_weights=jaw[1],
         )
         if verify and ds.content_hash() != manifest.get("content_hash"):
             raise InputError("content hash does not match the manifest (files changed or corrupt)", path=directory)
@@ -295,6 +317,24 @@ def read_content_hash(directory: str | os.PathLike[str]) -> str:
         return json.loads(path.read_text())["content_hash"]
     except (OSError, KeyError, json.JSONDecodeError) as exc:
         raise InputError(f"cannot read the dataset's content hash: {exc}", path=path) from None
+
+
+def _jaw_arrays(arrays: Any, n_vertices: int, path: Path) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The optional jaw rig of ``mesh.npz``: ``jaw_pivot`` (3,) and ``jaw_weights`` (V,) in [0, 1], both or
+    neither, finite."""
+    have = [k for k in ("jaw_pivot", "jaw_weights") if k in arrays]
+    if not have:
+        return None, None
+    if len(have) == 1:
+        raise InputError(f"holds {have[0]} without its pair (a jaw rig is jaw_pivot and jaw_weights)", path=path)
+    pivot = np.asarray(arrays["jaw_pivot"], np.float64)
+    w = np.asarray(arrays["jaw_weights"], np.float64)
+    if pivot.size != 3 or w.shape != (n_vertices,):
+        raise InputError(f"jaw_pivot {pivot.shape} and jaw_weights {w.shape}: expected (3,) and ({n_vertices},)",
+                         path=path)
+    if not (np.all(np.isfinite(pivot)) and np.all((w >= 0) & (w <= 1))):
+        raise InputError("jaw_pivot is not finite or jaw_weights are outside [0, 1]", path=path)
+    return pivot.reshape(3), w
 
 
 def _hash_array(h: Any, arr: np.ndarray | None) -> None:

@@ -179,6 +179,8 @@ def write_usd_rig(
     uvs: np.ndarray | None = None,
     face_uvs: np.ndarray | None = None,
     units_per_meter: float = 100.0,
+    jaw_rig=None,
+    jaw_parameters: np.ndarray | None = None,
 ) -> Path:
     """Write a blendshape rig as UsdSkel: the neutral mesh with one BlendShape target per shape.
 
@@ -190,12 +192,25 @@ def write_usd_rig(
     weight by the product of theirs) and
     ``lgi:kind`` ("control" or "corrective"); every target keeps its original name in ``lgi:name``.
 
+    With ``jaw_rig`` (:class:`lgi.solve.jaw.JawRig`) the skeleton has two joints, ``root`` (the head, fixed)
+    and ``root/jaw``, and the mesh is bound to both with weights ``[1 - w, w]`` (``w`` the jaw rig's skinning
+    weight, ``elementSize`` 2): the jaw joint's bind and rest transforms put it at the hinge (a translation to
+    the pivot), so an animated jaw transform ``[R | pivot + forward z]`` makes UsdSkel's linear blend skinning
+    ``lgi.solve.jaw.JawRig.skin`` exactly (:func:`lgi.export.rig_anim.jaw_joint_transform`). The offsets are
+    then unskinned (the jaw closed), since UsdSkel applies blend shapes before skinning; each target carries
+    its shape's jaw pose in ``lgi:jaw`` (open, yaw, roll in degrees, forward in cm) when ``jaw_parameters``
+    is given.
+
     Parameters
     ----------
     neutral : (V, 3) float, cm
     names : list of str, K shape names
     deltas : (K, V, 3) float, cm: each target's offsets
     combinations : K entries: None for a control, its controls' names for a corrective
+    jaw_rig : JawRig, optional
+        Pivot (3,) cm and weights (V,).
+    jaw_parameters : (K, 4) float, optional
+        Each shape's jaw pose (metadata for a DCC that drives the joint from a control).
     """
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
@@ -206,15 +221,30 @@ def write_usd_rig(
     root = UsdSkel.Root.Define(stage, "/Rig")
     stage.SetDefaultPrim(root.GetPrim())
     skel = UsdSkel.Skeleton.Define(stage, "/Rig/Skel")
-    skel.CreateJointsAttr(Vt.TokenArray(["root"]))
-    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
-    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
     tokens = [usd_name(n) for n in names]
     if len(set(tokens)) != len(tokens):
         raise ValueError("shape names collide once made valid USD names")
-    anim = UsdSkel.Animation.Define(stage, "/Rig/Skel/Anim")  # blend-shape weights only; the joint stays at rest
+    anim = UsdSkel.Animation.Define(stage, "/Rig/Skel/Anim")
     anim.CreateBlendShapesAttr(Vt.TokenArray(tokens))
     anim.CreateBlendShapeWeightsAttr(Vt.FloatArray([0.0] * len(tokens)))
+    if jaw_rig is None:
+        skel.CreateJointsAttr(Vt.TokenArray(["root"]))
+        skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
+        skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
+        # blend-shape weights only; the joint stays at rest
+    else:
+        pivot = np.asarray(jaw_rig.pivot, np.float64)
+        at_hinge = Gf.Matrix4d(1.0).SetTranslate(Gf.Vec3d(*pivot.tolist()))
+        joints = Vt.TokenArray(["root", "root/jaw"])
+        skel.CreateJointsAttr(joints)
+        # The root is the head at the origin; the jaw's bind (world) and rest (local) transforms both sit at the
+        # hinge, so its skinning transform inverse(bind) * animated is the hinge motion of lgi's jaw rig.
+        skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0), at_hinge]))
+        skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0), at_hinge]))
+        anim.CreateJointsAttr(joints)
+        anim.CreateTranslationsAttr(Vt.Vec3fArray([Gf.Vec3f(0.0), Gf.Vec3f(*pivot.tolist())]))
+        anim.CreateRotationsAttr(Vt.QuatfArray([Gf.Quatf(1.0), Gf.Quatf(1.0)]))
+        anim.CreateScalesAttr(Vt.Vec3hArray([Gf.Vec3h(1.0), Gf.Vec3h(1.0)]))
     UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
 
     mesh = UsdGeom.Mesh.Define(stage, "/Rig/Face")
@@ -230,13 +260,24 @@ def write_usd_rig(
         st.SetIndices(Vt.IntArray.FromNumpy(np.asarray(face_uvs, np.int32)))
     binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
     binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
-    # Rigidly bound to the one joint (identity): the mesh moves only by its blend shapes.
-    binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
-    binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
+    if jaw_rig is None:
+        # Rigidly bound to the one joint (identity): the mesh moves only by its blend shapes.
+        binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
+        binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
+    else:
+        w = np.asarray(jaw_rig.weights, np.float64)
+        if w.shape != (len(neutral),):
+            raise ValueError(f"{w.shape} jaw weights for {len(neutral)} vertices")
+        binding.CreateJointIndicesPrimvar(False, 2).Set(
+            Vt.IntArray.FromNumpy(np.tile(np.array([0, 1], np.int32), len(w))))
+        binding.CreateJointWeightsPrimvar(False, 2).Set(
+            Vt.FloatArray.FromNumpy(np.stack([1.0 - w, w], axis=1).astype(np.float32).ravel()))
     binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
     binding.CreateBlendShapesAttr(Vt.TokenArray(tokens))
     targets = []
-    for name, token, delta, combo in zip(names, tokens, np.asarray(deltas, np.float32), combinations, strict=True):
+    poses = [None] * len(names) if jaw_parameters is None else np.asarray(jaw_parameters, np.float64)
+    for name, token, delta, combo, pose in zip(names, tokens, np.asarray(deltas, np.float32), combinations, poses,
+                                               strict=True):
         bs = UsdSkel.BlendShape.Define(stage, f"/Rig/Face/{token}")
         bs.CreateOffsetsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(delta)))
         prim = bs.GetPrim()
@@ -245,6 +286,8 @@ def write_usd_rig(
         if combo is not None:
             prim.CreateAttribute("lgi:combination", Sdf.ValueTypeNames.TokenArray).Set(
                 Vt.TokenArray([usd_name(c) for c in combo]))
+        if pose is not None:
+            prim.CreateAttribute("lgi:jaw", Sdf.ValueTypeNames.Float4).Set(Gf.Vec4f(*pose.tolist()))
         targets.append(bs.GetPath())
     binding.CreateBlendShapeTargetsRel().SetTargets(targets)
     path = Path(path)

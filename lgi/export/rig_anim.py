@@ -1,9 +1,11 @@
 """A solved shot as a UsdSkel animation of the actor's rig (``lgi rig-solve --usd``).
 
 The animation is a layer of its own that sublayers the rig's USD (``lgi rig-generate --usd``) and gives the
-rig's SkelAnimation (``/Rig/Skel/Anim``) time samples of every blend shape's weight: a DCC opening it plays the
-shot on the rig, and the rig file stays as it is. UsdSkel has no combination driver, so each corrective's
-weight is written as the product of its controls' (what the rig's ``lgi:combination`` says).
+rig's SkelAnimation (``/Rig/Skel/Anim``) time samples of every blend shape's weight and, for a rig with a jaw
+joint, of the joints' translations and rotations (the jaw's from lgi's jaw parameters,
+:func:`jaw_joint_transform`; the root's at rest): a DCC opening it plays the shot on the rig, and the rig file
+stays as it is. UsdSkel has no combination driver, so each corrective's weight is written as the product of its
+controls' (what the rig's ``lgi:combination`` says).
 """
 
 from __future__ import annotations
@@ -20,16 +22,51 @@ ANIM_PATH = "/Rig/Skel/Anim"
 MESH_PATH = "/Rig/Face"
 
 
+def jaw_joint_transform(params: np.ndarray, pivot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The jaw joint's local transform for jaw parameters, as UsdSkel's SkelAnimation holds it.
+
+    lgi's jaw motion is ``M = jaw_matrix(params, pivot)`` (a rotation ``R`` about the pivot, then the slide along
+    +z). The rig's jaw joint is bound at the hinge (bind transform ``T(pivot)``) under a root at the origin, so
+    its skinning transform is ``M`` when its world (= local) transform is ``M T(pivot) = [R | M pivot]``: the
+    rotation ``R`` and the translation ``R pivot + M[:3, 3]`` (the pivot plus the slide).
+
+    Parameters
+    ----------
+    params : (F, 4) float: open, yaw, roll (degrees), forward (cm)
+    pivot : (3,) float, cm
+
+    Returns
+    -------
+    translations : (F, 3) float64, cm
+    rotations : (F, 4) float64: unit quaternions (w, x, y, z), w >= 0
+    """
+    from scipy.spatial.transform import Rotation
+
+    from lgi.solve.jaw import jaw_matrix
+
+    params = np.asarray(params, np.float64).reshape(-1, 4)
+    pivot = np.asarray(pivot, np.float64).reshape(3)
+    m = np.stack([jaw_matrix(p, pivot) for p in params]) if len(params) else np.zeros((0, 4, 4))
+    trans = m[:, :3, :3] @ pivot + m[:, :3, 3]
+    xyzw = Rotation.from_matrix(m[:, :3, :3]).as_quat() if len(params) else np.zeros((0, 4))
+    quat = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+    quat *= np.where(quat[:, :1] < 0, -1.0, 1.0)
+    return trans, quat
+
+
 def check_rig_usd(path: str | os.PathLike[str], names: list[str], neutral: np.ndarray, deltas: np.ndarray,
-                  tol_cm: float = 1e-4) -> None:
+                  tol_cm: float = 1e-4, jaw=None) -> None:
     """Refuse a rig USD that is not the rig dataset's: its blend shapes (names and order), mesh size, neutral or
-    offsets differ (more than ``tol_cm``).
+    offsets differ (more than ``tol_cm``), or its skeleton is not the dataset's (a jaw joint at the jaw rig's
+    pivot with its weights when the dataset has a jaw rig, the single fixed joint when not).
 
     Parameters
     ----------
     names : K + P shape names, in the dataset's order
     neutral : (V, 3) float, cm
     deltas : (K + P, V, 3) float, cm
+    jaw : JawRig, optional
+        The rig dataset's jaw rig.
     """
     from pxr import Usd, UsdGeom, UsdSkel
 
@@ -59,6 +96,7 @@ def check_rig_usd(path: str | os.PathLike[str], names: list[str], neutral: np.nd
     if off > tol_cm:
         raise InputError(f"its neutral is {off * 10:.3g} mm from the rig dataset's: the USD belongs to another rig",
                          path=p)
+    _check_joints(stage, p, mesh, jaw, len(neutral), tol_cm)
     targets = UsdSkel.BindingAPI(mesh).GetBlendShapeTargetsRel().GetTargets()
     for i, t in enumerate(targets):
         o = np.asarray(UsdSkel.BlendShape(stage.GetPrimAtPath(t)).GetOffsetsAttr().Get(), np.float64)
@@ -67,8 +105,38 @@ def check_rig_usd(path: str | os.PathLike[str], names: list[str], neutral: np.nd
                              "belongs to another rig", path=p)
 
 
+def _check_joints(stage, p: Path, mesh, jaw, n_vertices: int, tol_cm: float) -> None:
+    """The skeleton part of :func:`check_rig_usd`."""
+    from pxr import UsdSkel
+
+    skel = UsdSkel.Skeleton(stage.GetPrimAtPath("/Rig/Skel"))
+    joints = list(skel.GetJointsAttr().Get() or []) if skel else []
+    if jaw is None:
+        if joints != ["root"]:
+            raise InputError(f"its skeleton has the joints {joints}, the rig dataset has no jaw rig (one fixed joint, "
+                             "'root'): the USD belongs to another rig", path=p)
+        return
+    if joints == ["root"]:
+        raise InputError("its skeleton has a single fixed joint, but the rig dataset has a jaw rig (a 'root/jaw' "
+                         "joint): the USD was written before the jaw became the rig's joint, or belongs to another "
+                         "rig; write it again with lgi rig-generate --usd", path=p)
+    if joints != ["root", "root/jaw"]:
+        raise InputError(f"its skeleton has the joints {joints}, not ['root', 'root/jaw']: not a rig written by lgi "
+                         "rig-generate --usd", path=p)
+    bind = skel.GetBindTransformsAttr().Get()
+    at = np.asarray(bind[1].ExtractTranslation(), np.float64) if bind is not None and len(bind) == 2 else None
+    if at is None or float(np.abs(at - jaw.pivot).max()) > tol_cm:
+        raise InputError("its jaw joint is not bound at the rig dataset's jaw pivot: the USD belongs to another rig",
+                         path=p)
+    binding = UsdSkel.BindingAPI(mesh)
+    weights = np.asarray(binding.GetJointWeightsPrimvar().Get() or [], np.float64)
+    if weights.shape != (2 * n_vertices,) or float(np.abs(weights[1::2] - jaw.weights).max()) > 1e-6:
+        raise InputError("its jaw skinning weights are not the rig dataset's: the USD belongs to another rig", path=p)
+
+
 def write_rig_animation(path: str | os.PathLike[str], rig_usd: str | os.PathLike[str], weights: np.ndarray,
-                        frames: np.ndarray | None = None, fps: float = 30.0) -> Path:
+                        frames: np.ndarray | None = None, fps: float = 30.0, jaw: np.ndarray | None = None,
+                        pivot: np.ndarray | None = None) -> Path:
     """Write the animation layer.
 
     Parameters
@@ -78,6 +146,9 @@ def write_rig_animation(path: str | os.PathLike[str], rig_usd: str | os.PathLike
     weights : (F, K + P) float: every blend shape's weight per frame, in the rig's blend-shape order
     frames : (F,) int time codes (default 0..F-1)
     fps : time codes per second
+    jaw : (F, 4) float, optional: the jaw parameters per frame (open, yaw, roll deg, forward cm), for a rig with a
+        jaw joint
+    pivot : (3,) float, cm: the jaw rig's pivot (with ``jaw``)
     """
     from pxr import Sdf, Usd, UsdGeom, Vt
 
@@ -107,6 +178,19 @@ def write_rig_animation(path: str | os.PathLike[str], rig_usd: str | os.PathLike
         raise InputError(f"the rig USD has no {ANIM_PATH}.blendShapeWeights", path=rig_usd)
     for f, w in zip(frames, weights, strict=True):
         attr.Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(w)), Usd.TimeCode(float(f)))
+    if jaw is not None:
+        from pxr import Gf
+
+        over = stage.OverridePrim(ANIM_PATH)
+        trans_attr, rot_attr = over.GetAttribute("translations"), over.GetAttribute("rotations")
+        if not trans_attr or not rot_attr:
+            raise InputError(f"the rig USD's {ANIM_PATH} has no joint translations and rotations (no jaw joint)",
+                             path=rig_usd)
+        trans, quat = jaw_joint_transform(jaw, pivot)
+        for f, t, q in zip(frames, trans, quat, strict=True):
+            # The root (the head) stays at rest: lgi's meshes are in the head's frame (its motion removed).
+            trans_attr.Set(Vt.Vec3fArray([Gf.Vec3f(0.0), Gf.Vec3f(*t.tolist())]), Usd.TimeCode(float(f)))
+            rot_attr.Set(Vt.QuatfArray([Gf.Quatf(1.0), Gf.Quatf(*q.tolist())]), Usd.TimeCode(float(f)))
     del stage
     layer.subLayerPaths[0] = ref
     with atomic_file(path, suffix=path.suffix or ".usda") as tmp:

@@ -123,7 +123,16 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
                                              "face_offsets": template.face_offsets, "uvs": template.uvs,
                                              "face_uvs": template.face_uvs}
     neutral = rig.neutral
-    deltas = np.concatenate([rig.shapes - neutral[None].astype(np.float32), rig.corrective_deltas]).astype(np.float32)
+    jaw = transfer.rig
+    if jaw is None:
+        deltas = np.concatenate([rig.shapes - neutral[None].astype(np.float32),
+                                 rig.corrective_deltas]).astype(np.float32)
+    else:
+        # The jaw becomes the rig's joint: a UsdSkel user opens the jaw by rotating it, and a jaw control's
+        # blend shape keeps only what the rotation does not do (the lips' stretch, the chin's bulge). The shapes
+        # are stored unskinned (the jaw closed), as the index stores them, and the joint skins them with the
+        # jaw rig's weights; a control's own jaw pose is kept in its metadata ("jaw").
+        deltas = np.concatenate(rig.unskinned(jaw)).astype(np.float32)
     meta = []
     for i, name in enumerate(names):
         combo = None if i < len(controls) else list(correctives[i - len(controls)])
@@ -134,6 +143,7 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
             tags=["control"] if combo is None else ["corrective", "combination"],
             extra={"residual_mm": round(float(rig.residual_mm[i]), 6), "transfer": o.transfer,
                    "outside_clouds_mm": round(float(rig.projection_mm[i]), 4),
+                   **({} if rig.jaw is None else {"jaw": [round(float(v), 6) for v in rig.jaw[i]]}),
                    **({} if combo is None else {
                        "combination": combo, "template": from_template, "driver": "product of the controls' weights",
                        "corrective_from": rig.corrective_source[i - len(controls)]})}))
@@ -145,7 +155,10 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
                       np.asarray(face_uvs), units="cm", shape_meta=meta,
                       info={"name": "actor-rig", "template": str(Path(template_dir).resolve()),
                             "index": str(Path(index_dir).resolve()), "transfer": o.transfer,
-                            "controls": controls, "correctives": ["+".join(p) for p in correctives]})
+                            "controls": controls, "correctives": ["+".join(p) for p in correctives],
+                            "jaw": "none" if jaw is None else "joint: shapes unskinned, jaw parameters "
+                                   "(open_deg, yaw_deg, roll_deg, forward_cm) per shape in its metadata"},
+                      jaw_pivot=None if jaw is None else jaw.pivot, jaw_weights=None if jaw is None else jaw.weights)
     existed = Path(out).exists()
     ds.save(out)
     if usd is not None:
@@ -153,7 +166,8 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
 
         try:
             write_usd_rig(usd, neutral, ds.face_vertices, ds.face_offsets, names, deltas,
-                          [None] * len(controls) + list(correctives), ds.uvs, ds.face_uvs)
+                          [None] * len(controls) + list(correctives), ds.uvs, ds.face_uvs, jaw_rig=jaw,
+                          jaw_parameters=rig.jaw)
         except BaseException:
             if not existed:  # a run that fails leaves nothing of itself behind
                 import shutil
@@ -173,7 +187,7 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
 
 def rig_generate_report(s: dict[str, Any]) -> list[str]:
     lines = [f"actor rig: {s['controls']} controls, {len(s['correctives'])} correctives "
-             f"({'jaw by parameters' if s['jaw'] else 'no jaw rig'}, transfer {s['transfer']}, "
+             f"({'jaw as the rig joint' if s['jaw'] else 'no jaw rig: one fixed joint'}, transfer {s['transfer']}, "
              f"{'fitted with ' + format(s['fit_mm'], 'g') + ' mm' if s['fit_mm'] else 'interpolated'}) "
              f"in {s['seconds']:.1f} s",
              f"largest distance of a generated shape from its bundles: {s['residual_max_mm']:.2g} mm"]

@@ -4,8 +4,9 @@ The algorithm is :mod:`lgi.retarget.solve`; this job reads the reconstruction (`
 (``lgi rig-generate``'s dataset, optionally its USD), checks the inputs and outputs before the work, and writes,
 all at once or nothing:
 
-``OUT_DIR/curves.csv``
-    frame, control, value: each control's weight in [0, 1] per frame (correctives are driven, not listed).
+``OUT_DIR/curves.csv`` (``curves.parquet`` with ``--format parquet``)
+    frame, control, value: each control's weight in [0, 1] per frame (correctives are driven, not listed) and,
+    for a rig with a jaw joint, its parameters as the controls :data:`JAW_CURVES` (degrees and cm).
 ``OUT_DIR/residuals.csv``
     frame, rms_mm, max_mm: the rig's playback against the reconstruction over the face region.
 ``OUT_DIR/vertex_error.npz``
@@ -35,7 +36,11 @@ from lgi.errors import InputError
 
 log = logging.getLogger(__name__)
 
-OUTPUTS = ("curves.csv", "residuals.csv", "vertex_error.npz", "vertex_error.png", "solve.json")
+OUTPUTS = ("curves.csv", "curves.parquet", "residuals.csv", "vertex_error.npz", "vertex_error.png", "solve.json")
+# The jaw joint's curves, in the order of lgi.solve.jaw.PARAM_NAMES (degrees; the slide in cm).
+JAW_CURVES = ("jaw_open_deg", "jaw_yaw_deg", "jaw_roll_deg", "jaw_forward_cm")
+JAW_MODES = ("fit", "fixed")
+FORMATS = ("csv", "parquet")
 
 
 @dataclass(frozen=True)
@@ -53,12 +58,19 @@ class RigSolveOptions:
         Huber threshold in multiples of each frame's median vertex residual (0: plain least squares).
     fps : float
         Time codes per second of the USD animation.
+    jaw : {"fit", "fixed"}
+        With a rig that has a jaw joint: fit the jaw parameters with the weights, started from the
+        reconstruction's (``meshes.npz`` ``jaw``), or hold them at the reconstruction's.
+    format : {"csv", "parquet"}
+        The curves' file: ``curves.csv`` or ``curves.parquet`` (the same columns).
     """
 
     smooth: float = 4.0
     vertices: int = 4000
     robust: float = 3.0
     fps: float = 30.0
+    jaw: str = "fit"
+    format: str = "csv"
 
     def __post_init__(self) -> None:
         if not isinstance(self.smooth, (int, float)) or not math.isfinite(self.smooth) or \
@@ -71,6 +83,10 @@ class RigSolveOptions:
             raise InputError(f"--robust must be 0 (plain least squares) or at least 1, not {self.robust!r}")
         if not isinstance(self.fps, (int, float)) or not math.isfinite(self.fps) or self.fps <= 0:
             raise InputError(f"--fps must be a positive number, not {self.fps!r}")
+        if self.jaw not in JAW_MODES:
+            raise InputError(f"--jaw must be one of {', '.join(JAW_MODES)}, not {self.jaw!r}")
+        if self.format not in FORMATS:
+            raise InputError(f"--format must be one of {', '.join(FORMATS)}, not {self.format!r}")
 
 
 def load_rig(rig_dir: str | Path):
@@ -85,17 +101,44 @@ def load_rig(rig_dir: str | Path):
 
 
 def playback(rig, curves: np.ndarray, vertices: np.ndarray | None = None, chunk: int = 64) -> np.ndarray:
-    """(F, N, 3) float32 cm: the rig's playback of ``curves`` (F, K) at ``vertices`` (default all)."""
+    """(F, N, 3) float32 cm: the rig's playback of ``curves`` at ``vertices`` (default all).
+
+    ``curves`` is (F, K) control weights or, for a rig with a jaw joint, (F, K + 4): the weights, then the jaw
+    parameters (open, yaw, roll deg, forward cm) that skin the shapes (the closed jaw when they are left out).
+    """
+    from lgi.solve.jaw import jaw_matrix
+
+    curves = np.asarray(curves, np.float64)
+    k = rig.n_controls
     d = np.asarray(rig.deltas, np.float64)
     x0 = rig.neutral
+    jw = None if rig.jaw is None else np.asarray(rig.jaw.weights, np.float64)
     if vertices is not None:
         d, x0 = d[:, vertices], x0[vertices]
+        jw = None if jw is None else jw[vertices]
     flat = d.reshape(len(d), -1)
     out = np.empty((len(curves), *x0.shape), np.float32)
+    skin = jw is not None and curves.shape[1] > k
     for s in range(0, len(curves), chunk):
-        b = rig.all_weights(curves[s:s + chunk])
-        out[s:s + chunk] = (x0.reshape(-1) + b @ flat).reshape(len(b), *x0.shape)
+        b = rig.all_weights(curves[s:s + chunk, :k])
+        x = (x0.reshape(-1) + b @ flat).reshape(len(b), *x0.shape)
+        if skin:
+            for i, th in enumerate(curves[s:s + chunk, k:k + 4]):
+                m = jaw_matrix(th, rig.jaw.pivot)
+                x[i] = (1.0 - jw[:, None]) * x[i] + jw[:, None] * (x[i] @ m[:3, :3].T + m[:3, 3])
+        out[s:s + chunk] = x
     return out
+
+
+def read_curves(out: str | Path, controls: list[str]) -> np.ndarray:
+    """(F, len(controls)) float64: the curves ``lgi rig-solve`` wrote in ``out`` (csv or parquet), frames in
+    order, the columns in the order of ``controls`` (control names, or :data:`JAW_CURVES`)."""
+    import pandas as pd
+
+    out = Path(out)
+    t = pd.read_parquet(out / "curves.parquet") if (out / "curves.parquet").is_file() else \
+        pd.read_csv(out / "curves.csv")
+    return t.pivot(index="frame", columns="control", values="value")[list(controls)].to_numpy(np.float64)
 
 
 def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, options: RigSolveOptions | None = None,
@@ -138,10 +181,29 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
     if not np.all(np.isfinite(meshes)):
         bad = np.flatnonzero(~np.all(np.isfinite(meshes), axis=(1, 2)))
         raise InputError(f"{len(bad)} frames hold non-finite vertices (first: frame {int(frames[bad[0]])})", path=src)
+    jaw_in = _recon_jaw(z, len(meshes), src)
+    if rig.jaw is None:
+        if o.jaw == "fixed":
+            raise InputError("--jaw fixed holds the rig's jaw joint at the reconstruction's jaw, but this rig has no "
+                             "jaw joint (generate it with lgi rig-generate from a jaw-rigged index)",
+                             path=Path(rig_dir) / "mesh.npz")
+        if jaw_in is not None:
+            log.warning("the rig has no jaw joint (made from an index without a jaw rig, or by an earlier lgi "
+                        "rig-generate that baked the jaw into its shapes): the reconstruction's jaw is solved as the "
+                        "jaw controls' blend-shape weights; regenerate the rig with lgi rig-generate for a jaw joint")
+    elif jaw_in is None:
+        if o.jaw == "fixed":
+            raise InputError("--jaw fixed needs the reconstruction's jaw (meshes.npz 'jaw', written by lgi "
+                             "reconstruct with a jaw-rigged index); this one has none: use --jaw fit", path=src)
+        log.info("the reconstruction has no jaw parameters: the rig's jaw joint is fitted from the closed jaw")
+    clash = sorted(set(rig.controls) & set(JAW_CURVES)) if rig.jaw is not None else []
+    if clash:
+        raise InputError(f"rig controls {', '.join(clash)} have the names of the jaw joint's curves",
+                         path=Path(rig_dir) / "manifest.json")
     if rig_usd is not None:
         from lgi.export.rig_anim import check_rig_usd
 
-        check_rig_usd(rig_usd, rig.names, rig.neutral, rig.deltas)
+        check_rig_usd(rig_usd, rig.names, rig.neutral, rig.deltas, jaw=rig.jaw)
 
     region = rig.face_region()
     idx = np.flatnonzero(region)
@@ -153,9 +215,13 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
         sample = np.sort(np.random.default_rng(0).choice(idx, o.vertices, replace=False))
     solver = RigSolver(rig, sample, robust=o.robust)
     t1 = time.perf_counter()
+    # The reconstruction's jaw starts (or holds) the rig's jaw joint; a rig without one solves the weights only.
+    jaw_start = jaw_in if rig.jaw is not None else None
     curves, raw, fits = solve_shot(solver, meshes, o.smooth,
-                                   progress=lambda it: progress(it, "solving", disable=not show_progress))
+                                   progress=lambda it: progress(it, "solving", disable=not show_progress),
+                                   jaw=jaw_start, fix_jaw=o.jaw == "fixed")
     solve_s = time.perf_counter() - t1
+    names = [*rig.controls, *(JAW_CURVES if rig.jaw is not None else ())]
 
     # Residuals over the whole face region, not the fitted subsample.
     play = playback(rig, curves, idx)
@@ -167,8 +233,8 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
     v_rms[idx] = np.sqrt(np.mean(err**2, axis=0))
     v_max[idx] = err.max(axis=0)
 
-    curves_df = pd.DataFrame({"frame": np.repeat(frames, rig.n_controls),
-                              "control": np.tile(np.asarray(rig.controls, object), len(frames)),
+    curves_df = pd.DataFrame({"frame": np.repeat(frames, len(names)),
+                              "control": np.tile(np.asarray(names, object), len(frames)),
                               "value": curves.reshape(-1).round(7)})
     resid_df = pd.DataFrame({"frame": frames, "rms_mm": rms.round(5), "max_mm": mx.round(5)})
     summary = {"out": str(Path(out).resolve()), "usd": None if usd is None else str(Path(usd).resolve()),
@@ -178,13 +244,17 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
                "max_mm": float(mx.max()), "worst_frame": int(frames[int(np.argmax(mx))]),
                "iterations_mean": float(np.mean([f.iterations for f in fits])),
                "ms_per_frame": 1000.0 * solve_s / len(frames), "options": asdict(o),
+               "jaw": _jaw_summary(rig, curves, jaw_in, o.jaw), "curves": f"curves.{o.format}",
                "seconds": 0.0}
     from lgi.evaluation.render import heatmap_row
     from lgi.io.csvio import write_csv
     from lgi.io.npz import save_npz
 
     with job_outputs(out, OUTPUTS) as stage:
-        write_csv(curves_df, stage / "curves.csv")
+        if o.format == "parquet":
+            curves_df.to_parquet(stage / "curves.parquet", index=False)
+        else:
+            write_csv(curves_df, stage / "curves.csv")
         write_csv(resid_df, stage / "residuals.csv")
         save_npz(stage / "vertex_error.npz", rms_mm=v_rms, max_mm=v_max, region=region)
         heatmap_row(stage / "vertex_error.png", rig.neutral, ds.triangles,
@@ -197,8 +267,40 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
             from lgi.export.rig_anim import write_rig_animation
 
             # Last, so that nothing after it can fail and leave a new animation beside the old outputs.
-            write_rig_animation(usd, rig_usd, rig.all_weights(curves), frames, o.fps)
+            k = rig.n_controls
+            write_rig_animation(usd, rig_usd, rig.all_weights(curves[:, :k]), frames, o.fps,
+                                jaw=None if rig.jaw is None else curves[:, k:], pivot=None if rig.jaw is None else
+                                rig.jaw.pivot)
     return summary
+
+
+def _recon_jaw(z, n_frames: int, path: Path) -> np.ndarray | None:
+    """(F, 4) float64: the reconstruction's jaw parameters (``meshes.npz`` ``jaw``), or None when it has none."""
+    if "jaw" not in z:
+        return None
+    jaw = np.asarray(z["jaw"], np.float64)
+    if jaw.shape != (n_frames, 4):
+        raise InputError(f"jaw has shape {jaw.shape}, not ({n_frames}, 4) (open, yaw, roll deg, forward cm per "
+                         "frame)", path=path)
+    if not np.all(np.isfinite(jaw)):
+        row = int(np.flatnonzero(~np.all(np.isfinite(jaw), axis=1))[0])
+        raise InputError(f"jaw holds non-finite values (first in row {row})", path=path)
+    return jaw
+
+
+def _jaw_summary(rig, curves: np.ndarray, jaw_in: np.ndarray | None, mode: str) -> dict[str, Any] | None:
+    """The jaw joint's part of solve.json: how it was solved and how far from the reconstruction's jaw."""
+    if rig.jaw is None:
+        return None
+    k = rig.n_controls
+    out: dict[str, Any] = {"mode": mode if jaw_in is not None else "fit from closed",
+                           "driven_controls": [rig.controls[i] for i in rig.jaw_controls],
+                           "range": {n: [float(curves[:, k + i].min()), float(curves[:, k + i].max())]
+                                     for i, n in enumerate(JAW_CURVES)}}
+    if jaw_in is not None:
+        d = curves[:, k:] - jaw_in
+        out["from_reconstruction_rms"] = {n: float(np.sqrt(np.mean(d[:, i] ** 2))) for i, n in enumerate(JAW_CURVES)}
+    return out
 
 
 def rig_solve_report(s: dict[str, Any]) -> list[str]:
@@ -209,4 +311,9 @@ def rig_solve_report(s: dict[str, Any]) -> list[str]:
             f"{smooth}: {s['ms_per_frame']:.1f} ms per frame",
             f"rig playback - reconstruction over the face: RMS {s['rms_mm']:.3f} mm, 95th pct {s['p95_mm']:.3f} mm, "
             f"max {s['max_mm']:.3f} mm (frame {s['worst_frame']})",
+            *([] if not s.get("jaw") else [
+                f"jaw joint ({s['jaw']['mode']}): open {s['jaw']['range']['jaw_open_deg'][0]:.1f} to "
+                f"{s['jaw']['range']['jaw_open_deg'][1]:.1f} deg"
+                + ("" if "from_reconstruction_rms" not in s["jaw"] else
+                   f", {s['jaw']['from_reconstruction_rms']['jaw_open_deg']:.3f} deg RMS from the reconstruction's")]),
             f"outputs: {s['out']}" + (f"  usd: {s['usd']}" if s["usd"] else "")]

@@ -4,8 +4,10 @@
 reuse the calibration), then runs one ``reconstruct-shot`` subflow per shot (track and triangulate the
 footage, reconstruct, write USD), and exports EXR displacement maps when asked. A shot that fails does not
 stop the others: the session's summary and its report artifact list every shot with its status and, for a
-failed one, the error. The jobs are the command line's (``lgi calibrate``, ``lgi track``, ``lgi reconstruct``,
-``lgi export``) with the same options.
+failed one, the error. The rig solve (with ``rig``) has a status of its own (``rig_status``, ``rig_error``): a
+shot whose reconstruction was written but whose solve failed is reconstructed (``status`` done) with its rig
+solve failed, and a warning in the flow run's logs says so. The jobs are the command line's (``lgi calibrate``,
+``lgi track``, ``lgi reconstruct``, ``lgi export``, ``lgi rig-solve``) with the same options.
 
 Layout of ``out``::
 
@@ -104,6 +106,26 @@ def export_shot(recon: str, index_dir: str, exr: str, exr_size: int, fps: float)
     return export(recon, index_dir, ExportOptions(exr=exr, exr_size=exr_size, fps=fps))
 
 
+def solve_rig_row(row: dict, recon: str, rig: str, shot_dir: Path, rig_usd: str | None, fps: float,
+                  logger) -> None:
+    """Solve a reconstructed shot onto the rig and record it in the shot's ``row``: ``rig_status`` done, with
+    ``anim`` and ``rig_rms_mm``, or failed, with ``rig_error`` and a warning. A failed solve does not fail the
+    shot: its reconstruction is written and usable."""
+    from dataclasses import asdict
+
+    from lgi.jobs.rig_solve import RigSolveOptions
+    from lgi.orchestration.rig import rig_solve_shot
+
+    try:
+        anim = rig_solve_shot(recon, rig, str(shot_dir / "anim"), str(shot_dir / "anim.usda") if rig_usd else None,
+                              rig_usd, asdict(RigSolveOptions(fps=fps)))
+    except Exception as exc:  # noqa: BLE001 - the reconstruction stands; the solve's failure is reported
+        row.update(rig_status="failed", rig_error=f"{type(exc).__name__}: {exc}")
+        logger.warning("shot %s was reconstructed but its rig solve failed: %s", row["shot"], row["rig_error"])
+        return
+    row.update(rig_status="done", anim=anim["out"], rig_rms_mm=round(anim["rms_mm"], 4))
+
+
 @flow(name="capture-session")
 @described(
     calibration_images="Folder of stereo board images (left*/right* or cam0/ and cam1/), as lgi calibrate reads.",
@@ -121,7 +143,8 @@ def export_shot(recon: str, index_dir: str, exr: str, exr_size: int, fps: float)
     smooth="Moving average of each bundle's shape weights over this many frames (1 = none).",
     chunk_size="Frames per reconstruction task (the results do not depend on it).",
     dask_address="Run the reconstruction chunks on Dask (see reconstruct-shot); null: threads.",
-    rig="The actor's rig dataset (lgi rig-generate): each shot is also solved onto it (lgi rig-solve); null: none.",
+    rig="The actor's rig dataset (lgi rig-generate): each shot is also solved onto it (lgi rig-solve; a failed "
+        "solve is reported in rig_status and rig_error, the shot stays reconstructed); null: none.",
     rig_usd="The rig's USD (lgi rig-generate --usd): each shot also gets anim.usda, its animation; null: none.",
     scans="A CSV of scans to compare shots with (columns shot, frame, scan; scan paths relative to the CSV): each "
           "shot's pairs go to its reconstruct-shot run (shots/<shot>/recon/compare, and its review page); a scan "
@@ -179,7 +202,8 @@ def capture_session(
     rows = []
     for folder in folders:
         shot_dir = out_dir / "shots" / folder.name
-        row: dict = {"shot": folder.name, "status": "failed", "frames": 0, "error": "", "review": ""}
+        row: dict = {"shot": folder.name, "status": "failed", "frames": 0, "error": "", "review": "",
+                     "rig_status": "" if rig is None else "not run", "rig_error": ""}
         state = reconstruct_shot(index_dir, str(shot_dir / "bundles.csv"), str(shot_dir / "recon"), smooth=smooth,
                                  usd=usd, fps=fps, chunk_size=chunk_size, footage=str(folder), calib=calib,
                                  markers=markers, helmet=helmet, dask_address=dask_address,
@@ -194,20 +218,13 @@ def capture_session(
                 export_shot(summary["out"], index_dir, str(shot_dir / "exr"), exr_size, fps)
                 row["exr"] = str((shot_dir / "exr").resolve())
             if rig is not None:
-                from dataclasses import asdict
-
-                from lgi.jobs.rig_solve import RigSolveOptions
-                from lgi.orchestration.rig import rig_solve_shot
-
-                anim = rig_solve_shot(summary["out"], rig, str(shot_dir / "anim"),
-                                      str(shot_dir / "anim.usda") if rig_usd else None, rig_usd,
-                                      asdict(RigSolveOptions(fps=fps)))
-                row.update(anim=anim["out"], rig_rms_mm=round(anim["rms_mm"], 4))
+                solve_rig_row(row, summary["out"], rig, shot_dir, rig_usd, fps, logger)
         except Exception as exc:  # noqa: BLE001 - a failed shot is reported, the session goes on
             row["error"] = f"{type(exc).__name__}: {exc}"
             logger.error("shot %s failed: %s", folder.name, row["error"])
         rows.append(row)
     failed = [r for r in rows if r["status"] != "done"]
+    rig_failed = [r for r in rows if r["rig_status"] == "failed"]
     key = artifact_key("session", out_dir)
     create_table_artifact(table=rows, key=key, description="capture session: every shot, its status and error")
     create_markdown_artifact(key=f"{key}-report", markdown=(
@@ -216,8 +233,11 @@ def capture_session(
         + ("".join(f"\n- **{r['shot']}** failed: {r['error']}" for r in failed) if failed else "")
         + "".join(f"\n- **{r['shot']}**: scan comparison {r['scans']}" for r in rows
                   if r.get("scans", "").startswith("failed"))
+        + "".join(f"\n- **{r['shot']}** reconstructed, rig solve failed: {r['rig_error']}" for r in rig_failed)
         + "".join(f"\n- {r['shot']}: review page [{r['review']}]({Path(r['review']).as_uri()})"
                   for r in rows if r.get("review")) + "\n"))
-    logger.info("%d of %d shots reconstructed%s", len(rows) - len(failed), len(rows),
-                f"; failed: {', '.join(r['shot'] for r in failed)}" if failed else "")
-    return {"calibration": calib, "calibration_cached": cal_hit, "shots": rows, "failed": [r["shot"] for r in failed]}
+    logger.info("%d of %d shots reconstructed%s%s", len(rows) - len(failed), len(rows),
+                f"; failed: {', '.join(r['shot'] for r in failed)}" if failed else "",
+                f"; rig solve failed: {', '.join(r['shot'] for r in rig_failed)}" if rig_failed else "")
+    return {"calibration": calib, "calibration_cached": cal_hit, "shots": rows, "failed": [r["shot"] for r in failed],
+            "rig_failed": [r["shot"] for r in rig_failed]}

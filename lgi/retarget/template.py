@@ -150,6 +150,8 @@ class GeneratedRig:
     projection_mm : (K + P,) float64: farthest a transferred bundle lay outside its cloud (0: all inside), mm
     corrective_source : P entries: "actor" (reconstructed with LGI) or "template" (the template's corrective,
         transferred, where the actor's dataset does not cover the combination)
+    jaw : (K + P, 4) float64 or None: each shape's jaw parameters (open, yaw, roll deg; forward cm), the pose its
+        LGI reconstruction was skinned with (None without a jaw rig)
     """
 
     neutral: np.ndarray
@@ -161,6 +163,31 @@ class GeneratedRig:
     residual_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     projection_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     corrective_source: list[str] = field(default_factory=list)
+    jaw: np.ndarray | None = None
+
+    def unskinned(self, rig) -> tuple[np.ndarray, np.ndarray]:
+        """The rig in the jaw-closed space of ``rig`` (:class:`lgi.solve.jaw.JawRig`), as an index stores shapes.
+
+        Returns
+        -------
+        controls : (K, V, 3) float32, cm: each control's shape unskinned with its own jaw parameters, minus the
+            neutral (its non-rigid part: a jaw opening's stretched lips, not its rotation)
+        correctives : (P, V, 3) float32, cm: each combination unskinned with its jaw parameters, minus the
+            neutral and its parts' unskinned displacements; skinned with the combination's jaw parameters, the
+            controls at 1 give the combination exactly
+        """
+        if self.jaw is None:
+            raise ValueError("the rig was generated without a jaw rig")
+        k = len(self.controls)
+        ctrl = np.stack([rig.unskin(np.asarray(x, np.float64), th) - self.neutral
+                         for x, th in zip(self.shapes, self.jaw[:k], strict=True)]) if k else \
+            np.zeros((0, *self.neutral.shape))
+        at = {c: i for i, c in enumerate(self.controls)}
+        corr = np.zeros((len(self.correctives), *self.neutral.shape))
+        for i, (combo, th) in enumerate(zip(self.correctives, self.jaw[k:], strict=True)):
+            whole = rig.unskin(np.asarray(self.combinations[i], np.float64), th)
+            corr[i] = whole - self.neutral - sum(ctrl[at[c]] for c in combo)
+        return ctrl.astype(np.float32), corr.astype(np.float32)
 
     def evaluate(self, weights: dict[str, float]) -> np.ndarray:
         """(V, 3) float64: the rig at control weights (correctives driven by the product of their controls'
@@ -306,9 +333,11 @@ class TemplateTransfer:
         controls = controls or [n for n in names if "+" not in n]
         correctives = correctives or []
         items: list[tuple[str, ...]] = [(c,) for c in controls] + list(correctives)
-        shapes, resid, proj = [], [], []
+        shapes, resid, proj, jaw = [], [], [], []
         for parts in (progress(items) if progress else items):
-            v, r, o = self.reconstruct(*self.bundles(parts))
+            b, theta = self.bundles(parts)
+            v, r, o = self.reconstruct(b, theta)
+            jaw.append(theta)
             shapes.append(v)
             resid.append(r)
             proj.append(o)
@@ -343,7 +372,7 @@ class TemplateTransfer:
                         ", ".join(f"{n} {o:.1f} mm" for n, o in outside[:6]) + (" ..." if len(outside) > 6 else ""))
         return GeneratedRig(self.neutral, list(controls), ctrl.astype(np.float32), list(correctives),
                             cdel.astype(np.float32), combos.astype(np.float32), np.asarray(resid), np.asarray(proj),
-                            source)
+                            source, None if self.rig is None else np.asarray(jaw, np.float64).reshape(len(items), 4))
 
 
 def parse_correctives(spec: str | None, transfer: TemplateTransfer, controls: list[str]) -> list[tuple[str, ...]]:
