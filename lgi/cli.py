@@ -267,7 +267,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_review(args: argparse.Namespace) -> int:
     from lgi.jobs.review import ReviewOptions, review, review_report
 
-    opts = ReviewOptions(truth=args.truth, compare=args.compare, fps=args.fps, step_um=args.step, scans=args.scans)
+    opts = ReviewOptions(truth=args.truth, compare=args.compare, fps=args.fps, step_um=args.step, scans=args.scans,
+                         rig_solve=args.rig_solve, rig=args.rig)
     for line in review_report(review(args.recon_dir, args.index, args.out, opts)):
         print(line)
     return 0
@@ -977,7 +978,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = _command(sub, "review", "write a shot's review page (3D, colour maps, markers, curves)",
                  "Write REVIEW_DIR/index.html and its data scripts: the reconstruction in 3D (orbit, zoom, pan; "
                  "play, step, slider, speed), colour maps in mm (distance to the truth, the correction's size, the "
-                 "distance from another reconstruction, the distance to scans on the frames lgi compare measured), "
+                 "distance from another reconstruction, the distance to scans on the frames lgi compare measured, "
+                 "where the actor's rig falls short of the shot after lgi rig-solve), "
                  "the markers coloured by their status per frame (the diagnostics row on hover or click), per-frame "
                  "curves and the run's summary. Open it from the file system: no server, no network. See "
                  "docs/review.md.",
@@ -998,6 +1000,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the folder lgi compare --out wrote for this reconstruction: adds the distance to the scan "
                         "(mm) as a colour map on the frames compared with one (vertices the scan does not cover in "
                         "grey) and marks those frames on the curves (default: none)")
+    g.add_argument("--rig-solve", metavar="RIG_SOLVE_DIR",
+                   help="the folder lgi rig-solve --out wrote for this reconstruction: adds where the rig falls short, "
+                        "the distance from the rig's playback of the solved curves to the reconstruction (mm), as a "
+                        "colour map per frame and its RMS as a curve (default: none)")
+    g.add_argument("--rig", metavar="RIG_DIR",
+                   help="with --rig-solve: the rig dataset (lgi rig-generate) its curves drive (default: the one "
+                        "RIG_SOLVE_DIR/solve.json names)")
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="REVIEW_DIR",
                    help="the page's folder (replaced as a whole; required, no default)")

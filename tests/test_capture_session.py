@@ -93,6 +93,10 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
     assert (out / "shots" / "a_good" / "anim" / "curves.csv").is_file() and good["rig_rms_mm"] < 3.0
     assert good["rig_status"] == "done" and bad["rig_status"] == "not run" and s["rig_failed"] == []
     assert (out / "shots" / "a_good" / "anim.usda").is_file() and not (out / "shots" / "b_broken" / "anim").exists()
+    # Its review page was written again with the rig map (where the rig falls short of the shot).
+    page = out / "shots" / "a_good" / "recon" / "review"
+    assert '"key":"rig"' in (page / "review_frames.js").read_text()
+    assert "rig playback" in (page / "review_meta.js").read_text()
 
 
 def test_a_failed_rig_solve_leaves_the_shot_reconstructed(prefect_harness, tmp_path: Path) -> None:

@@ -55,6 +55,11 @@ class ReviewOptions:
     scans : str or None
         The folder ``lgi compare --out`` wrote for this reconstruction: adds the distance-to-the-scan colour map
         (mm) on the frames compared with a scan, and its RMS as points on the curves.
+    rig_solve : str or None
+        The folder ``lgi rig-solve`` wrote for this reconstruction: adds the distance from the rig's playback of
+        its curves to the reconstruction (mm) as a colour map, and its RMS per frame as a curve.
+    rig : str or None
+        With ``rig_solve``: the rig dataset (default: the one its ``solve.json`` names).
     fps : float
         The shot's frame rate, frames per second: the page's playback rate at speed 1.
     step_um : float, um
@@ -67,8 +72,12 @@ class ReviewOptions:
     fps: float = 30.0
     scans: str | None = None
     step_um: float = 10.0
+    rig_solve: str | None = None
+    rig: str | None = None
 
     def __post_init__(self) -> None:
+        if self.rig and not self.rig_solve:
+            raise InputError("--rig goes with --rig-solve (the rig its curves drive)")
         if not isinstance(self.fps, (int, float)) or not math.isfinite(self.fps) or self.fps <= 0:
             raise InputError(f"--fps must be a positive number of frames per second, not {self.fps!r}")
         if not isinstance(self.step_um, (int, float)) or not 0 <= self.step_um <= 1000:
@@ -229,7 +238,7 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     o = options or ReviewOptions()
     t0 = time.perf_counter()
     recon, out = Path(recon_dir), Path(out)
-    inputs = [recon, index_dir] + [p for p in (o.truth, o.compare, o.scans) if p]
+    inputs = [recon, index_dir] + [p for p in (o.truth, o.compare, o.scans, o.rig_solve, o.rig) if p]
     check_output(out, "dir", owned=REVIEW_ENTRIES, what="lgi review folder", inputs=inputs)
     meshes = _read_meshes(recon, "RECON_DIR")
     diag = _read_diagnostics(recon)
@@ -272,6 +281,11 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
         from lgi.review.scans import read_scan_map
 
         scans = read_scan_map(o.scans, frames, verts)
+    rigmap = None
+    if o.rig_solve:
+        from lgi.review.rigmap import read_rig_map
+
+        rigmap = read_rig_map(o.rig_solve, o.rig, frames, verts)
 
     # ---- the frames, quantised
     from lgi.dataset.mesh import triangulate
@@ -293,6 +307,10 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
         from lgi.review.scans import page_map
 
         maps.append(page_map(scans, o.scans, BLOCK))
+    if rigmap is not None:
+        from lgi.review import rigmap as rm
+
+        maps.append(rm.page_map(rigmap, o.rig_solve, BLOCK))
 
     # ---- markers: status codes per frame, diagnostics in (frame, marker) order
     fi, mi = _rows(diag, frames, markers)
@@ -337,6 +355,9 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
         # Points, not a line: the frames with a scan are usually a few, far apart.
         curves.append({"key": "scan_rms", "label": "distance to the scan, RMS of the covered vertices", "unit": "mm",
                        "values": scans.rms_mm.tolist(), "points": True, "missing": "no scan at this frame"})
+    if rigmap is not None:
+        curves.append({"key": "rig_rms", "label": "rig playback - reconstruction, RMS over the face region",
+                       "unit": "mm", "values": rigmap.rms_mm.tolist()})
 
     # ---- summary and warnings
     info = _summary(recon, index_dir, index, diag, per_frame, summary, o, n_f, n_v)
@@ -346,6 +367,10 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
 
         info += summary_rows(scans, o.scans)
         warn += scans.warnings
+    if rigmap is not None:
+        from lgi.review import rigmap as rm
+
+        info += rm.summary_rows(rigmap, o.rig_solve)
 
     meta = {
         "format": "lgi-review", "version": 1, "fps": o.fps,

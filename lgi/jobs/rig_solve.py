@@ -238,6 +238,7 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
                               "value": curves.reshape(-1).round(7)})
     resid_df = pd.DataFrame({"frame": frames, "rms_mm": rms.round(5), "max_mm": mx.round(5)})
     summary = {"out": str(Path(out).resolve()), "usd": None if usd is None else str(Path(usd).resolve()),
+               "rig": str(Path(rig_dir).resolve()), "recon": str(Path(recon_dir).resolve()),
                "frames": len(frames), "controls": rig.n_controls, "correctives": len(rig.combinations),
                "region_vertices": int(idx.size), "fitted_vertices": int(sample.size),
                "rms_mm": float(np.sqrt(np.mean(rms**2))), "p95_mm": float(np.percentile(err, 95)),

@@ -126,6 +126,22 @@ def solve_rig_row(row: dict, recon: str, rig: str, shot_dir: Path, rig_usd: str 
     row.update(rig_status="done", anim=anim["out"], rig_rms_mm=round(anim["rms_mm"], 4))
 
 
+def rig_review(row: dict, summary: dict, index_dir: str, fps: float, logger) -> None:
+    """Write the shot's review page again with the rig map (where the rig falls short, lgi review --rig-solve)
+    and its scans; the page reconstruct-shot wrote stays when this fails (said in the log)."""
+    from lgi.jobs.compare import IN_SHOT
+    from lgi.jobs.review import ReviewOptions, review_beside
+
+    scans = Path(summary["out"]) / IN_SHOT
+    done = summary.get("compare", {}).get("status") == "done"
+    try:
+        review_beside(summary["out"], index_dir, summary, ReviewOptions(fps=fps, scans=str(scans) if done else None,
+                                                                        rig_solve=row["anim"]))
+    except Exception as exc:  # noqa: BLE001 - the shot and its solve stand; the page without the rig map stays
+        logger.warning("shot %s: the review page was not rewritten with the rig map: %s: %s", row["shot"],
+                       type(exc).__name__, exc)
+
+
 @flow(name="capture-session")
 @described(
     calibration_images="Folder of stereo board images (left*/right* or cam0/ and cam1/), as lgi calibrate reads.",
@@ -219,6 +235,8 @@ def capture_session(
                 row["exr"] = str((shot_dir / "exr").resolve())
             if rig is not None:
                 solve_rig_row(row, summary["out"], rig, shot_dir, rig_usd, fps, logger)
+                if row["rig_status"] == "done" and summary.get("review"):
+                    rig_review(row, summary, index_dir, fps, logger)
         except Exception as exc:  # noqa: BLE001 - a failed shot is reported, the session goes on
             row["error"] = f"{type(exc).__name__}: {exc}"
             logger.error("shot %s failed: %s", folder.name, row["error"])

@@ -315,7 +315,10 @@
   // the colours of its gaps.
   function mapNote() {
     const m = maps[S.map], el = $("cbarNote");
-    if (!m || !m.slots) { el.innerHTML = ""; $("cbar").style.display = "block"; return; }
+    const swatch = (c) => `<i style="background:rgb(${c.map((v) => Math.round(v * 255))})"></i>`;
+    const gaps = (m && m.gaps) ? m.gaps.map((g) => `<span>${swatch(GAP_RGB[g.code])}${esc(g.label)}</span>`).join(" ") : "";
+    // A map on every frame (the rig map) only needs the colours of its gaps.
+    if (!m || !m.slots) { el.innerHTML = gaps; $("cbar").style.display = "block"; return; }
     const slot = m.slots[S.frame];
     $("cbar").style.display = slot < 0 ? "none" : "block";
     if (slot < 0) {
@@ -324,10 +327,9 @@
         `compared with one (${esc(listed)}; marked on the curves)`;
       return;
     }
-    const p = m.pairs[slot], swatch = (c) => `<i style="background:rgb(${c.map((v) => Math.round(v * 255))})"></i>`;
+    const p = m.pairs[slot];
     el.innerHTML = `${esc(p.scan)}` + (p.covered_share != null ? `, ${(100 * p.covered_share).toFixed(1)} % covered` : "") +
-      (p.rms_mm != null ? `, RMS ${p.rms_mm.toFixed(3)} mm` : "") + "<br>" +
-      m.gaps.map((g) => `<span>${swatch(GAP_RGB[g.code])}${esc(g.label)}</span>`).join(" ");
+      (p.rms_mm != null ? `, RMS ${p.rms_mm.toFixed(3)} mm` : "") + "<br>" + gaps;
   }
   function legend() {
     const used = new Set(status);
