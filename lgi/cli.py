@@ -144,7 +144,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         remove_outputs(f"{args.out}/{IN_SHOT}")  # as the flow does: they measured the earlier meshes
     report = report_lines
     if opts.method == "blendshape":
-        from lgi.jobs.blendshape import blendshape_report as report
+        from lgi.jobs.reconstruct.blendshape import blendshape_report as report
     for line in report(summary):
         print(line)
     if summary.get("review"):

@@ -37,7 +37,7 @@ class ReconstructOptions:
     method : "local", "simplex" or "blendshape"
         Where a bundle's weights come from: refitted over its natural neighbours ("local"), or the paper's
         choice among the containing simplices only ("simplex"); "blendshape": no LGI, the rigged bounded
-        blendshape fit of the benchmarks' baseline (:mod:`lgi.jobs.blendshape`).
+        blendshape fit of the benchmarks' baseline (:mod:`lgi.jobs.reconstruct.blendshape`).
     jaw : "auto", "none" or a CSV path
         With a rigged index: estimate the jaw per frame, or read it (frame, open_deg, yaw_deg, roll_deg,
         forward_cm); "none" needs an index without a rig.

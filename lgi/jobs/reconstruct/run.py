@@ -26,7 +26,7 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
 
     options = options or ReconstructOptions()
     if options.method == "blendshape":
-        from lgi.jobs.blendshape import reconstruct_blendshape
+        from lgi.jobs.reconstruct.blendshape import reconstruct_blendshape
 
         return reconstruct_blendshape(index_dir, bundles, out, options, show_progress)
     check_output(out, (index_dir, bundles, options.jaw, options.observations, options.calib, options.contours))

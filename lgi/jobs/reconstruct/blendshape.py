@@ -99,7 +99,7 @@ def reconstruct_blendshape(index_dir: str | Path, bundles: str | Path, out: str 
     does; returns the summary (:func:`lgi.jobs.reconstruct.report_lines` formats it)."""
     from lgi.capture.bundles import read_bundles
     from lgi.index.build import LGIIndex
-    from lgi.jobs.reconstruct import OUTPUTS, check_output, write_reconstruction
+    from lgi.jobs.reconstruct.outputs import OUTPUTS, check_output, write_reconstruction
 
     check_options(options)
     check_output(out, (index_dir, bundles))
@@ -139,7 +139,7 @@ def blendshape_report(s: dict[str, Any]) -> list[str]:
              f"{sec['solve']:.2f} s (index loaded in {sec['load']:.2f} s)",
              f"bundles: {s['fitted_share'] * 100:.1f} % fitted, {s['missing_share'] * 100:.1f} % missing; no "
              f"correction: max bundle residual {s['max_residual_mm']:.3f} mm"]
-    from lgi.jobs.reconstruct import report_lines
+    from lgi.jobs.reconstruct.summary import report_lines
 
     # The jaw's range and where the outputs are, as LGI's report says them.
     lines += [line for line in report_lines(s) if line.startswith(("jaw:", "outputs in"))]
