@@ -413,3 +413,12 @@ def remeshed_scan(vertices: np.ndarray, triangles: np.ndarray, edge: float,
     remap = np.full(len(w), -1, np.int64)
     remap[used] = np.arange(len(used))
     return w[used], remap[g]
+
+
+def frame_fingerprint(vertices: np.ndarray) -> str:
+    """SHA-256 of a frame's vertices as ``meshes.npz`` stores them (float32, little-endian): ``lgi review --scans``
+    checks with it that the distances were measured on the frames it shows."""
+    import hashlib
+
+    v = np.ascontiguousarray(vertices, np.dtype("<f4"))
+    return hashlib.sha256(v.tobytes()).hexdigest()

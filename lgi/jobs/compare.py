@@ -262,15 +262,6 @@ def remove_outputs(folder: str | Path) -> None:
         shutil.rmtree(p)
 
 
-def frame_fingerprint(vertices: np.ndarray) -> str:
-    """SHA-256 of a frame's vertices as ``meshes.npz`` stores them (float32, little-endian): ``lgi review --scans``
-    checks with it that the distances were measured on the frames it shows."""
-    import hashlib
-
-    v = np.ascontiguousarray(vertices, np.dtype("<f4"))
-    return hashlib.sha256(v.tobytes()).hexdigest()
-
-
 def heatmap_name(frame: int, scan: Path) -> str:
     return f"frame_{frame:05d}_{scan.stem}"
 
@@ -278,7 +269,7 @@ def heatmap_name(frame: int, scan: Path) -> str:
 def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
     """``lgi compare``: each (frame, scan) pair measured; with ``options.out``, the tables and heat maps written
     there (all at the end, atomically: nothing on failure). Returns the summary (:func:`compare_report`)."""
-    from lgi.evaluation.compare import compare_frame, read_scan, rotation_deg, stats_mm
+    from lgi.evaluation.compare import compare_frame, frame_fingerprint, read_scan, rotation_deg, stats_mm
     from lgi.io.npz import load_npz
 
     o = options

@@ -33,12 +33,11 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
+from lgi.retarget.solve import JAW_CURVES, load_rig, playback  # noqa: F401 - the job's names for its callers
 
 log = logging.getLogger(__name__)
 
 OUTPUTS = ("curves.csv", "curves.parquet", "residuals.csv", "vertex_error.npz", "vertex_error.png", "solve.json")
-# The jaw joint's curves, in the order of lgi.solve.jaw.PARAM_NAMES (degrees; the slide in cm).
-JAW_CURVES = ("jaw_open_deg", "jaw_yaw_deg", "jaw_roll_deg", "jaw_forward_cm")
 JAW_MODES = ("fit", "fixed")
 FORMATS = ("csv", "parquet")
 
@@ -87,47 +86,6 @@ class RigSolveOptions:
             raise InputError(f"--jaw must be one of {', '.join(JAW_MODES)}, not {self.jaw!r}")
         if self.format not in FORMATS:
             raise InputError(f"--format must be one of {', '.join(FORMATS)}, not {self.format!r}")
-
-
-def load_rig(rig_dir: str | Path):
-    """The :class:`~lgi.retarget.solve.BlendRig` of a rig dataset, and the dataset."""
-    from lgi.dataset.shapes import ShapeDataset
-    from lgi.retarget.solve import BlendRig
-
-    if not Path(rig_dir).is_dir():
-        raise InputError("rig dataset folder not found (make it with lgi rig-generate)", path=rig_dir)
-    ds = ShapeDataset.load(rig_dir)
-    return BlendRig.from_dataset(ds, path=Path(rig_dir) / "manifest.json"), ds
-
-
-def playback(rig, curves: np.ndarray, vertices: np.ndarray | None = None, chunk: int = 64) -> np.ndarray:
-    """(F, N, 3) float32 cm: the rig's playback of ``curves`` at ``vertices`` (default all).
-
-    ``curves`` is (F, K) control weights or, for a rig with a jaw joint, (F, K + 4): the weights, then the jaw
-    parameters (open, yaw, roll deg, forward cm) that skin the shapes (the closed jaw when they are left out).
-    """
-    from lgi.solve.jaw import jaw_matrix
-
-    curves = np.asarray(curves, np.float64)
-    k = rig.n_controls
-    d = np.asarray(rig.deltas, np.float64)
-    x0 = rig.neutral
-    jw = None if rig.jaw is None else np.asarray(rig.jaw.weights, np.float64)
-    if vertices is not None:
-        d, x0 = d[:, vertices], x0[vertices]
-        jw = None if jw is None else jw[vertices]
-    flat = d.reshape(len(d), -1)
-    out = np.empty((len(curves), *x0.shape), np.float32)
-    skin = jw is not None and curves.shape[1] > k
-    for s in range(0, len(curves), chunk):
-        b = rig.all_weights(curves[s:s + chunk, :k])
-        x = (x0.reshape(-1) + b @ flat).reshape(len(b), *x0.shape)
-        if skin:
-            for i, th in enumerate(curves[s:s + chunk, k:k + 4]):
-                m = jaw_matrix(th, rig.jaw.pivot)
-                x[i] = (1.0 - jw[:, None]) * x[i] + jw[:, None] * (x[i] @ m[:3, :3].T + m[:3, 3])
-        out[s:s + chunk] = x
-    return out
 
 
 def read_curves(out: str | Path, controls: list[str]) -> np.ndarray:

@@ -40,6 +40,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 
@@ -591,3 +592,47 @@ def step_lag(curve: np.ndarray, step_frame: int, before: float, after: float) ->
     c0, c1 = curve[i - 1], curve[i]
     frac = (mid - c0) / (c1 - c0) if c1 != c0 else 1.0
     return float(i - 1 + frac - (step_frame - 0.5))
+
+
+# The jaw joint's curves, in the order of lgi.solve.jaw.PARAM_NAMES (degrees; the slide in cm).
+JAW_CURVES = ("jaw_open_deg", "jaw_yaw_deg", "jaw_roll_deg", "jaw_forward_cm")
+
+
+def load_rig(rig_dir: str | Path):
+    """The :class:`~lgi.retarget.solve.BlendRig` of a rig dataset, and the dataset."""
+    from lgi.dataset.shapes import ShapeDataset
+
+    if not Path(rig_dir).is_dir():
+        raise InputError("rig dataset folder not found (make it with lgi rig-generate)", path=rig_dir)
+    ds = ShapeDataset.load(rig_dir)
+    return BlendRig.from_dataset(ds, path=Path(rig_dir) / "manifest.json"), ds
+
+
+def playback(rig, curves: np.ndarray, vertices: np.ndarray | None = None, chunk: int = 64) -> np.ndarray:
+    """(F, N, 3) float32 cm: the rig's playback of ``curves`` at ``vertices`` (default all).
+
+    ``curves`` is (F, K) control weights or, for a rig with a jaw joint, (F, K + 4): the weights, then the jaw
+    parameters (open, yaw, roll deg, forward cm) that skin the shapes (the closed jaw when they are left out).
+    """
+    from lgi.solve.jaw import jaw_matrix
+
+    curves = np.asarray(curves, np.float64)
+    k = rig.n_controls
+    d = np.asarray(rig.deltas, np.float64)
+    x0 = rig.neutral
+    jw = None if rig.jaw is None else np.asarray(rig.jaw.weights, np.float64)
+    if vertices is not None:
+        d, x0 = d[:, vertices], x0[vertices]
+        jw = None if jw is None else jw[vertices]
+    flat = d.reshape(len(d), -1)
+    out = np.empty((len(curves), *x0.shape), np.float32)
+    skin = jw is not None and curves.shape[1] > k
+    for s in range(0, len(curves), chunk):
+        b = rig.all_weights(curves[s:s + chunk, :k])
+        x = (x0.reshape(-1) + b @ flat).reshape(len(b), *x0.shape)
+        if skin:
+            for i, th in enumerate(curves[s:s + chunk, k:k + 4]):
+                m = jaw_matrix(th, rig.jaw.pivot)
+                x[i] = (1.0 - jw[:, None]) * x[i] + jw[:, None] * (x[i] @ m[:3, :3].T + m[:3, 3])
+        out[s:s + chunk] = x
+    return out

@@ -3,7 +3,7 @@ reconstruction, per vertex and frame.
 
 ``lgi rig-solve`` writes the curves and, across the shot, the per-vertex error (``vertex_error.npz``); the page
 shows the same distance frame by frame: the rig's playback of the solved curves (weights, correctives and the
-jaw joint, :func:`lgi.jobs.rig_solve.playback`) against the reconstructed mesh, in mm, over the rig's face
+jaw joint, :func:`lgi.retarget.solve.playback`) against the reconstructed mesh, in mm, over the rig's face
 region. Vertices outside it (the rig moves none of them; the solve does not fit them) carry the page's
 "not measured" code and are drawn as the shaded skin, never as 0 mm.
 """
@@ -71,7 +71,7 @@ def read_rig_map(solve_dir: str | Path, rig_dir: str | Path | None, frames: np.n
         A folder that is not rig-solve's, a rig that is gone or on another mesh, curves that lack a frame of the
         reconstruction or a control of the rig.
     """
-    from lgi.jobs.rig_solve import JAW_CURVES, load_rig, playback
+    from lgi.retarget.solve import JAW_CURVES, load_rig, playback
 
     solve_dir = Path(solve_dir)
     path = solve_dir / "solve.json"

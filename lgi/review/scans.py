@@ -90,7 +90,7 @@ def read_scan_map(folder: str | Path, frames: np.ndarray, vertices: np.ndarray) 
     vertices than the reconstruction's (summary.json's ``vertices_sha256``: another reconstruction, or a re-run
     since).
     """
-    from lgi.jobs.compare import frame_fingerprint
+    from lgi.evaluation.compare import frame_fingerprint
     from lgi.review.pack import colour_top, quantise_gaps
 
     d = Path(folder)
