@@ -42,6 +42,9 @@ def page(firefox, shot):  # noqa: F811 - pytest's fixture, imported above
 
 
 def _canvas(ff: Firefox, path: Path | None = None) -> np.ndarray:
+    # Firefox composites WebGL after the script's task: a screenshot right after a redraw can show the frame
+    # before it. Two animation frames later the new one is on screen.
+    ff.evaluate("new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
     png = ff.screenshot("#gl")
     if path is not None:
         path.write_bytes(png)
