@@ -105,6 +105,7 @@ def _reconstruct_options(args: argparse.Namespace):
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from lgi.jobs.compare import IN_SHOT, check_outputs, checked_pairs, shot_scan_options
     from lgi.jobs.reconstruct import check_output, preflight, reconstruct, report_lines
 
     opts = _reconstruct_options(args)
@@ -112,6 +113,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError("--dask runs the flow's chunk tasks on Dask: it needs --flow")
     if opts.method == "blendshape" and args.flow:
         raise InputError("--method blendshape runs in this process: it does not take --flow")
+    scan = dict(units=args.scan_units, align=args.scan_align, region=args.scan_region, gate=args.scan_gate)
+    scan_opts = shot_scan_options(args.scans, args.index_dir, args.out, **scan)
     if args.review:
         from lgi.io.atomic import check_output as check_dir
         from lgi.jobs.review import REVIEW_ENTRIES
@@ -124,31 +127,57 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         from lgi.orchestration.reconstruct import reconstruct_shot
 
         summary = reconstruct_shot(args.index_dir, args.bundles, args.out, dask_address=args.dask,
-                                   review=args.review, **opts.to_json())
+                                   review=args.review, scans=args.scans,
+                                   **{f"scan_{k}": v for k, v in scan.items()}, **opts.to_json())
     else:
         from lgi.jobs.review import collected_warnings
 
+        pairs = None
+        if scan_opts is not None:
+            # What can be checked before the work: the scan files, the output folder, the frames in the shot.
+            from lgi.jobs.compare import check_scan_frames
+            from lgi.jobs.reconstruct import prepared_shot
+
+            pairs = checked_pairs(scan_opts)
+            check_outputs(args.out, scan_opts, pairs)
+            check_scan_frames(pairs, prepared_shot(args.index_dir, args.bundles, opts).frames, scan_opts)
         with collected_warnings() as warned:
             summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
+            if scan_opts is not None:
+                from lgi.jobs.compare import compare_shot
+
+                summary["compare"] = compare_shot(args.out, scan_opts, pairs)
+        done = summary.get("compare", {}).get("status") == "done"
         if args.review:
             from lgi.jobs.review import ReviewOptions, review_beside
 
-            summary["review"] = review_beside(args.out, args.index_dir, {**summary, "options": opts.to_json()},
-                                              ReviewOptions(fps=args.fps), warned)["page"]
+            summary["review"] = review_beside(
+                args.out, args.index_dir, {**summary, "options": opts.to_json()},
+                ReviewOptions(fps=args.fps, scans=scan_opts.out if done else None),
+                [*warned, *([f"scan comparison failed: {summary['compare']['error']}"]
+                            if scan_opts is not None and not done else [])])["page"]
         else:
             from lgi.jobs.review import remove_review
 
             remove_review(args.out)  # an earlier run's page would show that run, not this one
-        from lgi.jobs.compare import IN_SHOT, remove_outputs
+        if scan_opts is None:
+            from lgi.jobs.compare import remove_outputs
 
-        remove_outputs(f"{args.out}/{IN_SHOT}")  # as the flow does: they measured the earlier meshes
+            remove_outputs(f"{args.out}/{IN_SHOT}")  # as the flow does: they measured the earlier meshes
     report = report_lines
     if opts.method == "blendshape":
         from lgi.jobs.reconstruct.blendshape import blendshape_report as report
     for line in report(summary):
         print(line)
+    c = summary.get("compare")
+    if c is not None and c["status"] == "done":
+        print(f"scans: {len(c['pairs'])} frames compared, tables and heat maps in {c['out']}")
     if summary.get("review"):
         print(f"review page: {summary['review']}")
+    if c is not None and c["status"] != "done":
+        print(f"lgi reconstruct: error: the reconstruction in {args.out} is written, but the scan comparison "
+              f"failed: {c['error']}", file=sys.stderr)
+        return 2
     return 0
 
 
@@ -654,6 +683,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "upper_inner or lower_inner; px): the lip region is deformed so that the mesh's inner lip "
                         "edges meet them, keeping the bundles (needs --observations for the head pose and rig); "
                         "adds contour_px_before/after to the diagnostics")
+    g = s.add_argument_group("scans")
+    g.add_argument("--scans", metavar="PAIRS_CSV",
+                   help="a CSV of frame, scan (scan paths relative to the CSV): after the reconstruction each frame "
+                        "is compared with its scan as lgi compare does, into OUT_DIR/compare, and with --review the "
+                        "page gets the scan map; a scan that does not load or covers no face leaves the "
+                        "reconstruction written and exits 2 naming it (default: none)")
+    g.add_argument("--scan-units", default="cm", choices=["mm", "cm", "m", "in"],
+                   help="with --scans: units of the scan files (default %(default)s)")
+    g.add_argument("--scan-align", default="none", choices=["none", "rigid"],
+                   help="with --scans: rigid moves each scan onto its frame by ICP first (lgi compare --align) "
+                        "(default %(default)s)")
+    g.add_argument("--scan-region", default="all", metavar="REGION",
+                   help="with --scans: the vertices to compare, as lgi compare --region (default %(default)s)")
+    g.add_argument("--scan-gate", type=float, default=10.0, metavar="MM",
+                   help="with --scans: closest points farther than this, mm, count as not covered (default "
+                        "%(default)s)")
     g = s.add_argument_group("scheduling")
     g.add_argument("--flow", action="store_true",
                    help="run the job as the Prefect reconstruct-shot flow (chunks of frames as tasks, "

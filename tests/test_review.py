@@ -223,6 +223,45 @@ def _payload(path: Path) -> dict:
     return json.loads(text[text.index("=") + 1:].rstrip().rstrip(";"))
 
 
+def _shifted_scan(t: Path, folder: Path) -> Path:
+    """A folder with take_5.obj moved 30 cm (a scan of the wrong moment: it covers no face) and its pairs.csv."""
+    from lgi.io.obj import read_obj, write_obj
+
+    folder.mkdir()
+    mesh = read_obj(t / "scans" / "take_5.obj")
+    write_obj(folder / "take_5.obj", mesh.vertices + [30.0, 0, 0], mesh.face_vertices, mesh.face_offsets)
+    pd.DataFrame([{"frame": int(np.load(t / "s" / "truth.npz")["frames"][5]), "scan": "take_5.obj"}]).to_csv(
+        folder / "pairs.csv", index=False)
+    return folder
+
+
+def test_reconstruct_with_scans_plain_and_flow(prefect_harness, scanned, tmp_path, capsys):
+    """lgi reconstruct --scans compares the shot with its scans after the reconstruction, plain and with --flow:
+    the same compare files, the page's scan map. A scan that covers no face leaves the reconstruction written,
+    no compare folder, and exits 2 naming the scan, on both paths."""
+    import filecmp
+
+    t = scanned
+    base = ["reconstruct", str(t / "idx"), "--bundles", str(t / "bundles.csv"), "--noise", "0", "--review", "-q",
+            "--scans", str(t / "scans" / "pairs.csv"), "--scan-region", "face"]
+    assert main([*base, "--out", str(tmp_path / "plain")]) == 0
+    assert main([*base, "--out", str(tmp_path / "flow"), "--flow", "--chunk-size", "7"]) == 0
+    assert "2 frames compared" in capsys.readouterr().out
+    for name in ("summary.csv", "summary.json", "vertex_distances.parquet", "scan_distances.parquet"):
+        assert filecmp.cmp(tmp_path / "plain" / "compare" / name, tmp_path / "flow" / "compare" / name,
+                           shallow=False), name
+    for out in ("plain", "flow"):
+        assert '"key":"scan"' in (tmp_path / out / "review" / "review_frames.js").read_text()
+    # A scan shifted 30 cm covers no face.
+    bad = _shifted_scan(t, tmp_path / "bad")
+    base[base.index(str(t / "scans" / "pairs.csv"))] = str(bad / "pairs.csv")
+    for out, extra in (("plain_bad", []), ("flow_bad", ["--flow"])):
+        assert main([*base, "--out", str(tmp_path / out), *extra]) == 2
+        err = capsys.readouterr().err
+        assert "covers no part of the face" in err and "take_5.obj" in err and "is written" in err
+        assert (tmp_path / out / "meshes.npz").is_file() and not (tmp_path / out / "compare").exists()
+
+
 def test_scan_map_packs_the_scanned_frames_only(scanned):
     """The scan map holds codes for the frames with a scan only; covered vertices carry their distance (within
     half a code step), uncovered ones (the scans' forehead hole) and those outside the compared region their own
@@ -320,14 +359,7 @@ def test_shot_flow_compares_its_scans(prefect_harness, scanned, tmp_path):
     table = Artifact.get(artifact_key("shot-compare", out))
     assert table is not None and "take_5.obj" in table.data
     # A scan of the wrong moment (shifted 30 cm): the comparison fails, the shot is reconstructed all the same.
-    from lgi.io.obj import read_obj, write_obj
-
-    bad = tmp_path / "bad"
-    bad.mkdir()
-    mesh = read_obj(t / "scans" / "take_5.obj")
-    write_obj(bad / "take_5.obj", mesh.vertices + [30.0, 0, 0], mesh.face_vertices, mesh.face_offsets)
-    pd.DataFrame([{"frame": int(np.load(t / "s" / "truth.npz")["frames"][5]), "scan": "take_5.obj"}]).to_csv(
-        bad / "pairs.csv", index=False)
+    bad = _shifted_scan(t, tmp_path / "bad")
     out2 = tmp_path / "flow_bad"
     s2 = reconstruct_shot(index_dir=str(t / "idx"), bundles=str(t / "bundles.csv"), out=str(out2), noise=0,
                           chunk_size=10, scans=str(bad / "pairs.csv"))

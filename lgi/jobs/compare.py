@@ -389,3 +389,55 @@ def compare_report(s: dict[str, Any]) -> list[str]:
         lines.append(f"tables and heat maps in {s['out']}: summary.csv, summary.json, vertex_distances.parquet, "
                      "scan_distances.parquet, heatmaps/")
     return lines
+
+
+def shot_scan_options(scans: str | list | None, index_dir: str, out: str, units: str = "cm", align: str = "none",
+                      region: str = "all", gate: float = 10.0) -> CompareOptions | None:
+    """The compare job's options for a reconstruction's ``scans`` (a pairs CSV, or ``[frame, scan]`` pairs),
+    writing into ``out/compare`` (``lgi reconstruct --scans`` and the reconstruct-shot flow's ``scans``); None
+    without scans."""
+    if scans is None or (isinstance(scans, (list, tuple)) and not scans):
+        return None
+    common = dict(index=index_dir, align=align, region=region, gate_mm=gate, units=units,
+                  out=str(Path(out) / IN_SHOT))
+    if isinstance(scans, (str, Path)):
+        return CompareOptions(pairs=str(scans), **common)
+    try:
+        frames, files = zip(*((int(f), str(s)) for f, s in scans), strict=True)
+    except (TypeError, ValueError):
+        raise InputError(f"scans: give a pairs CSV or a list of [frame, scan] pairs, not {scans!r}") from None
+    return CompareOptions(frames=frames, scans=files, **common)
+
+
+def check_scan_frames(pairs: list[tuple[int, Path]], frames, options: CompareOptions) -> None:
+    """Refuse a scan of a frame the shot does not have, before the reconstruction."""
+    have = {int(f) for f in frames}
+    for f, scan in pairs:
+        if f not in have:
+            raise InputError(f"scan {scan} is of frame {f}, which the shot's bundles do not have (frames "
+                             f"{min(have)}-{max(have)})", path=options.pairs or scan)
+
+
+def compare_shot(recon_dir: str | Path, options: CompareOptions, pairs: list[tuple[int, Path]], logger=None,
+                 run=None) -> dict[str, Any]:
+    """The compare job on a shot just reconstructed. A scan that fails (bad input found only now: it does not
+    load, it covers no part of the face) is logged as an error and returned as ``status: failed`` with the
+    message, its pair ``failed`` and the others ``not measured`` (the job writes all or nothing): the
+    reconstruction is sound and stays. A bug still raises.
+
+    ``run(recon_dir, options)`` runs the job (default :func:`compare`; the flow passes its task); ``logger``
+    (the flow's run logger) gets the failure and the report, None: nothing logged (the command line prints
+    them itself)."""
+    from lgi.errors import LgiError
+
+    try:
+        result = (run or compare)(recon_dir, options)
+    except LgiError as exc:
+        if logger is not None:
+            logger.error("scan comparison failed (the reconstruction in %s is kept): %s", recon_dir, exc)
+        return {"status": "failed", "error": str(exc), "out": None,
+                "pairs": [{"frame": f, "scan": str(s), "status": "failed" if str(s) == getattr(exc, "path", None)
+                           else "not measured"} for f, s in pairs]}
+    for line in compare_report(result) if logger is not None else ():
+        logger.info(line)
+    return {"status": "done", "error": "", "out": result["out"], "pairs": result["pairs"]}

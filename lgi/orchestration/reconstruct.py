@@ -23,7 +23,7 @@ from prefect.artifacts import (
 from prefect.cache_policies import NO_CACHE
 
 from lgi.jobs import reconstruct as job
-from lgi.jobs.compare import IN_SHOT, CompareOptions, compare_report
+from lgi.jobs.compare import IN_SHOT, CompareOptions, check_scan_frames, shot_scan_options
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
@@ -106,25 +106,6 @@ def compare_task(recon: str, options: dict) -> dict:
     from lgi.jobs.compare import CompareOptions, compare
 
     return compare(recon, CompareOptions.from_json(options))
-
-
-def scan_options(scans: str | list | None, index_dir: str, out: str, units: str, align: str, region: str,
-                 gate: float) -> CompareOptions | None:
-    """The compare job's options for the flow's ``scans`` (a pairs CSV, or ``[frame, scan]`` pairs), writing into
-    ``out/compare``; None without scans."""
-    if scans is None or (isinstance(scans, (list, tuple)) and not scans):
-        return None
-    common = dict(index=index_dir, align=align, region=region, gate_mm=gate, units=units,
-                  out=str(Path(out) / IN_SHOT))
-    if isinstance(scans, (str, Path)):
-        return CompareOptions(pairs=str(scans), **common)
-    from lgi.errors import InputError
-
-    try:
-        frames, files = zip(*((int(f), str(s)) for f, s in scans), strict=True)
-    except (TypeError, ValueError):
-        raise InputError(f"scans: give a pairs CSV or a list of [frame, scan] pairs, not {scans!r}") from None
-    return CompareOptions(frames=frames, scans=files, **common)
 
 
 @flow(name="reconstruct-shot")
@@ -217,7 +198,7 @@ def reconstruct_shot(
     job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
                            contours))
     # Scans are checked before any work (files there, frames in the shot), their loading and coverage after.
-    scan_opts = scan_options(scans, index_dir, out, scan_units, scan_align, scan_region, scan_gate)
+    scan_opts = shot_scan_options(scans, index_dir, out, scan_units, scan_align, scan_region, scan_gate)
     scan_pairs = None
     if scan_opts is not None:
         from lgi.jobs.compare import check_outputs, checked_pairs
@@ -233,7 +214,7 @@ def reconstruct_shot(
                               description="footage to bundles: tracking summary")
     n = job.preflight(index_dir, bundles, opts)
     if scan_pairs:
-        _check_scan_frames(scan_pairs, job.prepared_shot(index_dir, bundles, opts).frames, scan_opts)
+        check_scan_frames(scan_pairs, job.prepared_shot(index_dir, bundles, opts).frames, scan_opts)
     runner = task_runner(dask_address)
     bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
     # One working folder per run: two runs into the same OUT never touch each other's chunk files, and a killed
@@ -297,35 +278,13 @@ def reconstruct_shot(
     return summary
 
 
-def _check_scan_frames(pairs: list[tuple[int, Path]], frames, options: CompareOptions) -> None:
-    """Refuse a scan of a frame the shot does not have, before the reconstruction."""
-    from lgi.errors import InputError
-
-    have = {int(f) for f in frames}
-    for f, scan in pairs:
-        if f not in have:
-            raise InputError(f"scan {scan} is of frame {f}, which the shot's bundles do not have (frames "
-                             f"{min(have)}-{max(have)})", path=options.pairs or scan)
-
-
 def _compare_scans(out: str, options: CompareOptions, pairs: list[tuple[int, Path]]) -> dict:
-    """Run the compare job on the reconstructed shot; a scan that fails (bad input: it does not load, covers no
-    part of the face) is logged as an error and returned as ``status: failed`` with the message: the
-    reconstruction is sound and stays. A bug still fails the flow."""
-    from lgi.errors import LgiError
+    """The compare job on the reconstructed shot, as a task (:func:`lgi.jobs.compare.compare_shot`: a scan that
+    fails is logged and returned as ``status: failed``; the reconstruction stays)."""
+    from lgi.jobs.compare import compare_shot
 
-    logger = get_run_logger()
-    try:
-        result = compare_task(out, options.to_json())
-    except LgiError as exc:
-        logger.error("scan comparison failed (the reconstruction in %s is kept): %s", out, exc)
-        # The job writes all or nothing: the scan the error names failed, the others were not measured.
-        return {"status": "failed", "error": str(exc), "out": None,
-                "pairs": [{"frame": f, "scan": str(s), "status": "failed" if str(s) == getattr(exc, "path", None)
-                           else "not measured"} for f, s in pairs]}
-    for line in compare_report(result):
-        logger.info(line)
-    return {"status": "done", "error": "", "out": result["out"], "pairs": result["pairs"]}
+    return compare_shot(out, options, pairs, get_run_logger(),
+                        run=lambda recon, o: compare_task(recon, o.to_json()))
 
 
 def task_runner(dask_address: str | None):
