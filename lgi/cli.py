@@ -114,6 +114,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if opts.method == "blendshape" and args.flow:
         raise InputError("--method blendshape runs in this process: it does not take --flow")
     scan = dict(units=args.scan_units, align=args.scan_align, region=args.scan_region, gate=args.scan_gate)
+    if not args.scans and scan != dict(units="cm", align="none", region="all", gate=10.0):
+        logging.getLogger(__name__).warning("--scan-units, --scan-align, --scan-region and --scan-gate apply to "
+                                            "--scans: ignored without it")
     scan_opts = shot_scan_options(args.scans, args.index_dir, args.out, **scan)
     if args.review:
         from lgi.io.atomic import check_output as check_dir
@@ -136,11 +139,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         if scan_opts is not None:
             # What can be checked before the work: the scan files, the output folder, the frames in the shot.
             from lgi.jobs.compare import check_scan_frames
-            from lgi.jobs.reconstruct import prepared_shot
+            from lgi.jobs.reconstruct import forget_shots, prepared_shot
 
             pairs = checked_pairs(scan_opts)
             check_outputs(args.out, scan_opts, pairs)
             check_scan_frames(pairs, prepared_shot(args.index_dir, args.bundles, opts).frames, scan_opts)
+            forget_shots()  # the reconstruction below prepares its own: two at once would double the memory
         with collected_warnings() as warned:
             summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
             if scan_opts is not None:

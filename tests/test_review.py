@@ -247,6 +247,9 @@ def test_reconstruct_with_scans_plain_and_flow(prefect_harness, scanned, tmp_pat
     assert main([*base, "--out", str(tmp_path / "plain")]) == 0
     assert main([*base, "--out", str(tmp_path / "flow"), "--flow", "--chunk-size", "7"]) == 0
     assert "2 frames compared" in capsys.readouterr().out
+    # The scan options without --scans do nothing, and say so.
+    assert main([*base[:base.index("--scans")], "--scan-gate", "5", "--out", str(tmp_path / "noscans")]) == 0
+    assert "ignored without it" in capsys.readouterr().err and not (tmp_path / "noscans" / "compare").exists()
     for name in ("summary.csv", "summary.json", "vertex_distances.parquet", "scan_distances.parquet"):
         assert filecmp.cmp(tmp_path / "plain" / "compare" / name, tmp_path / "flow" / "compare" / name,
                            shallow=False), name

@@ -96,6 +96,9 @@ def read_rig_map(solve_dir: str | Path, rig_dir: str | Path | None, frames: np.n
     names = [*rig.controls, *(JAW_CURVES if rig.jaw is not None else ())]
     table = _curves_table(solve_dir)
     missing = sorted(set(names) - set(table.columns))
+    if missing and set(missing) <= set(JAW_CURVES):
+        raise InputError("has no jaw curves, and the rig has a jaw joint: solved onto an older copy of the rig "
+                         "(its jaw in the shapes); run lgi rig-solve again", path=_curves_path(solve_dir))
     if missing:
         raise InputError(f"lacks the rig's controls {missing[:3]}: solved onto another rig",
                          path=_curves_path(solve_dir))
