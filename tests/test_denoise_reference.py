@@ -21,7 +21,7 @@ def _segments(x: np.ndarray, window: int) -> np.ndarray:
 def _reference(p: np.ndarray, noise_mm: float, windows=SG_WINDOWS, span: int = 15):
     s2 = (noise_mm / 10.0) ** 2
     out = p.copy()
-    chosen = np.ones(p.shape[:2], np.int64)
+    chosen = np.ones(p.shape, np.int64)
     cand = [w for w in windows if w > 1]
     for m in range(p.shape[1]):
         x = p[:, m]
@@ -37,10 +37,13 @@ def _reference(p: np.ndarray, noise_mm: float, windows=SG_WINDOWS, span: int = 1
             c0 = float(savgol_coeffs(w, 2)[w // 2])
             smoothed = np.all(np.isfinite(y), axis=1) & np.any(y != x, axis=1)
             ys.append(y)
-            risks.append(np.where(smoothed, np.nansum((y - x) ** 2, axis=1) - 6 * s2 * (1 - c0), 0.0))
-        best = np.argmin(uniform_filter1d(np.stack(risks), 2 * span + 1, axis=1, mode="nearest"), axis=0)
-        out[:, m] = np.stack(ys)[best, np.arange(len(x))]
-        chosen[:, m] = np.array([1, *cand])[best]
+            risks.append(np.where(smoothed[:, None], np.nan_to_num((y - x) ** 2) - 2 * s2 * (1 - c0), 0.0))
+        # Each axis chooses its own window (stereo bundles are noisier in depth).
+        for a in range(3):
+            risk = np.stack([r if r.ndim == 1 else r[:, a] for r in risks])
+            best = np.argmin(uniform_filter1d(risk, 2 * span + 1, axis=1, mode="nearest"), axis=0)
+            out[:, m, a] = np.stack(ys)[best, np.arange(len(x)), a]
+            chosen[:, m, a] = np.array([1, *cand])[best]
     return out, chosen
 
 

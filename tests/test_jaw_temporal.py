@@ -163,7 +163,9 @@ def test_reconstruct_smoothing_jaw_file_and_occlusion(tmp_path: Path) -> None:
     # error than passing through the noisy bundles.
     assert jit["auto"] < 0.5 * jit["1"] and rms["auto"] < rms["1"]
     d = pd.read_csv(tmp_path / "recauto" / "diagnostics.csv")
-    assert (d.source == "global fit").all()
+    # Its bundles keep their local geometry (held toward the global weights by the noise), and no simplex, which
+    # would pass through a noisy bundle, is taken.
+    assert (d.source == "local fit").mean() > 0.5 and not (d.source == "simplex").any()
 
 
 def test_fit_rig_recovers_the_synthetic_hinge(small_actor) -> None:

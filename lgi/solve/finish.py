@@ -61,7 +61,8 @@ class Finishing:
                     return
 
         worker = threading.Thread(target=produce, name="lgi-select", daemon=True)
-        fin = _Finisher(self, pos, fit_pos)
+        fin = _Finisher(self, pos, fit_pos, self.noise_left if self.noise_left is not None
+                        and len(self.noise_left) == len(pos) else None)
         sels: list[FrameResult] = []
         self._serial = True
         worker.start()
@@ -91,15 +92,19 @@ class Finishing:
     def finish_sequence(self, sels: list[FrameResult], pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
                         smooth: int = 1, jaw_smooth: int | None = None,
                         show_progress: bool = False, fit_pos: np.ndarray | None = None,
-                        lo: int = 0, hi: int | None = None) -> SequenceResult:
+                        lo: int = 0, hi: int | None = None, left: np.ndarray | None = None) -> SequenceResult:
         """Smooth the choices over time, blend, skin and correct every frame; diagnostics per bundle.
 
         ``pos`` are the bundles as given (the diagnostics' residuals are measured to them); ``fit_pos`` the
         positions the frames were fitted to (denoised, :meth:`denoise`), which the correction aims at.
         ``sels``, ``pos``, ``frames`` and ``bridged`` cover the whole shot; only frames ``lo:hi`` are finished
         and returned. A frame's result depends only on the frames in its smoothing windows, each computed on
-        its own, so finishing a shot in any ranges gives the same bits as finishing it whole (tested)."""
+        its own, so finishing a shot in any ranges gives the same bits as finishing it whole (tested). ``left``
+        (F, M, 3) cm^2: the noise variance left in ``fit_pos`` (:meth:`denoise`; default the solver's when it
+        covers these frames, None for exact bundles), which sets each frame's :meth:`correction_gain`."""
         fit_pos = pos if fit_pos is None else fit_pos
+        if left is None and self.noise_left is not None and len(self.noise_left) == len(pos):
+            left = self.noise_left
         from lgi.solve.temporal import moving_average, window_slots
 
         n_f = len(sels)
@@ -118,7 +123,7 @@ class Finishing:
             shares = moving_average(shares, smooth)
         # With smoothing, a frame's correction averages the residuals of its window: those frames are blended too.
         a, b = (max(0, lo - smooth // 2), min(n_f, hi + smooth // 2)) if smooth > 1 else (lo, hi)
-        fin = _Finisher(self, pos[a:b], fit_pos[a:b])
+        fin = _Finisher(self, pos[a:b], fit_pos[a:b], None if left is None else left[a:b])
         if smooth > 1:
             # The correction follows the same moving average: corrected to each frame's raw residuals, the
             # surface would carry the bundles' noise straight back. So every surface is blended first.
@@ -126,9 +131,10 @@ class Finishing:
                       for f in progress(range(a, b), "blending", disable=not show_progress)]
             resid = np.stack([r for _, r, _ in blends])
             fin.before[:] = np.linalg.norm(resid, axis=2)
+            gains = [fin.gain(f - a, resid[f - a]) for f in range(lo, hi)]
             resid = moving_average(resid, smooth)
             for f in range(lo, hi):
-                fin.finish(f - a, blends[f - a][0], resid[f - a], blends[f - a][2])
+                fin.finish(f - a, blends[f - a][0], resid[f - a], blends[f - a][2], gains[f - lo])
         else:
             for f in progress(range(lo, hi), "blending", disable=not show_progress):
                 fin.frame(f - a, shapes[f], lam[f], None if thetas is None else thetas[f], shares[f])
@@ -193,8 +199,9 @@ class _Finisher:
     distance before (``before``) and after (``r_final``) the correction (F, M), cm. ``solver`` is the
     :class:`~lgi.solve.solver.LGISolver` whose :class:`Finishing` stage runs it."""
 
-    def __init__(self, solver: Finishing, pos: np.ndarray, fit_pos: np.ndarray) -> None:
-        self.solver, self.pos, self.fit_pos = solver, pos, fit_pos
+    def __init__(self, solver: Finishing, pos: np.ndarray, fit_pos: np.ndarray, left: np.ndarray | None = None
+                 ) -> None:
+        self.solver, self.pos, self.fit_pos, self.left = solver, pos, fit_pos, left
         n_f, n_m = len(pos), solver.index.n_markers
         self.out = np.empty((n_f, solver.index.n_vertices, 3), np.float32)
         self.seen = np.all(np.isfinite(pos), axis=2)
@@ -210,13 +217,18 @@ class _Finisher:
         x = s.surface(shapes, lam, jaw, share)
         return x, self.fit_pos[f] - s.layout.evaluate(x), t
 
-    def finish(self, f: int, x: np.ndarray, resid: np.ndarray, t: np.ndarray | None = None) -> None:
-        """Correct surface ``x`` by ``noise_gain`` of ``resid`` at the seen bundles (but for the far field's share
-        t of the global fit) and store it."""
+    def gain(self, f: int, resid: np.ndarray) -> np.ndarray | float:
+        """Frame f's :meth:`~lgi.solve.noise.NoiseHandling.correction_gain` for the blend's residuals ``resid``."""
+        return self.solver.correction_gain(resid, None if self.left is None else self.left[f])
+
+    def finish(self, f: int, x: np.ndarray, resid: np.ndarray, t: np.ndarray | None = None,
+               gain: np.ndarray | float = 1.0) -> None:
+        """Correct surface ``x`` by ``gain`` (scalar, or (M, 3) per bundle and axis) of ``resid`` at the seen
+        bundles (but for the far field's share t of the global fit) and store it."""
         s, seen = self.solver, self.seen[f]
-        target = np.where(seen[:, None], s.layout.evaluate(x) + s.noise_gain * np.nan_to_num(resid), np.nan)
+        target = np.where(seen[:, None], s.layout.evaluate(x) + gain * np.nan_to_num(resid), np.nan)
         s.correct(x, target, seen)
-        s.correct_far(x, resid, seen, s.noise_gain, t)
+        s.correct_far(x, resid, seen, gain, t)
         self.out[f] = x
         self.r_final[f] = np.where(seen, np.linalg.norm(np.nan_to_num(self.pos[f]) - s.layout.evaluate(x), axis=1),
                                    np.nan)
@@ -226,7 +238,7 @@ class _Finisher:
         """:meth:`blend` and :meth:`finish` frame f with its own residuals."""
         x, resid, t = self.blend(f, shapes, lam, jaw, share)
         self.before[f] = np.linalg.norm(resid, axis=1)
-        self.finish(f, x, resid, t)
+        self.finish(f, x, resid, t, self.gain(f, resid))
 
 
 def slot_labels(shapes: np.ndarray, weights: np.ndarray, shape_names: list[str]) -> tuple[np.ndarray, np.ndarray]:

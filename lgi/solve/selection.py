@@ -11,7 +11,6 @@ import numpy as np
 from lgi.errors import InputError
 from lgi.progress import progress
 from lgi.solve._select_kernels import (
-    MISSING,
     OWN_WEIGHT,
     agreement,
     local_fits,
@@ -26,6 +25,9 @@ from lgi.units import MM_PER_CM
 
 # A bundle keeps the global weights where they fit it and its neighbours within this RMS (cm; 1 micrometre).
 LOCAL_MIN_MISFIT = 1e-4
+# How far (in shape weight) a bundle's local weights are expected to stray from the global fit's: with measured
+# bundles the local fit's ridge is the noise variance left over its square.
+LOCAL_WEIGHT_SPREAD = 0.03
 
 
 class Selection:
@@ -93,8 +95,10 @@ class Selection:
         return self.global_fit.solve(bundles, init=start).jaw
 
     def select_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,
-                     jaw: np.ndarray | None = None) -> FrameResult:
-        """Choose shapes and weights (unskinning the bundles first with a jaw rig); no vertices yet."""
+                     jaw: np.ndarray | None = None, left: np.ndarray | None = None) -> FrameResult:
+        """Choose shapes and weights (unskinning the bundles first with a jaw rig); no vertices yet. ``left``
+        (M, 3) cm^2: the noise variance left in ``bundles`` (default: all of the solver's noise, none for exact
+        bundles), which holds each bundle's local fit toward the global weights (:data:`LOCAL_WEIGHT_SPREAD`)."""
         p = np.asarray(bundles, np.float64)
         if p.shape != (self.index.n_markers, 3):
             raise InputError(f"bundles have shape {p.shape}, the index has {self.index.n_markers} markers")
@@ -107,13 +111,6 @@ class Selection:
         if self.rig is not None:
             q = p.copy()
             q[seen] = self.rig.unskin(p[seen], theta, self._bundle_w[seen])
-        if self.method == "local" and self.noise > 0:
-            m = len(p)
-            shapes, lam, score, source, fallback = self._global(q, seen, fit)
-            return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, np.full(m, -1, np.int64),
-                               np.where(seen, FITTED, MISSING).astype(np.int64), np.full(m, np.nan), score,
-                               np.where(seen, 0.0, np.nan), fallback, theta, p, None, source, fit,
-                               np.zeros((m, 4), np.int64), np.zeros((m, 4)))
         prev_simplex = None
         if previous is not None:
             # A bundle the global fit met had no simplex searched: no temporal preference from it.
@@ -139,8 +136,10 @@ class Selection:
         simplex_shapes, simplex_weights = shapes.copy(), lam.copy()
         source = np.full(len(p), "simplex", object)
         if self.method == "local":
+            if left is None and self.noise > 0:
+                left = np.broadcast_to((self.noise_axes / MM_PER_CM) ** 2, p.shape)
             shapes, lam, score, source, fallback = self._local(q, seen, fit, shapes, lam, score, fallback,
-                                                               global_score)
+                                                               global_score, left)
         share = None
         if self._far.active:
             dense = np.zeros((len(p), self.global_fit.n_shapes + 1))
@@ -179,23 +178,12 @@ class Selection:
         m = len(q)
         return np.sqrt(np.bincount(i, cw * d2, minlength=m) / np.maximum(np.bincount(i, cw, minlength=m), 1e-300))
 
-    def _global(self, q: np.ndarray, seen: np.ndarray, fit: GlobalFitResult):
-        """Every bundle takes the global fit's weights (noisy bundles: local refits would fit the noise)."""
-        m = len(q)
-        nz = np.flatnonzero(fit.weights > 0)
-        k = max(1, len(nz))
-        out_s = np.zeros((m, k), np.int64)
-        out_w = np.zeros((m, k))
-        out_s[:, :len(nz)] = nz + 1
-        out_w[:, :len(nz)] = fit.weights[nz]
-        notes = [("global fit" if not seen[i] else "") for i in range(m)]
-        score = self._shared_misfits(q, seen, fit.weights)
-        return out_s, out_w, score, np.full(m, "global fit", object), notes
-
     def _local(self, q: np.ndarray, seen: np.ndarray, fit: GlobalFitResult, shapes: np.ndarray, lam: np.ndarray,
-               score: np.ndarray, fallback: list[str], global_score: np.ndarray | None = None):
+               score: np.ndarray, fallback: list[str], global_score: np.ndarray | None = None,
+               left: np.ndarray | None = None):
         """Local fits (see ``method``); returns shapes and weights as slots (M, K), scores, sources, notes.
-        ``global_score`` (M,) cm: :meth:`_shared_misfits` of the global weights, when already computed."""
+        ``global_score`` (M,) cm: :meth:`_shared_misfits` of the global weights, when already computed; ``left``
+        (M, 3) cm^2 the noise variance left in the bundles (None: exact)."""
         m, n_s = len(q), self.global_fit.n_shapes
         wg = fit.weights
         # Where the global weights already fit the neighbourhood, a local refit could only move shapes the
@@ -225,6 +213,10 @@ class Selection:
         resid = np.where(seen[:, None], q - self._rest - np.tensordot(wg[wg != 0], self._basis[wg != 0], axes=1), 0.0)
         w_local = np.empty((m, n_s))
         beta = np.full(m, self.local_prior)
+        if left is not None:
+            # A measured bundle's weights are trusted no more than its noise allows: a ridge of the noise variance
+            # over the weights' spread about the global fit (a Gaussian prior on their difference).
+            beta += np.nan_to_num(np.mean(left, axis=1)) / LOCAL_WEIGHT_SPREAD**2
         fits = local_fits_serial if self._serial else local_fits
         fits(resid, seen, self._basis, self._a["nb_off"], self._a["nb_idx"], col_off, flat, wg, beta, OWN_WEIGHT,
              w_local)
@@ -283,15 +275,20 @@ class Selection:
     def select_sequence(self, pos: np.ndarray, frames: np.ndarray, jaw: np.ndarray | None = None,
                         show_progress: bool = False,
                         emit: Callable[[int, FrameResult], None] | None = None,
-                        previous: FrameResult | None = None) -> list[FrameResult]:
+                        previous: FrameResult | None = None, left: np.ndarray | None = None) -> list[FrameResult]:
         """Each frame's choice of shapes and weights, in order (the previous frame's carried into the next);
         ``emit(f, choice)`` is called with each as it is made. ``previous``: the choice of the frame before
-        ``pos[0]`` when a shot is chosen in chunks (the result is then the one a single call gives)."""
+        ``pos[0]`` when a shot is chosen in chunks (the result is then the one a single call gives). ``left``
+        (F, M, 3) cm^2: the noise variance left in ``pos`` (default: the solver's, :meth:`denoise`, when it covers
+        these frames)."""
+        if left is None and self.noise_left is not None and len(self.noise_left) == len(pos):
+            left = self.noise_left
         sels = []
         prev = previous
         for f in progress(range(len(pos)), "choosing shapes", disable=not show_progress):
             try:
-                prev = self.select_frame(pos[f], prev, None if jaw is None else jaw[f])
+                prev = self.select_frame(pos[f], prev, None if jaw is None else jaw[f],
+                                         None if left is None else left[f])
             except InputError as exc:
                 raise InputError(exc.message, frame=int(frames[f])) from None
             sels.append(prev)

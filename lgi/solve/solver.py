@@ -114,6 +114,9 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         self.method = method
         self.local_prior = float(local_prior)
         self.noise_estimate: NoiseEstimate | None = None
+        self.noise_left: np.ndarray | None = None
+        self.denoise_windows: np.ndarray | None = None
+        self._model: tuple | None = None
         self.independent_poses = False
         self.index = index
         a = index.arrays

@@ -13,6 +13,7 @@ from lgi.solve._blend_kernels import add_correction, add_correction_serial, blen
 from lgi.solve._jaw_kernels import skin_points
 from lgi.solve.jaw import jaw_matrix
 from lgi.solve.results import FrameResult
+from lgi.units import MM_PER_CM
 
 # Far field (cm of UV-geodesic distance to the nearest bundle): up to the first value every vertex mixes the
 # bundles' own weights; beyond the second it takes the frame's global fit; in between a smooth ramp.
@@ -88,8 +89,11 @@ class Surface:
         seen = np.all(np.isfinite(p), axis=1)
         at = self.layout.evaluate(x)
         before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - at, axis=1), np.nan)
-        self.correct(x, at + self.noise_gain * (p - at), seen)
-        self.correct_far(x, p - at, seen, self.noise_gain, t)
+        # One frame on its own: the noise left is all of it.
+        left = None if self.noise == 0 else np.broadcast_to((self.noise_axes / MM_PER_CM) ** 2, p.shape)
+        gain = self.correction_gain(np.where(seen[:, None], p - at, np.nan), left)
+        self.correct(x, at + gain * np.nan_to_num(p - at), seen)
+        self.correct_far(x, p - at, seen, gain, t)
         residual = np.where(seen, np.linalg.norm(np.nan_to_num(p) - self.layout.evaluate(x), axis=1), np.nan)
         return dataclasses.replace(sel, vertices=x.astype(np.float32), residual=residual, jaw=jaw, bundles=p,
                                    residual_before=before)
@@ -108,7 +112,7 @@ class Surface:
                 resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
         return np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
 
-    def correct_far(self, x: np.ndarray, resid: np.ndarray, seen: np.ndarray, gain: float,
+    def correct_far(self, x: np.ndarray, resid: np.ndarray, seen: np.ndarray, gain: float | np.ndarray,
                     t: np.ndarray | None) -> None:
         """Leave the far field's share of the global fit uncorrected (in place): :meth:`correct` took ``x``
         through the bundles by the smooth field of the blend's residuals ``resid`` (M, 3); where the far field
@@ -117,7 +121,7 @@ class Surface:
         meet them; far from them it is an extrapolation (measured: with it the far vertices of the rigged
         synthetic set were at 0.124 mm max against the global fit's 0.081). t is 0 at the bundles, which are
         still met exactly."""
-        if t is None or not self.correct_residuals or gain == 0 or not t.any():
+        if t is None or not self.correct_residuals or not np.any(gain) or not t.any():
             return
         d = np.where(seen[:, None], -np.nan_to_num(resid), 0.0) * gain
         fix = np.flatnonzero(np.abs(d).max(axis=1) > 1e-7)

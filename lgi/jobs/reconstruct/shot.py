@@ -113,7 +113,9 @@ class Shot:
         """The choices (:class:`~lgi.solve.solver.FrameResult`, no vertices) of frames lo:hi, continuing from
         ``previous``, the choice of frame lo - 1."""
         jaw = None if self.given_jaw is None else self.given_jaw[lo:hi]
-        return self.solver.select_sequence(self.fit_pos[lo:hi], self.frames[lo:hi], jaw, previous=previous)
+        left = self.solver.noise_left
+        return self.solver.select_sequence(self.fit_pos[lo:hi], self.frames[lo:hi], jaw, previous=previous,
+                                           left=None if left is None else left[lo:hi])
 
     def finish(self, sels: list, lo: int, hi: int, show_progress: bool = False, first: int = 0):
         """Frames lo:hi blended, skinned and corrected (a :class:`~lgi.solve.solver.SequenceResult` of those
@@ -125,8 +127,10 @@ class Shot:
             need = self.needs(lo, hi)
             if a > need[0] or b < need[1]:
                 raise ValueError(f"frames {lo}:{hi} need the choices of {need[0]}:{need[1]}, given {a}:{b}")
+        left = self.solver.noise_left
         res = self.solver.finish_sequence(sels, self.pos[a:b], self.frames[a:b], self.bridged[a:b], o.smooth,
-                                          o.jaw_smooth, show_progress, self.fit_pos[a:b], lo - a, hi - a)
+                                          o.jaw_smooth, show_progress, self.fit_pos[a:b], lo - a, hi - a,
+                                          None if left is None else left[a:b])
         self.meet_rays(res, lo, hi)
         return res
 
