@@ -195,6 +195,7 @@ def test_track_covariances_are_calibrated(hmc_cov_shot: Path, tmp_path: Path) ->
     expect = np.einsum("fji,fmjk,fkl->fmil", R, C, R) / 100
     assert np.array_equal(np.isnan(b.covariance), np.isnan(expect) | np.isnan(b.positions)[..., None])
     np.testing.assert_allclose(np.nan_to_num(b.covariance), np.nan_to_num(expect), rtol=1e-12, atol=0)
+    assert np.array_equal(b.covariance, st.head_cov / 100, equal_nan=True)  # written bit for bit
 
 
 def test_pixel_noise_option() -> None:

@@ -69,8 +69,8 @@ def head_covariance(X: np.ndarray, cameras, R: np.ndarray, pixel_noise: float) -
     """
     from lgi.capture.camera import triangulation_covariance
 
-    C = triangulation_covariance(cameras, X, pixel_noise)
-    return np.einsum("fji,fmjk,fkl->fmil", R, C, R)
+    C = np.einsum("fji,fmjk,fkl->fmil", R, triangulation_covariance(cameras, X, pixel_noise), R)
+    return 0.5 * (C + np.swapaxes(C, -1, -2))  # symmetric to the last bit, as the file stores it
 
 
 def _detect(path: Path, frame: int, size: tuple[int, int] | None, options: DotOptions) -> tuple[Dots, np.ndarray]:
@@ -338,6 +338,16 @@ def head_pose_model(index: str | os.PathLike[str], names: list[str], neutral_mm:
     return (HeadPoseSolver.from_index(idx), rows), neutral_mm
 
 
+def bundle_precision(cov_mm2: np.ndarray) -> dict:
+    """The bundles' median standard deviation along their covariance's long axis (the depth) and across it (mm),
+    for the summary (NaN without any bundle)."""
+    ok = np.all(np.isfinite(cov_mm2), axis=(-2, -1))
+    if not ok.any():
+        return {"bundle_std_depth_mm": float("nan"), "bundle_std_across_mm": float("nan")}
+    w = np.sqrt(np.clip(np.linalg.eigvalsh(cov_mm2[ok]), 0, None))
+    return {"bundle_std_depth_mm": float(np.median(w[:, 2])), "bundle_std_across_mm": float(np.median(w[:, :2]))}
+
+
 def head_pose_counts(shot: ShotTracks) -> dict:
     """Frames per head-pose source and the joint fit's median residual (mm), for the summary."""
     from lgi.capture.headpose import JOINT, NONE, STABLE
@@ -403,7 +413,7 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
         "rejected_epipolar": int((tr.rejected == 1).sum()), "rejected_neighbour": int((tr.rejected == 2).sum()),
         "stable_markers": [n for n, w in zip(names, shot.stable_weights, strict=True) if w > 0.5],
         "frames_per_second": F / dt, "seconds": shot.seconds, "units": "cm",
-        "head_pose": head_pose_counts(shot),
+        "head_pose": head_pose_counts(shot), "pixel_noise_px": float(pixel_noise), **bundle_precision(shot.head_cov),
         "bundles": str(out.resolve()), "tracks": str(tracks_out.resolve()),
     }
     return shot, summary

@@ -138,6 +138,8 @@ def track_report(r: dict[str, Any]) -> list[str]:
             f"rejected {r['rejected_epipolar']} epipolar, {r['rejected_neighbour']} neighbour inconsistencies",
             f"stable markers for head stabilisation: {', '.join(r['stable_markers'])}",
             head_pose_line(r["head_pose"]),
+            f"bundle covariance (pixel noise {r['pixel_noise_px']:g} px): median std {r['bundle_std_depth_mm']:.3f} mm "
+            f"along the rays, {r['bundle_std_across_mm']:.3f} mm across (cov_* columns, cm^2)",
             f"{r['frames_per_second']:.1f} frames/s (detect {sec['detect']:.2f} s, track {sec['track']:.2f} s, "
             f"stabilise {sec['stabilise']:.2f} s)",
             f"bundles ({r['units']}): {r['bundles']}", f"2D tracks: {r['tracks']}"]
