@@ -43,7 +43,7 @@ class ShotTracks:
     rig: StereoRig | None = None  # the rig the tracks were triangulated with (refined by helmet dots, if any)
     head_source: np.ndarray | None = None  # (F,) how each frame's pose was found (lgi.capture.headpose)
     head_rms_mm: np.ndarray | None = None  # (F,) the joint fit's inlier RMS, mm (NaN without it)
-    # (F, M, 3, 3) mm^2, head frame: each bundle's covariance (head_covariance), NaN where ``head`` is
+    # (F, M, 3, 3) mm^2, head frame: each bundle's covariance (head_covariance), NaN where ``head`` is NaN
     head_cov: np.ndarray | None = None
 
 
