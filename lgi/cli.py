@@ -59,7 +59,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
     opts = TrackFootageOptions(tracks=args.tracks, dataset=args.dataset, units=args.units, labels=args.labels,
                                reference_frame=args.reference_frame, helmet=args.helmet, gate=args.gate,
-                               dot_size=args.dot_size, index=args.index)
+                               dot_size=args.dot_size, index=args.index, pixel_noise=args.pixel_noise)
     for line in track_report(track(args.footage_dir, args.calib, args.markers, args.out, opts)):
         print(line)
     return 0
@@ -508,7 +508,8 @@ def build_parser() -> argparse.ArgumentParser:
                  "table (Parquet) with reprojection errors.",
                  ("lgi track synth/hmc --calib calib.json --markers synth/markers.csv --dataset synth/dataset "
                   "--out shot.parquet",),
-                 outputs="BUNDLES (cm, whatever --units the marker file is in) and the 2D tracks table (OUT's stem + "
+                 outputs="BUNDLES (cm, whatever --units the marker file is in; with each bundle's covariance, cm^2) "
+                         "and the 2D tracks table (OUT's stem + "
                          ".tracks.parquet, or --tracks): per observation, reprojection error, source, triangulated or "
                          "one camera only.")
     g = s.add_argument_group("inputs")
@@ -538,6 +539,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--dot-size", type=float, default=9.0, metavar="PX",
                    help="typical painted dot diameter in the images, px: sets the detector's scale "
                         "(default %(default)s)")
+    g.add_argument("--pixel-noise", type=float, default=0.25, metavar="PX",
+                   help="the dot detector's centre error per image coordinate, px (one standard deviation): sets "
+                        "each bundle's covariance, written as the bundles file's cov_* columns (cm^2, head frame); "
+                        "the default was measured on lgi synth --hmc footage (default %(default)s)")
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="BUNDLES", help="bundles file to write (.csv or .parquet)")
     g.add_argument("--tracks", metavar="PARQUET",

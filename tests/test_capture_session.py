@@ -81,6 +81,12 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
     cli = tmp_path / "cli"
     assert main(["track", str(shots / "a_good"), "--calib", str(out / "calibration.json"), "--markers",
                  str(h / "markers.csv"), "--out", str(cli / "bundles.csv"), "--index", str(tmp_path / "idx")]) == 0
+    # The session's bundles file is lgi track's, each bundle's covariance included: the flow passes the file on.
+    from lgi.capture.bundles import read_bundles
+
+    ours, theirs = read_bundles(out / "shots" / "a_good" / "bundles.csv"), read_bundles(cli / "bundles.csv")
+    assert ours.covariance is not None and np.isfinite(ours.covariance[ours.seen]).all()
+    assert np.array_equal(ours.covariance, theirs.covariance, equal_nan=True)
     # The session uses neither the one-camera rays nor the footage's traced lip contours unless asked: with the
     # head pose solved with the face they did not help (docs/constraints.md).
     assert main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(cli / "bundles.csv"), "--out",

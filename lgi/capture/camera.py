@@ -131,6 +131,27 @@ class Camera:
         d = np.column_stack([xy, np.ones(len(xy))])
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
+    def projection_jacobian(self, X: np.ndarray, step: float = 1e-5) -> np.ndarray:
+        """The Jacobian of :meth:`project` (the full lens model) at world points, by central differences.
+
+        Parameters
+        ----------
+        X : (N, 3) float, world units
+        step : the difference step, as a fraction of each point's distance from the camera
+
+        Returns
+        -------
+        (N, 2, 3) float64, pixels per world unit (NaN for points behind the camera or not finite).
+        """
+        X = np.asarray(X, np.float64).reshape(-1, 3)
+        h = step * np.linalg.norm(X - self.center, axis=1)
+        J = np.empty((len(X), 2, 3))
+        for k in range(3):
+            d = np.zeros((len(X), 3))
+            d[:, k] = h
+            J[:, :, k] = (self.project(X + d) - self.project(X - d)) / (2 * h[:, None])
+        return J
+
     def with_pose(self, R: np.ndarray, t: np.ndarray) -> Camera:
         return Camera(self.K.copy(), self.dist.copy(), self.model, np.asarray(R), np.asarray(t), self.size)
 
@@ -142,6 +163,43 @@ class Camera:
     def from_json(cls, d: dict) -> Camera:
         return cls(np.array(d["K"]), np.array(d["dist"]), d.get("model", "pinhole"), np.array(d["R"]),
                    np.array(d["t"]), tuple(d["size"]))
+
+
+def triangulation_covariance(cameras: list[Camera], X: np.ndarray, pixel_noise: float) -> np.ndarray:
+    """First-order covariance of points triangulated from the given cameras, each image coordinate measured with
+    independent noise of ``pixel_noise`` px (one standard deviation).
+
+    ``Cov = (sum_cam J^T J / pixel_noise^2)^-1`` with ``J`` each camera's projection Jacobian through its full lens
+    model (:meth:`Camera.projection_jacobian`): the covariance of the maximum-likelihood (least reprojection
+    error) point. A stereo pair places a point several times less precisely along its viewing rays (depth) than
+    across them.
+
+    Parameters
+    ----------
+    cameras : the cameras that see every point (a stereo rig's two)
+    X : (..., 3) float, world units (NaN: not triangulated)
+    pixel_noise : px
+
+    Returns
+    -------
+    (..., 3, 3) float64, world units squared, NaN where ``X`` is not finite.
+    """
+    X = np.asarray(X, np.float64)
+    flat = X.reshape(-1, 3)
+    cov = np.full((len(flat), 3, 3), np.nan)
+    ok = np.all(np.isfinite(flat), axis=1)
+    if ok.any():
+        info = np.zeros((int(ok.sum()), 3, 3))
+        for cam in cameras:
+            J = cam.projection_jacobian(flat[ok])
+            info += np.einsum("nki,nkj->nij", J, J)
+        info /= float(pixel_noise) ** 2
+        good = np.all(np.isfinite(info), axis=(1, 2))
+        good[good] = np.linalg.cond(info[good]) < 1e12  # a point on the baseline: no depth at all
+        idx = np.flatnonzero(ok)[good]
+        c = np.linalg.inv(info[good])
+        cov[idx] = 0.5 * (c + c.transpose(0, 2, 1))
+    return cov.reshape(*X.shape, 3)
 
 
 def _huber_weights(r: np.ndarray, delta: float) -> np.ndarray:

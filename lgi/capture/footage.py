@@ -20,7 +20,7 @@ import pandas as pd
 
 from lgi.capture.camera import StereoRig
 from lgi.capture.dots import DotOptions, Dots, detect_dots
-from lgi.capture.tracking import Tracker, TrackOptions, Tracks, thumbnail
+from lgi.capture.tracking import PIXEL_NOISE_PX, Tracker, TrackOptions, Tracks, thumbnail
 from lgi.errors import InputError
 from lgi.units import MM_PER_CM
 
@@ -43,6 +43,34 @@ class ShotTracks:
     rig: StereoRig | None = None  # the rig the tracks were triangulated with (refined by helmet dots, if any)
     head_source: np.ndarray | None = None  # (F,) how each frame's pose was found (lgi.capture.headpose)
     head_rms_mm: np.ndarray | None = None  # (F,) the joint fit's inlier RMS, mm (NaN without it)
+    # (F, M, 3, 3) mm^2, head frame: each bundle's covariance (head_covariance), NaN where ``head`` is NaN
+    head_cov: np.ndarray | None = None
+
+
+def head_covariance(X: np.ndarray, cameras, R: np.ndarray, pixel_noise: float) -> np.ndarray:
+    """The covariance of each triangulated bundle in the head frame (mm^2).
+
+    In the rig's frame, first-order propagation of ``pixel_noise`` (px per image coordinate) through both cameras'
+    projections (:func:`lgi.capture.camera.triangulation_covariance`); then carried into the head frame like the
+    positions (``x_h = R^T (x - t)``, so ``C_h = R^T C R``). Only triangulated bundles have one: the tracker fills
+    no bundle by prediction (a marker not matched in both cameras is a gap, NaN, and so is its covariance), and a
+    frame without a head pose has neither. The head pose's own error (shared by a frame's markers) is not in it.
+
+    Parameters
+    ----------
+    X : (F, M, 3) mm, rig frame (NaN: not triangulated)
+    cameras : the rig's cameras the points were triangulated with
+    R : (F, 3, 3) head -> rig rotation per frame (NaN: no pose)
+    pixel_noise : px
+
+    Returns
+    -------
+    (F, M, 3, 3) float64, mm^2, head frame
+    """
+    from lgi.capture.camera import triangulation_covariance
+
+    C = np.einsum("fji,fmjk,fkl->fmil", R, triangulation_covariance(cameras, X, pixel_noise), R)
+    return 0.5 * (C + np.swapaxes(C, -1, -2))  # symmetric to the last bit, as the file stores it
 
 
 def _detect(path: Path, frame: int, size: tuple[int, int] | None, options: DotOptions) -> tuple[Dots, np.ndarray]:
@@ -205,10 +233,12 @@ def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.
         poses = solver.solve(X, R, t, triangulation_information(X, rig.cameras))
         R, t, source, rms = poses.R, poses.t, poses.source, poses.rms_mm
         head = np.einsum("fmi,fij->fmj", tracks.X - t[:, None], R)  # R^T (x - t)
+    cov = head_covariance(tracks.X, rig.cameras, R, tracker.o.pixel_noise_px)
+    cov[~np.all(np.isfinite(head), axis=2)] = np.nan
     t3 = time.perf_counter()
     n_det = np.array([[len(d0), len(d1)] for d0, d1 in dots])
     return ShotTracks(names, frames, tracks, head, R, t, w, n_det,
-                      {"detect": t1 - t0, "track": t2 - t1, "stabilise": t3 - t2}, rig, source, rms)
+                      {"detect": t1 - t0, "track": t2 - t1, "stabilise": t3 - t2}, rig, source, rms, cov)
 
 
 #: Parquet schema metadata key of the tracks table: the rig the tracks were triangulated with (JSON).
@@ -308,6 +338,16 @@ def head_pose_model(index: str | os.PathLike[str], names: list[str], neutral_mm:
     return (HeadPoseSolver.from_index(idx), rows), neutral_mm
 
 
+def bundle_precision(cov_mm2: np.ndarray) -> dict:
+    """The bundles' median standard deviation along their covariance's long axis (the depth) and across it (mm),
+    for the summary (NaN without any bundle)."""
+    ok = np.all(np.isfinite(cov_mm2), axis=(-2, -1))
+    if not ok.any():
+        return {"bundle_std_depth_mm": float("nan"), "bundle_std_across_mm": float("nan")}
+    w = np.sqrt(np.clip(np.linalg.eigvalsh(cov_mm2[ok]), 0, None))
+    return {"bundle_std_depth_mm": float(np.median(w[:, 2])), "bundle_std_across_mm": float(np.median(w[:, :2]))}
+
+
 def head_pose_counts(shot: ShotTracks) -> dict:
     """Frames per head-pose source and the joint fit's median residual (mm), for the summary."""
     from lgi.capture.headpose import JOINT, NONE, STABLE
@@ -326,10 +366,13 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
                    dataset: str | os.PathLike[str] | None = None, units: str = "cm",
                    labels: str | os.PathLike[str] | None = None, reference: int = 0,
                    helmet: str | os.PathLike[str] | None = None, gate_px: float = 12.0, dot_size: float = 9.0,
-                   index: str | os.PathLike[str] | None = None) -> tuple[ShotTracks, dict]:
+                   index: str | os.PathLike[str] | None = None, pixel_noise: float = PIXEL_NOISE_PX
+                   ) -> tuple[ShotTracks, dict]:
     """``lgi track``: footage to the bundles file (cm, the library's unit, whatever ``units`` the marker file's
     positions are in) and the 2D tracks table (Parquet). With ``index`` (the actor's LGI index), the head pose
     is solved with the face (:mod:`lgi.capture.headpose`) and the layout's neutral positions are the index's.
+    The bundles file carries each bundle's covariance (``cov_*`` columns, cm^2, head frame: :func:`head_covariance`
+    with ``pixel_noise`` px: :data:`lgi.capture.tracking.PIXEL_NOISE_PX`).
 
     Returns the tracks and a summary (counts, reprojection error, anchors, rejections, speed, paths).
     """
@@ -345,7 +388,8 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
         pose_model, neutral_mm = head_pose_model(index, names, neutral_mm, markers)
     t0 = time.perf_counter()
     shot = track_footage(footage, rig, neutral_mm, names, labels=labels, reference=reference,
-                         options=TrackOptions(gate_px=gate_px), helmet=read_helmet(helmet) if helmet else None,
+                         options=TrackOptions(gate_px=gate_px, pixel_noise_px=pixel_noise),
+                         helmet=read_helmet(helmet) if helmet else None,
                          dot_options=DotOptions.for_size(dot_size), pose_model=pose_model)
     dt = time.perf_counter() - t0
     out = Path(out)
@@ -354,7 +398,8 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
     with atomic_file(tracks_out) as tmp:
         write_tracks_table(tmp, shot)
     try:
-        write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / MM_PER_CM))
+        write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / MM_PER_CM,
+                                   covariance=shot.head_cov / MM_PER_CM**2))
     except BaseException:
         tracks_out.unlink(missing_ok=True)  # the two files go together, or neither is left
         raise
@@ -368,7 +413,7 @@ def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str
         "rejected_epipolar": int((tr.rejected == 1).sum()), "rejected_neighbour": int((tr.rejected == 2).sum()),
         "stable_markers": [n for n, w in zip(names, shot.stable_weights, strict=True) if w > 0.5],
         "frames_per_second": F / dt, "seconds": shot.seconds, "units": "cm",
-        "head_pose": head_pose_counts(shot),
+        "head_pose": head_pose_counts(shot), "pixel_noise_px": float(pixel_noise), **bundle_precision(shot.head_cov),
         "bundles": str(out.resolve()), "tracks": str(tracks_out.resolve()),
     }
     return shot, summary

@@ -28,6 +28,13 @@ from lgi.capture.camera import StereoRig
 from lgi.capture.dots import Dots
 from lgi.dataset.stabilise import rigid_fit
 
+#: The dot detector's centre error per image coordinate (px, one standard deviation), which sets each bundle's
+#: covariance (:func:`lgi.capture.camera.triangulation_covariance`). Measured on ``lgi synth --hmc`` footage (1280x1024
+#: fisheye, 9 px dots, 0.3 px paint jitter, sensor noise and blur): the detected centres of 12,588 visible dots
+#: (60 frames, both cameras) against their true projections, RMS 0.22 px in x, 0.27 px in y, 0.24 px over both
+#: (robust spread 0.18 / 0.26 px).
+PIXEL_NOISE_PX = 0.25
+
 
 @dataclass
 class TrackOptions:
@@ -43,6 +50,8 @@ class TrackOptions:
     anchor_min_matched: float = 0.95
     anchor_max_median_px: float = 2.0
     neighbours: int = 6
+    #: px per image coordinate, one standard deviation: :data:`PIXEL_NOISE_PX`
+    pixel_noise_px: float = PIXEL_NOISE_PX
 
 
 @dataclass
