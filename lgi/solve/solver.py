@@ -38,6 +38,7 @@ from lgi.solve.selection import LOCAL_MIN_MISFIT, Selection
 from lgi.solve.surface import FAR_FIELD, FAR_MARGIN, Surface, _FarField
 from lgi.solve.temporal import NoiseEstimate
 from lgi.threads import one_blas_thread
+from lgi.units import MM_PER_CM
 
 __all__ = ["FAR_FIELD", "FAR_MARGIN", "FITTED", "LOCAL_MIN_MISFIT", "STATUS", "FrameResult", "LGISolver",
            "SequenceResult", "slot_labels"]
@@ -86,12 +87,13 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         "simplex": the paper's choice among containing simplices only (the jaw from the global fit).
     local_prior : float, cm^2
         Ridge of the local fits toward the global weights, per unit weight squared.
-    noise : float, mm
-        Standard deviation of the bundles' measurement noise per coordinate. 0: the bundles are exact and
-        the surface passes through every one of them. Above 0 the bundles are measurements: a sequence's
-        trajectories are smoothed first (:meth:`denoise`), every bundle takes the global fit's weights
-        (measured: at 0.3 mm the local refits fit the noise, not the face, on every benchmark set) and
-        the surface is not pulled onto the bundles.
+    noise : float or (3,) float, mm
+        Standard deviation of the bundles' measurement noise per coordinate (or per axis). 0: the bundles are
+        exact and the surface passes through every one of them. Above 0 the bundles are measurements: a
+        sequence's trajectories are smoothed first (:meth:`denoise`), each bundle's local fit is held toward the
+        global weights by the noise left (:data:`~lgi.solve.selection.LOCAL_WEIGHT_SPREAD`), no simplex (which
+        passes through the noisy bundle) is taken, and the surface is taken through each bundle only by the
+        share of its residual that is the face rather than the noise (:meth:`correction_gain`).
     far_field : (float, float) or None, cm
         Vertices farther than the first distance from every bundle (UV-geodesic, the natural-neighbour
         metric) blend toward the frame's global fit, reached at the second distance (a smoothstep ramp),
@@ -240,7 +242,8 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
             Missing runs of a marker up to this many frames are bridged by interpolating its trajectory.
         noise : float (mm), "auto" or None
             The bundles' noise (see the class): "auto" estimates it from the shot's trajectories
-            (:func:`lgi.solve.temporal.estimate_noise`; logged, and in ``SequenceResult.noise``); None keeps the
+            (:func:`lgi.solve.temporal.estimate_noise`; logged, and in ``SequenceResult.noise``), or taken from the
+            bundles' covariances when a :class:`~lgi.capture.bundles.Bundles` carries them; None keeps the
             solver's. Noisy trajectories are first smoothed marker by marker
             (:func:`lgi.solve.temporal.denoise_trajectories`, the window chosen by Stein's unbiased risk estimate).
         """
@@ -270,7 +273,16 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         from lgi.solve.temporal import bridge_gaps
 
         raw, frames, _ = self.prepare(bundles, frames, 0)
-        if noise is not None:
+        cov = bundles.covariance if isinstance(bundles, Bundles) else None
+        if noise == "auto" and cov is not None and np.isfinite(cov).any():
+            # The bundles carry their covariances (``lgi track``): the noise is theirs, per axis, not estimated.
+            axes = np.sqrt(np.maximum(np.nanmedian(np.diagonal(cov, axis1=2, axis2=3).reshape(-1, 3), axis=0),
+                                      0.0)) * MM_PER_CM
+            log.info("bundle noise from the bundles' covariances: x %.4f, y %.4f, z %.4f mm (median)", *axes)
+            self.set_noise(axes)
+            self.noise_estimate = None
+            self.independent_poses = False
+        elif noise is not None:
             self.resolve_noise(raw, noise)
         if max_gap > 0 and self.independent_poses and not np.all(np.isfinite(raw)):
             log.warning("missing markers are not bridged: the frames change like independent poses")
