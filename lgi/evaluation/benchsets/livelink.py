@@ -65,8 +65,12 @@ def ict_livelink_set(ict_dir: str | os.PathLike[str], real_dir: str | os.PathLik
     pupils are not performed (as in the other ICT sets): the jaw is the rig's rotation from ``JawOpen``,
     ``JawLeft`` and ``JawRight`` (:func:`livelink_jaw`), and ``JawForward``, ``MouthClose`` and ``TongueOut`` are
     not used. ``x(t) = skin(x0 + sum_k w_k s_k + sum_p w_a w_b c_p, theta(t))`` (:func:`jaw_actor_frames`): the
-    real curves hold many shapes at once, so the pair correctives act on most frames and no linear fit is exact.
-    Errors over the face area; wide open as :func:`ict_combination_set`.
+    real curves hold many shapes at once, so the pair correctives act on most frames. As on
+    :func:`ict_combination_set`, the plain bounded fit of the shapes (the jaw linear) leaves a residual, but the
+    rigged one does not: unskinned by the true jaw, a frame is in the dataset's span with weights in [0, 1] (each
+    corrective ``c_p`` is the pair's combination shape less its two shapes, at weight ``w_a w_b``, leaving
+    ``w_a - w_a w_b`` and ``w_b - w_a w_b`` on the shapes). Errors over the face area; wide open as
+    :func:`ict_combination_set`.
 
     Parameters
     ----------
