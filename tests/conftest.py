@@ -22,6 +22,7 @@ from lgi.paths import shared_data  # noqa: E402
 from lgi.synthetic import actor as synth  # noqa: E402
 
 ICT = shared_data("ict-facekit")
+REAL_PERFORMANCES = shared_data("real-performances")
 
 
 @pytest.fixture(scope="session")
@@ -29,6 +30,15 @@ def ict_dir() -> Path:
     if not (ICT / "generic_neutral_mesh.obj").is_file():
         pytest.skip(f"ICT FaceKit data not found at {ICT} (set LGI_SHARED_DATA to the shared data folder)")
     return ICT
+
+
+@pytest.fixture(scope="session")
+def real_dir() -> Path:
+    """The real performances (Live Link Face takes, facial mocap: ABOUT.md there), read in place."""
+    if not (REAL_PERFORMANCES / "ABOUT.md").is_file():
+        pytest.skip(f"real performances not found at {REAL_PERFORMANCES} (set LGI_SHARED_DATA to the shared data "
+                    "folder)")
+    return REAL_PERFORMANCES
 
 
 @pytest.fixture(scope="session")

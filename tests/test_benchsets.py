@@ -322,3 +322,103 @@ def test_ict_session_set(ict_session: BenchSet, ict_combination: BenchSet) -> No
     assert np.mean(off_mm > 0.1) > 0.3
     assert np.mean(off_mm[product > 0.05] > 0.1) > 0.95
     assert off_mm[product == 0].max() < 0.01
+
+
+# ---------------------------------------------------------------------------------------------- real motion
+# Live Link Face takes from alexdjulin/LiveLinkFace-CSV-Retarget-For-Motionbuilder (c) 2021 Alexandre Donciu-Julin,
+# MIT: read in place from the shared data, never copied here.
+LIVELINK_WINDOW = {"start": 560, "frames": 120}  # S07-001: closed, a burst of speech, closed again
+
+
+@pytest.fixture(scope="module")
+def ict_livelink(ict_dir: Path, real_dir: Path) -> BenchSet:
+    return B.ict_livelink_set(ict_dir, real_dir, **LIVELINK_WINDOW)
+
+
+def test_ict_livelink_set(ict_livelink: BenchSet, ict_combination: BenchSet) -> None:
+    s, c = ict_livelink, ict_combination
+    # Every frame off the dataset (the checks of every set), noise and gaps as the others.
+    _check_common(s, min_off_dataset=1.0)
+    ds, rig, info = s.dataset, s.rig, s.info
+    assert s.n_frames == 120 and info["take"] == "S07-001" and info["start"] == 560 and info["frames"] == 120
+    assert 29 < info["fps"] < 31 and info["times_s"].shape == (120,)
+    assert "S07-001" in s.description and "real iPhone ARKit curves" in s.description
+    # The same dataset, rig and correctives as ict_combination: every method gets the same rig and shapes.
+    assert ds.names == c.dataset.names
+    np.testing.assert_array_equal(ds.deltas, c.dataset.deltas)
+    np.testing.assert_array_equal(rig.pivot, c.rig.pivot)
+    assert info["pairs"] == c.info["pairs"]
+    np.testing.assert_array_equal(info["correctives"], c.info["correctives"])
+    # The truth is the documented model, with the correctives.
+    names, w, idx = info["shapes"], info["weights"], info["pair_index"]
+    expect = B.jaw_actor_frames(ds, rig, names, w[::40], s.true_jaw[::40], info["correctives"].astype(np.float64),
+                                idx)
+    np.testing.assert_allclose(s.truth[::40], expect, atol=1e-5)
+    # Real curves hold many shapes at once: the pair correctives act on most frames.
+    assert info["pair_active"].mean() > 0.5 and np.median((w > 0.05).sum(1)) > 10
+    # The jaw opens (beyond 10 degrees) and closes again within the window, about the yaw limits.
+    open_deg = s.true_jaw[:, 0]
+    peak = int(np.argmax(open_deg))
+    assert open_deg[peak] > 10 and open_deg[:peak].min() < 2 and open_deg[peak:].min() < 2
+    assert np.abs(s.true_jaw[:, 1]).max() <= B.ICT_JAW_MAX_YAW_DEG and not s.true_jaw[:, 2:].any()
+
+
+def test_ict_livelink_is_not_a_plain_linear_blend(ict_livelink: BenchSet) -> None:
+    from scipy.optimize import lsq_linear
+
+    s = ict_livelink
+    ds = s.dataset
+    # The best bounded fit of all 81 dataset shapes to the face's vertices (every 5th: bvls on all takes a
+    # minute) leaves a residual on every frame tried, a tenth of a millimetre or more once the mouth moves (the
+    # window's first frame is near rest, the jaw 0.65 degrees open: 0.026 mm).
+    m = np.flatnonzero(s.mask)[::5]
+    basis = np.asarray(ds.deltas[:, m], np.float64).reshape(ds.n_shapes, -1).T
+    rms_mm = []
+    for f in range(0, s.n_frames, 30):
+        target = (s.truth[f, m] - ds.neutral[m]).ravel()
+        w = lsq_linear(basis, target, bounds=(0.0, 1.0), method="bvls").x
+        rms_mm.append(10 * np.sqrt(np.mean(np.sum((basis @ w - target).reshape(-1, 3) ** 2, 1))))
+    assert min(rms_mm) > 0.01 and np.median(rms_mm) > 0.1, rms_mm
+    # As on ict_combination the rigged fit is exact: unskinned by the true jaw, a frame is the performed shapes and
+    # the combination shapes at weights in [0, 1] (a pair's corrective is its combination shape less its shapes).
+    keep = [k for k, n in enumerate(ds.names) if n not in B.ICT_NOT_PERFORMED]
+    basis = np.asarray(ds.deltas[keep][:, m], np.float64).reshape(len(keep), -1).T
+    f = 60
+    target = (s.rig.unskin(s.truth[f], s.true_jaw[f])[m] - ds.neutral[m]).ravel()
+    w = lsq_linear(basis, target, bounds=(0.0, 1.0), method="bvls").x
+    assert 10 * np.abs(basis @ w - target).max() < 1e-5
+
+
+def test_ict_livelink_names_map(ict_livelink: BenchSet, real_dir: Path) -> None:
+    from lgi.evaluation.realmotion import ICT_WITHOUT_CURVE, arkit_to_ict, load_live_link
+
+    s = ict_livelink
+    arkit, _, curves = load_live_link("S07-001", real_dir)
+    names, w = s.info["shapes"], s.info["weights"]
+    driven = {n for a in arkit for n in arkit_to_ict(a)}
+    # Every performed ICT shape is driven by a curve but those ABOUT.md says have none.
+    assert set(names) - driven == set(ICT_WITHOUT_CURVE) & set(names) == {"cheekRaiser_L", "cheekRaiser_R"}
+    assert not w[:, [names.index("cheekRaiser_L"), names.index("cheekRaiser_R")]].any()
+    window = np.clip(curves[560:680], 0.0, 1.0)
+    col = {a: k for k, a in enumerate(arkit)}
+    for shape, curve in (("eyeBlink_L", "EyeBlinkLeft"), ("mouthSmile_R", "MouthSmileRight"),
+                         ("mouthLeft", "MouthLeft"), ("browInnerUp_L", "BrowInnerUp"),
+                         ("browInnerUp_R", "BrowInnerUp"), ("cheekPuff_R", "CheekPuff")):
+        np.testing.assert_array_equal(w[:, names.index(shape)], window[:, col[curve]])
+    # The jaw is the rig's, from JawOpen (25 degrees at 1) and JawLeft - JawRight (3 degrees at 1).
+    np.testing.assert_allclose(s.true_jaw[:, 0], 25.0 * window[:, col["JawOpen"]])
+    np.testing.assert_allclose(s.true_jaw[:, 1], 3.0 * (window[:, col["JawLeft"]] - window[:, col["JawRight"]]))
+
+
+def test_ict_livelink_window_and_names(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, ict_dir: Path,
+                                       real_dir: Path) -> None:
+    from lgi.errors import InputError
+
+    assert "ict_livelink" in B.REAL_SET_NAMES and "ict_livelink" not in B.SET_NAMES
+    assert B.needs_ict("ict_livelink") and B.needs_real_performances("ict_livelink")
+    with pytest.raises(InputError, match="tracked frames"):
+        B.ict_livelink_set(ict_dir, real_dir, start=2000, frames=100)
+    monkeypatch.setenv("LGI_SHARED_DATA", str(tmp_path))
+    assert B.real_performances_dir_or_none() is None
+    with pytest.raises(InputError, match="real performances"):
+        B.load_sets(["ict_livelink"], ict_dir=ict_dir)

@@ -154,6 +154,26 @@ def _combination_actor(ict_dir: str | os.PathLike[str], seed: int) -> tuple[_Com
     return _CombinationActor(actor, names, mask, pairs, mags, corr, pair_index), rng
 
 
+def _combination_dataset(ca: _CombinationActor) -> ShapeDataset:
+    """:func:`ict_combination_set`'s dataset: the rotating-jaw actor's shapes plus each corrective pair at (1, 1)
+    and (0.5, 0.5) with its corrective at the weights' product."""
+    base, pairs, corr, mags = ca.jaw.dataset, ca.pairs, ca.correctives, ca.magnitudes
+    extra, extra_names, extra_meta = [], [], []
+    for (a, b), c in zip(pairs, corr, strict=True):
+        s = np.asarray(base.deltas[base.index(a)], np.float64) + np.asarray(base.deltas[base.index(b)], np.float64)
+        for w, label in ((1.0, f"{a}+{b}"), (0.5, f"{a}*0.5+{b}*0.5")):
+            extra.append(w * s + w * w * c)
+            extra_names.append(label)
+            extra_meta.append(ShapeMeta(source="combination with corrective", tags=["combination", "corrective"],
+                                        extra={"sources": {a: w, b: w}}))
+    ds = base.take(range(base.n_shapes))
+    ds.deltas = np.concatenate([np.asarray(base.deltas, np.float32), np.stack(extra).astype(np.float32)])
+    ds.names = base.names + extra_names
+    ds.shape_meta = base.shape_meta + extra_meta
+    ds.info = {**base.info, "correctives": {"pairs": [list(p) for p in pairs], "magnitude_cm": mags.tolist()}}
+    return ds
+
+
 def _combination_performance(ca: _CombinationActor, frames: int, rng: np.random.Generator
                              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A performance of the combination actor: about 2/3 of the frames inside a pair event, a track of
@@ -212,21 +232,8 @@ def ict_combination_set(ict_dir: str | os.PathLike[str], frames: int = 120, seed
         bool and ``jaw_open_params``.
     """
     ca, rng = _combination_actor(ict_dir, seed)
-    actor, base, pairs, corr, mags = ca.jaw, ca.jaw.dataset, ca.pairs, ca.correctives, ca.magnitudes
-    extra, extra_names, extra_meta = [], [], []
-    for (a, b), c in zip(pairs, corr, strict=True):
-        s = np.asarray(base.deltas[base.index(a)], np.float64) + np.asarray(base.deltas[base.index(b)], np.float64)
-        for w, label in ((1.0, f"{a}+{b}"), (0.5, f"{a}*0.5+{b}*0.5")):
-            extra.append(w * s + w * w * c)
-            extra_names.append(label)
-            extra_meta.append(ShapeMeta(source="combination with corrective", tags=["combination", "corrective"],
-                                        extra={"sources": {a: w, b: w}}))
-    ds = base.take(range(base.n_shapes))
-    ds.deltas = np.concatenate([np.asarray(base.deltas, np.float32), np.stack(extra).astype(np.float32)])
-    ds.names = base.names + extra_names
-    ds.shape_meta = base.shape_meta + extra_meta
-    ds.info = {**base.info, "correctives": {"pairs": [list(p) for p in pairs], "magnitude_cm": mags.tolist()}}
-
+    actor, corr = ca.jaw, ca.correctives
+    ds = _combination_dataset(ca)
     weights, theta, pair_active = _combination_performance(ca, frames, rng)
     truth = ca.frames(weights, theta)
     mask = ca.mask
@@ -237,7 +244,7 @@ def ict_combination_set(ict_dir: str | os.PathLike[str], frames: int = 120, seed
         "expressions and a moving jaw.",
         ds, _ict_layout(ds.triangles), actor.rig, truth, mask, _ict_lip_line(ds.triangles, ds.n_vertices), theta[:, 0],
         float(actor.jaw_open_params[0]), theta, seed,
-        {"shapes": ca.names, "weights": weights, "pairs": pairs, "pair_index": ca.pair_index,
+        {"shapes": ca.names, "weights": weights, "pairs": ca.pairs, "pair_index": ca.pair_index,
          "correctives": corr.astype(np.float32), "pair_active": pair_active,
          "jaw_open_params": actor.jaw_open_params},
     )
