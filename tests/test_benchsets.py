@@ -343,9 +343,9 @@ def test_ict_livelink_set(ict_livelink: BenchSet, ict_combination: BenchSet) -> 
     assert s.n_frames == 120 and info["take"] == "S07-001" and info["start"] == 560 and info["frames"] == 120
     assert 29 < info["fps"] < 31 and info["times_s"].shape == (120,)
     assert "S07-001" in s.description and "real iPhone ARKit curves" in s.description
-    # The same dataset, rig and correctives as ict_combination: every method gets the same rig and shapes.
-    assert ds.names == c.dataset.names
-    np.testing.assert_array_equal(ds.deltas, c.dataset.deltas)
+    # The actor's shapes and rig, without ict_combination's combination shapes: the correctives are in no shape.
+    assert ds.names == c.dataset.names[:ds.n_shapes] and ds.n_shapes < c.dataset.n_shapes
+    np.testing.assert_array_equal(ds.deltas, c.dataset.deltas[:ds.n_shapes])
     np.testing.assert_array_equal(rig.pivot, c.rig.pivot)
     assert info["pairs"] == c.info["pairs"]
     np.testing.assert_array_equal(info["correctives"], c.info["correctives"])
@@ -368,7 +368,7 @@ def test_ict_livelink_is_not_a_plain_linear_blend(ict_livelink: BenchSet) -> Non
 
     s = ict_livelink
     ds = s.dataset
-    # The best bounded fit of all 81 dataset shapes to the face's vertices (every 5th: bvls on all takes a
+    # The best bounded fit of all the dataset's shapes to the face's vertices (every 5th: bvls on all takes a
     # minute) leaves a residual on every frame tried, a tenth of a millimetre or more once the mouth moves (the
     # window's first frame is near rest, the jaw 0.65 degrees open: 0.026 mm).
     m = np.flatnonzero(s.mask)[::5]
@@ -379,14 +379,14 @@ def test_ict_livelink_is_not_a_plain_linear_blend(ict_livelink: BenchSet) -> Non
         w = lsq_linear(basis, target, bounds=(0.0, 1.0), method="bvls").x
         rms_mm.append(10 * np.sqrt(np.mean(np.sum((basis @ w - target).reshape(-1, 3) ** 2, 1))))
     assert min(rms_mm) > 0.01 and np.median(rms_mm) > 0.1, rms_mm
-    # As on ict_combination the rigged fit is exact: unskinned by the true jaw, a frame is the performed shapes and
-    # the combination shapes at weights in [0, 1] (a pair's corrective is its combination shape less its shapes).
+    # Nor is the rigged fit exact: unskinned by the true jaw, a frame where a pair acts keeps its corrective, which
+    # no dataset shape holds.
     keep = [k for k, n in enumerate(ds.names) if n not in B.ICT_NOT_PERFORMED]
     basis = np.asarray(ds.deltas[keep][:, m], np.float64).reshape(len(keep), -1).T
-    f = 60
+    f = int(np.flatnonzero(s.info["pair_active"])[len(np.flatnonzero(s.info["pair_active"])) // 2])
     target = (s.rig.unskin(s.truth[f], s.true_jaw[f])[m] - ds.neutral[m]).ravel()
     w = lsq_linear(basis, target, bounds=(0.0, 1.0), method="bvls").x
-    assert 10 * np.abs(basis @ w - target).max() < 1e-5
+    assert 10 * np.abs(basis @ w - target).max() > 1e-3
 
 
 def test_ict_livelink_names_map(ict_livelink: BenchSet, real_dir: Path) -> None:

@@ -101,7 +101,7 @@ class Finishing:
         and returned. A frame's result depends only on the frames in its smoothing windows, each computed on
         its own, so finishing a shot in any ranges gives the same bits as finishing it whole (tested). ``left``
         (F, M, 3) cm^2: the noise variance left in ``fit_pos`` (:meth:`denoise`; default the solver's when it
-        covers these frames, None for exact bundles), which sets each frame's :meth:`correction_gain`."""
+        covers these frames, None for exact bundles), which sets each frame's :meth:`correction_step`."""
         fit_pos = pos if fit_pos is None else fit_pos
         if left is None and self.noise_left is not None and len(self.noise_left) == len(pos):
             left = self.noise_left
@@ -131,10 +131,9 @@ class Finishing:
                       for f in progress(range(a, b), "blending", disable=not show_progress)]
             resid = np.stack([r for _, r, _ in blends])
             fin.before[:] = np.linalg.norm(resid, axis=2)
-            gains = [fin.gain(f - a, resid[f - a]) for f in range(lo, hi)]
             resid = moving_average(resid, smooth)
             for f in range(lo, hi):
-                fin.finish(f - a, blends[f - a][0], resid[f - a], blends[f - a][2], gains[f - lo])
+                fin.finish(f - a, blends[f - a][0], resid[f - a], blends[f - a][2])
         else:
             for f in progress(range(lo, hi), "blending", disable=not show_progress):
                 fin.frame(f - a, shapes[f], lam[f], None if thetas is None else thetas[f], shares[f])
@@ -217,18 +216,15 @@ class _Finisher:
         x = s.surface(shapes, lam, jaw, share)
         return x, self.fit_pos[f] - s.layout.evaluate(x), t
 
-    def gain(self, f: int, resid: np.ndarray) -> np.ndarray | float:
-        """Frame f's :meth:`~lgi.solve.noise.NoiseHandling.correction_gain` for the blend's residuals ``resid``."""
-        return self.solver.correction_gain(resid, None if self.left is None else self.left[f])
-
-    def finish(self, f: int, x: np.ndarray, resid: np.ndarray, t: np.ndarray | None = None,
-               gain: np.ndarray | float = 1.0) -> None:
-        """Correct surface ``x`` by ``gain`` (scalar, or (M, 3) per bundle and axis) of ``resid`` at the seen
-        bundles (but for the far field's share t of the global fit) and store it."""
+    def finish(self, f: int, x: np.ndarray, resid: np.ndarray, t: np.ndarray | None = None) -> None:
+        """Correct surface ``x`` at the seen bundles by the share of ``resid`` that is the face
+        (:meth:`~lgi.solve.noise.NoiseHandling.correction_step`; all of it for exact bundles), but for the far field's
+        share t of the global fit, and store it."""
         s, seen = self.solver, self.seen[f]
-        target = np.where(seen[:, None], s.layout.evaluate(x) + gain * np.nan_to_num(resid), np.nan)
+        step = s.correction_step(resid, None if self.left is None else self.left[f])
+        target = np.where(seen[:, None], s.layout.evaluate(x) + step, np.nan)
         s.correct(x, target, seen)
-        s.correct_far(x, resid, seen, gain, t)
+        s.correct_far(x, step, seen, 1.0, t)
         self.out[f] = x
         self.r_final[f] = np.where(seen, np.linalg.norm(np.nan_to_num(self.pos[f]) - s.layout.evaluate(x), axis=1),
                                    np.nan)
@@ -238,7 +234,7 @@ class _Finisher:
         """:meth:`blend` and :meth:`finish` frame f with its own residuals."""
         x, resid, t = self.blend(f, shapes, lam, jaw, share)
         self.before[f] = np.linalg.norm(resid, axis=1)
-        self.finish(f, x, resid, t, self.gain(f, resid))
+        self.finish(f, x, resid, t)
 
 
 def slot_labels(shapes: np.ndarray, weights: np.ndarray, shape_names: list[str]) -> tuple[np.ndarray, np.ndarray]:

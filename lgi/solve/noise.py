@@ -4,11 +4,12 @@ the shot's trajectories), and the smoothing of noisy trajectories before the fra
 from __future__ import annotations
 
 import logging
+import warnings
 
 import numpy as np
 
 from lgi.errors import InputError
-from lgi.solve.globalfit import join_gain
+from lgi.solve.globalfit import EXACT_GAIN, join_gain
 from lgi.solve.temporal import NoiseEstimate, denoise_with_model, estimate_noise
 from lgi.units import MM_PER_CM
 
@@ -24,6 +25,9 @@ EXACT_NOISE_MM = 1e-3
 # fit at 0.02 / 0.05 / 0.3 mm): 1 gave 0.83 / 0.95 / 1.10; 2: 0.806 / 0.885 / 1.026; 3: 0.799 / 0.904 / 1.007;
 # 6: 0.810 / 0.957 / 1.001.
 NOISE_LEFT_MARGIN = 2.5
+
+# A marker whose noise variance is this many times the median marker's is left out of the fits and the correction.
+NOISE_LEFT_OUT = 100.0
 
 log = logging.getLogger(__name__)
 
@@ -41,18 +45,27 @@ class NoiseHandling:
         positions (F, M, 3) cm, and the fit's mean leverage: its free parameters (weights strictly inside their
         bounds, and the jaw's when estimated) over the seen coordinates."""
         p = np.asarray(positions, np.float64)
+        if self.noise_dropped.any():
+            p = p.copy()
+            p[:, self.noise_dropped] = np.nan
         out = np.empty_like(p)
         lev = np.zeros(len(p))
         init = None
         jaw = 4 if self.rig is not None and self.global_fit.jaw_observable else 0
-        for f in range(len(p)):
-            if not np.isfinite(p[f]).all(axis=1).any():
-                out[f] = np.nan
-                continue
-            init = self.global_fit.solve(p[f], init=init)
-            out[f] = self.global_fit.predict(init.weights, init.jaw)
-            free = int(np.sum((init.weights > 1e-9) & (init.weights < 1 - 1e-9))) + jaw
-            lev[f] = free / max(3 * int(np.isfinite(p[f]).all(axis=1).sum()), 1)
+        # Every shape the frame wants joins: what a coarser fit leaves of the motion would be smoothed as noise (the
+        # synthetic actor at 0.3 mm: LGI at 1.071x the smoothed fit with a noise-sized join gain, 1.014x exact).
+        gain, self.global_fit.gain = self.global_fit.gain, EXACT_GAIN
+        try:
+            for f in range(len(p)):
+                if not np.isfinite(p[f]).all(axis=1).any():
+                    out[f] = np.nan
+                    continue
+                init = self.global_fit.solve(p[f], init=init)
+                out[f] = self.global_fit.predict(init.weights, init.jaw)
+                free = int(np.sum((init.weights > 1e-9) & (init.weights < 1 - 1e-9))) + jaw
+                lev[f] = free / max(3 * int(np.isfinite(p[f]).all(axis=1).sum()), 1)
+        finally:
+            self.global_fit.gain = gain
         return out, float(np.clip(np.mean(lev), 0.0, 0.9))
 
     def denoise(self, positions: np.ndarray) -> np.ndarray:
@@ -68,7 +81,14 @@ class NoiseHandling:
         model = self._model
         if model is None or model[0] is not positions:
             model = (positions, *self.model_fit(positions))
-        out, left, windows = denoise_with_model(positions, model[1], self.noise_axes, model[2])
+        rot = self.noise_rotations
+        if rot is None:
+            out, left, windows = denoise_with_model(positions, model[1], self.noise_sigma, model[2])
+        else:
+            # Each marker's trajectory in its noise's principal axes (its covariance's), where the axes are apart.
+            into = lambda x: np.einsum("mij,fmj->fmi", rot, x)  # noqa: E731
+            out, left, windows = denoise_with_model(into(positions), into(model[1]), self.noise_sigma, model[2])
+            out = np.einsum("mji,fmj->fmi", rot, out)
         self.denoise_windows = windows
         self.noise_left = left
         fit_noise = float(np.sqrt(np.nanmean(left))) * MM_PER_CM
@@ -79,39 +99,86 @@ class NoiseHandling:
 
     def set_noise(self, noise_mm: float | np.ndarray) -> None:
         """Treat the bundles as exact (0) or as measurements with this noise (mm per coordinate, or (3,) per axis of
-        the bundles' frame)."""
+        the bundles' frame), the same for every marker."""
         axes = np.broadcast_to(np.asarray(noise_mm, np.float64), (3,)).copy()
         if not np.all(np.isfinite(axes)) or np.any(axes < 0):
             raise InputError(f"noise must be a finite number of mm >= 0, not {noise_mm}")
+        self._set_noise_model(axes, None, np.tile(axes, (self.index.n_markers, 1)))
+
+    def set_noise_covariance(self, covariance: np.ndarray) -> None:
+        """The bundles' noise from their covariances (F, M, 3, 3) or (M, 3, 3), cm^2 (NaN where not given): each
+        marker's median over the frames, in its principal axes; a marker without any takes the median marker's.
+        Markers whose noise is far above the shot's (``NOISE_LEFT_OUT`` times the median variance) are left out
+        of the fits and the correction (:attr:`noise_dropped`); the others weigh alike."""
+        cov = np.asarray(covariance, np.float64)
+        if cov.ndim == 3:
+            per_marker = cov
+        else:
+            with warnings.catch_warnings():  # a marker never given: all NaN, filled below
+                warnings.simplefilter("ignore", RuntimeWarning)
+                per_marker = np.nanmedian(cov, axis=0)
+        given = np.isfinite(per_marker).all(axis=(1, 2))
+        if not given.any():
+            raise InputError("no bundle covariance given")
+        per_marker = np.where(given[:, None, None], per_marker, np.median(per_marker[given], axis=0))
+        lam, vec = np.linalg.eigh(0.5 * (per_marker + np.transpose(per_marker, (0, 2, 1))))
+        sigma = np.sqrt(np.maximum(lam, 0.0)) * MM_PER_CM
+        axes = np.sqrt(np.maximum(np.median(np.diagonal(per_marker, axis1=1, axis2=2), axis=0), 0.0)) * MM_PER_CM
+        self._set_noise_model(axes, np.transpose(vec, (0, 2, 1)), sigma)
+        var = np.mean(sigma**2, axis=1)
+        self.noise_dropped = var > NOISE_LEFT_OUT * max(float(np.median(var)), 1e-30)
+        if self.noise_dropped.any():
+            names = [self.index.marker_names[i] for i in np.flatnonzero(self.noise_dropped)]
+            log.warning("%d markers are noisier than %g times the median marker (%s): left out of the fits and not "
+                        "passed through; their points follow their neighbours", len(names), NOISE_LEFT_OUT,
+                        ", ".join(names[:5]) + (" ..." if len(names) > 5 else ""))
+
+    def _set_noise_model(self, axes: np.ndarray, rotations: np.ndarray | None, sigma: np.ndarray) -> None:
         self.noise_axes = axes
         self.noise = float(np.sqrt(np.mean(axes**2)))
+        #: (M, 3, 3) rows: each marker's noise axes (None: the bundles' own axes)
+        self.noise_rotations = rotations
+        #: (M, 3) mm, each marker's noise along its axes
+        self.noise_sigma = sigma
+        #: (M,) bool, markers left out of the fits for their noise
+        self.noise_dropped = np.zeros(self.index.n_markers, bool)
         self.global_fit.gain = join_gain(self.noise)
         self.noise_left = None
         self._model = None
         # A marker seen by one camera stands on its ray; with noisy bundles its point is fitted like them.
         self.noise_gain = 1.0 if self.noise == 0 else 0.0
 
-    def correction_gain(self, resid: np.ndarray, left: np.ndarray | None) -> np.ndarray | float:
-        """How far a frame's surface is taken through each bundle: 1 for exact bundles; for measurements, per
-        bundle and axis, the share of the blend's residual that is the face and not the noise left,
-        ``m^2 / (m^2 + n^2)`` (a Wiener gain), with ``n^2`` the noise left at the bundle (``left``) and ``m^2`` the
-        frame's mean squared residual beyond the noise, per axis, over its seen bundles.
+    def correction_step(self, resid: np.ndarray, left: np.ndarray | None) -> np.ndarray:
+        """How far a frame's surface is moved at each bundle toward it: all of its residual for exact bundles; for
+        measurements, per bundle and noise axis, the share of the blend's residual that is the face and not the
+        noise left, ``m^2 / (m^2 + n^2)`` (a Wiener gain), with ``n^2`` the noise left at the bundle (``left``,
+        counted with ``NOISE_LEFT_MARGIN``) and ``m^2`` the frame's mean squared residual beyond the noise, per
+        axis, over its seen bundles. Bundles left out for their noise are not moved toward.
 
         Parameters
         ----------
         resid : (M, 3) float, cm
             The blend's residuals to the positions it was fitted to (NaN: missing).
         left : (M, 3) float, cm^2, or None
-            The noise variance left in those positions (None: exact).
+            The noise variance left in those positions along each marker's noise axes (None: exact).
+
+        Returns
+        -------
+        (M, 3) float64, cm (0 where missing)
         """
+        r = np.nan_to_num(np.asarray(resid, np.float64))
+        ok = np.all(np.isfinite(resid), axis=1) & ~self.noise_dropped
         if left is None:
-            return 1.0
-        ok = np.all(np.isfinite(resid), axis=1)
+            return np.where(ok[:, None], r, 0.0)
+        rot = self.noise_rotations
+        if rot is not None:
+            r = np.einsum("mij,mj->mi", rot, r)
         if not ok.any():
-            return 1.0
+            return np.zeros_like(r)
         left = left * NOISE_LEFT_MARGIN
-        m2 = np.maximum(np.mean(resid[ok] ** 2, axis=0) - np.mean(left[ok], axis=0), 0.0)
-        return m2 / np.maximum(m2 + left, 1e-300)
+        m2 = np.maximum(np.mean(r[ok] ** 2, axis=0) - np.mean(left[ok], axis=0), 0.0)
+        step = np.where(ok[:, None], m2 / np.maximum(m2 + left, 1e-300) * r, 0.0)
+        return step if rot is None else np.einsum("mji,mj->mi", rot, step)
 
     def resolve_noise(self, positions: np.ndarray, noise: float | str = "auto") -> NoiseEstimate | None:
         """Set the solver's noise for a shot (F, M, 3): a given value (mm) or "auto", estimated per axis from the
@@ -134,7 +201,7 @@ class NoiseHandling:
         self.independent_poses = bool(np.isfinite(est.noise_mm) and est.noise_mm >= EXACT_NOISE_MM and not est.is_noise)
         if not np.isfinite(est.noise_mm):
             # A fallback the user must hear of: noisy bundles taken as exact make a surface that chases the noise.
-            log.warning("the bundle noise cannot be estimated (no marker is seen for 7 frames in a row): bundles "
+            log.warning("the bundle noise cannot be estimated (no marker is seen for 13 frames in a row): bundles "
                         "treated as exact; give --noise MM if they are not")
             self.set_noise(0.0)
         elif est.noise_mm < EXACT_NOISE_MM:

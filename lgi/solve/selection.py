@@ -107,6 +107,11 @@ class Selection:
         p = np.asarray(bundles, np.float64)
         if p.shape != (self.index.n_markers, 3):
             raise InputError(f"bundles have shape {p.shape}, the index has {self.index.n_markers} markers")
+        left_out = self.noise_dropped & np.all(np.isfinite(p), axis=1)
+        if left_out.any():
+            # Too noisy to weigh in (:meth:`set_noise_covariance`): chosen as a missing bundle is.
+            p = p.copy()
+            p[left_out] = np.nan
         seen = np.all(np.isfinite(p), axis=1)
         if not seen.any():
             raise InputError("no marker seen in this frame")
@@ -142,9 +147,11 @@ class Selection:
         source = np.full(len(p), "simplex", object)
         if self.method == "local":
             if left is None and self.noise > 0:
-                left = np.broadcast_to((self.noise_axes / MM_PER_CM) ** 2, p.shape)
+                left = (self.noise_sigma / MM_PER_CM) ** 2
             shapes, lam, score, source, fallback = self._local(q, seen, fit, shapes, lam, score, fallback,
                                                                global_score, left)
+        for i in np.flatnonzero(left_out):
+            fallback[i] = f"left out for its noise ({np.sqrt(np.mean(self.noise_sigma[i] ** 2)):.3f} mm): {fallback[i]}"
         share = None
         if self._far.active:
             dense = np.zeros((len(p), self.global_fit.n_shapes + 1))

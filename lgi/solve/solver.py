@@ -38,7 +38,6 @@ from lgi.solve.selection import LOCAL_MIN_MISFIT, Selection
 from lgi.solve.surface import FAR_FIELD, FAR_MARGIN, Surface, _FarField
 from lgi.solve.temporal import NoiseEstimate
 from lgi.threads import one_blas_thread
-from lgi.units import MM_PER_CM
 
 __all__ = ["FAR_FIELD", "FAR_MARGIN", "FITTED", "LOCAL_MIN_MISFIT", "STATUS", "FrameResult", "LGISolver",
            "SequenceResult", "slot_labels"]
@@ -275,11 +274,15 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         raw, frames, _ = self.prepare(bundles, frames, 0)
         cov = bundles.covariance if isinstance(bundles, Bundles) else None
         if noise == "auto" and cov is not None and np.isfinite(cov).any():
-            # The bundles carry their covariances (``lgi track``): the noise is theirs, per axis, not estimated.
-            axes = np.sqrt(np.maximum(np.nanmedian(np.diagonal(cov, axis1=2, axis2=3).reshape(-1, 3), axis=0),
-                                      0.0)) * MM_PER_CM
-            log.info("bundle noise from the bundles' covariances: x %.4f, y %.4f, z %.4f mm (median)", *axes)
-            self.set_noise(axes)
+            # The bundles carry their covariances (``lgi track``): the noise is theirs, marker by marker.
+            col = {n: i for i, n in enumerate(bundles.markers)}
+            aligned = np.full((len(raw), self.index.n_markers, 3, 3), np.nan)
+            for i, n in enumerate(self.index.marker_names):
+                if n in col:
+                    aligned[:, i] = cov[:, col[n]]
+            self.set_noise_covariance(aligned)
+            log.info("bundle noise from the bundles' covariances: x %.4f, y %.4f, z %.4f mm (median marker)",
+                     *self.noise_axes)
             self.noise_estimate = None
             self.independent_poses = False
         elif noise is not None:

@@ -90,10 +90,10 @@ class Surface:
         at = self.layout.evaluate(x)
         before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - at, axis=1), np.nan)
         # One frame on its own: the noise left is all of it.
-        left = None if self.noise == 0 else np.broadcast_to((self.noise_axes / MM_PER_CM) ** 2, p.shape)
-        gain = self.correction_gain(np.where(seen[:, None], p - at, np.nan), left)
-        self.correct(x, at + gain * np.nan_to_num(p - at), seen)
-        self.correct_far(x, p - at, seen, gain, t)
+        left = None if self.noise == 0 else (self.noise_sigma / MM_PER_CM) ** 2
+        step = self.correction_step(np.where(seen[:, None], p - at, np.nan), left)
+        self.correct(x, at + step, seen)
+        self.correct_far(x, step, seen, 1.0, t)
         residual = np.where(seen, np.linalg.norm(np.nan_to_num(p) - self.layout.evaluate(x), axis=1), np.nan)
         return dataclasses.replace(sel, vertices=x.astype(np.float32), residual=residual, jaw=jaw, bundles=p,
                                    residual_before=before)

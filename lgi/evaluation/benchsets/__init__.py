@@ -24,7 +24,8 @@ Sets (:data:`SET_NAMES`):
 Sets of real motion (:data:`REAL_SET_NAMES`, built by name with :func:`load_sets` but not by default: they also
 need the shared data's ``real-performances`` folder, :func:`real_performances_dir_or_none`):
 
-* ``ict_livelink`` (:func:`ict_livelink_set`): ``ict_combination``'s actor and dataset, its frames a window of a
+* ``ict_livelink`` (:func:`ict_livelink_set`): ``ict_combination``'s actor against ``ict_jaw``'s shapes and rig (the
+  correctives in no dataset shape, so no linear fit is exact), its frames a window of a
   real Live Link Face take (another performer's iPhone ARKit curves, default 300 frames of ``S07-001`` at its
   native 30 fps, speech and holds, the tracker's jitter kept): every ICT shape takes the curve of its name and
   the rotating jaw follows ``JawOpen`` and ``JawLeft``/``JawRight``, so the frames hold the many simultaneous,

@@ -13,7 +13,7 @@ import os
 import numpy as np
 
 from lgi.errors import InputError
-from lgi.evaluation.benchsets.combinations import _combination_actor, _combination_dataset
+from lgi.evaluation.benchsets.combinations import _combination_actor
 from lgi.evaluation.benchsets.core import (
     ICT_JAW_MAX_DEG,
     ICT_JAW_MAX_YAW_DEG,
@@ -56,21 +56,20 @@ def ict_livelink_set(ict_dir: str | os.PathLike[str], real_dir: str | os.PathLik
                      seed: int = 0) -> BenchSet:
     """The combination actor of :func:`ict_combination_set` driven by real iPhone ARKit curves of another performer.
 
-    The actor, its correctives and the dataset a method may use are exactly :func:`ict_combination_set`'s for
-    ``seed`` (so every method gets the same rig and shapes). Frames: ``frames`` consecutive tracked rows of Live
-    Link Face take ``take`` from row ``start`` (rows that lost tracking dropped first; about 30 fps, at the take's
-    own rate: the curves' frame-to-frame jitter is the captured motion and is kept). Each ICT shape takes the
-    curve of its name (:func:`lgi.evaluation.realmotion.ict_weights`; ``BrowInnerUp`` and ``CheekPuff`` drive both
-    sides), clipped to [0, 1]; ``cheekRaiser_L/R`` have no curve and stay 0; the jaw shapes, ``mouthClose`` and the
-    pupils are not performed (as in the other ICT sets): the jaw is the rig's rotation from ``JawOpen``,
-    ``JawLeft`` and ``JawRight`` (:func:`livelink_jaw`), and ``JawForward``, ``MouthClose`` and ``TongueOut`` are
-    not used. ``x(t) = skin(x0 + sum_k w_k s_k + sum_p w_a w_b c_p, theta(t))`` (:func:`jaw_actor_frames`): the
-    real curves hold many shapes at once, so the pair correctives act on most frames. As on
-    :func:`ict_combination_set`, the plain bounded fit of the shapes (the jaw linear) leaves a residual, but the
-    rigged one does not: unskinned by the true jaw, a frame is in the dataset's span with weights in [0, 1] (each
-    corrective ``c_p`` is the pair's combination shape less its two shapes, at weight ``w_a w_b``, leaving
-    ``w_a - w_a w_b`` and ``w_b - w_a w_b`` on the shapes). Errors over the face area; wide open as
-    :func:`ict_combination_set`.
+    The actor and its correctives are :func:`ict_combination_set`'s for ``seed``; the dataset a method may use is
+    the actor's own shapes without the combination shapes (:func:`ict_jaw_set`'s shapes and rig), so the correctives
+    are in no dataset shape and no linear fit, rigged or not, reproduces a frame where a pair acts. Frames:
+    ``frames`` consecutive tracked rows of Live Link Face take ``take`` from row ``start`` (rows that lost tracking
+    dropped first; about 30 fps, at the take's own rate: the curves' frame-to-frame jitter is the captured motion
+    and is kept). Each ICT shape takes the curve of its name (:func:`lgi.evaluation.realmotion.ict_weights`;
+    ``BrowInnerUp`` and ``CheekPuff`` drive both sides), clipped to [0, 1]; ``cheekRaiser_L/R`` have no curve and
+    stay 0; the jaw shapes, ``mouthClose`` and the pupils are not performed (as in the other ICT sets): the jaw is
+    the rig's rotation from ``JawOpen``, ``JawLeft`` and ``JawRight`` (:func:`livelink_jaw`), and ``JawForward``,
+    ``MouthClose`` and ``TongueOut`` are not used. ``x(t) = skin(x0 + sum_k w_k s_k + sum_p w_a w_b c_p, theta(t))``
+    (:func:`jaw_actor_frames`): the real curves hold many shapes at once, so the pair correctives act on most
+    frames. (With :func:`ict_combination_set`'s combination shapes in the dataset the rigged fit would be exact:
+    each corrective is a combination shape less its two shapes, at weight ``w_a w_b``.) Errors over the face area;
+    wide open as :func:`ict_combination_set`.
 
     Parameters
     ----------
@@ -105,7 +104,7 @@ def ict_livelink_set(ict_dir: str | os.PathLike[str], real_dir: str | os.PathLik
     window = slice(start, start + frames)
     curves, times = curves[window], times[window] - times[start]
     ca, _ = _combination_actor(ict_dir, seed)
-    ds = _combination_dataset(ca)
+    ds = ca.jaw.dataset
     weights = np.clip(ict_weights(arkit, curves, ca.names), 0.0, 1.0)
     theta = livelink_jaw(arkit, curves)
     truth = ca.frames(weights, theta)

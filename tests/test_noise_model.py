@@ -1,0 +1,116 @@
+"""Bundles as measurements: the noise seen per axis from the shot (or given by the bundles' covariances), exact
+bundles still passed through, and the surface held off noisy ones only as far as their noise says."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lgi.capture.bundles import Bundles
+from lgi.evaluation.accuracy import build_set_index
+from lgi.evaluation.baselines import RiggedBlendshapeSolver
+from lgi.evaluation.benchsets import synthetic_set
+from lgi.solve.solver import LGISolver
+from tests.checks import THROUGH_MM, gaps_mm
+
+
+@pytest.fixture(scope="module")
+def synth():
+    bs = synthetic_set(frames=90, n_vertices=3000)
+    return bs, build_set_index(bs)
+
+
+def _noisy(bundles: np.ndarray, axes_mm, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return bundles + rng.normal(size=bundles.shape) * np.asarray(axes_mm) / 10.0
+
+
+def _rms(recon: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
+    e = np.linalg.norm(np.asarray(recon, np.float64) - truth, axis=2)[:, mask] * 10
+    return float(np.sqrt(np.mean(e**2)))
+
+
+def test_exact_bundles_give_the_exact_reconstruction(synth) -> None:
+    bs, index = synth
+    auto = LGISolver(index)
+    res = auto.solve_sequence(bs.bundles)
+    # The shot's trajectories, off the face model's fit, do not change beyond a micrometre: exact.
+    assert auto.noise == 0 and auto.noise_estimate.noise_mm < 1e-3
+    told = LGISolver(index).solve_sequence(bs.bundles, noise=0)
+    assert np.array_equal(res.vertices, told.vertices)
+    assert gaps_mm(res.vertices, bs.layout, bs.bundles).max() < THROUGH_MM
+
+
+@pytest.mark.parametrize("axes", [(0.01, 0.01, 0.01), (0.0025, 0.0025, 0.01), (0.1, 0.1, 0.1), (0.025, 0.025, 0.1)])
+def test_noise_is_seen_per_axis_from_a_hundredth_of_a_millimetre(synth, axes) -> None:
+    bs, index = synth
+    sol = LGISolver(index)
+    est = sol.resolve_noise(_noisy(bs.bundles, axes))
+    assert est.is_noise
+    np.testing.assert_allclose(est.axis_mm, axes, rtol=0.3)
+    np.testing.assert_allclose(sol.noise_axes, est.axis_mm)
+    if axes[2] > axes[0]:  # stereo-like noise is seen as such: deeper along z
+        assert est.axis_mm[2] > 2.5 * est.axis_mm[:2].max()
+
+
+def test_small_noise_keeps_the_local_geometry(synth) -> None:
+    bs, index = synth
+    shot = _noisy(bs.bundles, (0.02, 0.02, 0.02))
+    res = LGISolver(index).solve_sequence(shot)
+    assert res.noise > 0
+    smoothing = LGISolver(index)
+    smoothing.resolve_noise(shot)
+    fits = RiggedBlendshapeSolver(index)
+    best_fit = min(_rms(fits.solve_sequence(shot), bs.truth, bs.mask),
+                   _rms(fits.solve_sequence(smoothing.denoise(shot)), bs.truth, bs.mask))
+    ours = _rms(res.vertices, bs.truth, bs.mask)
+    assert ours < 0.9 * best_fit, (ours, best_fit)
+    # Between the noisy bundles, not through them.
+    assert np.median(gaps_mm(res.vertices, bs.layout, shot)) > 0.005
+
+
+def _with_covariance(bs, positions: np.ndarray, cov: np.ndarray) -> Bundles:
+    return Bundles(frames=np.arange(len(positions)), markers=list(bs.layout.names), positions=positions,
+                   covariance=cov)
+
+
+def test_covariances_given_are_the_noise(synth) -> None:
+    bs, index = synth
+    axes = np.array([0.005, 0.005, 0.02])
+    cov = np.broadcast_to(np.diag((axes / 10) ** 2), (*bs.bundles.shape[:2], 3, 3)).copy()
+    sol = LGISolver(index)
+    res = sol.solve_sequence(_with_covariance(bs, _noisy(bs.bundles, axes), cov))
+    np.testing.assert_allclose(sol.noise_axes, axes)
+    assert sol.noise_estimate is None and res.noise > 0
+    np.testing.assert_allclose(np.sort(sol.noise_sigma, axis=1), np.tile(np.sort(axes), (bs.n_markers, 1)))
+
+
+def test_a_bundle_with_a_huge_sigma_does_not_move_the_surface(synth, caplog) -> None:
+    bs, index = synth
+    axes = np.array([0.005, 0.005, 0.02])
+    shot = _noisy(bs.bundles, axes)
+    cov = np.broadcast_to(np.diag((axes / 10) ** 2), (*shot.shape[:2], 3, 3)).copy()
+    k = 40
+    cov[:, k] = np.eye(3)  # 10 mm
+    moved = shot.copy()
+    moved[:, k] += np.array([0.3, -0.2, 0.5])
+    a = LGISolver(index).solve_sequence(_with_covariance(bs, shot, cov))
+    b = LGISolver(index).solve_sequence(_with_covariance(bs, moved, cov))
+    assert np.abs(a.vertices - b.vertices).max() * 10 < 1e-6
+    d = b.diagnostics[b.diagnostics.marker == bs.layout.names[k]]
+    assert d.fallback.str.startswith("left out for its noise").all()
+    assert any("left out of the fits" in r.getMessage() for r in caplog.records)
+
+
+def test_noisy_shot_finished_in_chunks_gives_the_same_bits(synth) -> None:
+    bs, index = synth
+    sol = LGISolver(index)
+    shot = _noisy(bs.bundles, (0.01, 0.01, 0.04))
+    pos, frames, bridged = sol.prepare_shot(shot, None, 0, "auto")
+    fit_pos = sol.denoise(pos)
+    left = sol.noise_left
+    sels = sol.select_sequence(fit_pos, frames)
+    whole = sol.finish_sequence(sels, pos, frames, bridged, fit_pos=fit_pos)
+    parts = [sol.finish_sequence(sels, pos, frames, bridged, fit_pos=fit_pos, lo=lo, hi=min(lo + 25, len(pos)),
+                                 left=left) for lo in range(0, len(pos), 25)]
+    assert np.array_equal(whole.vertices, np.concatenate([p.vertices for p in parts]))
