@@ -120,7 +120,7 @@ def plot(rows: list[dict], path: Path) -> None:
     axs[0][0].legend(fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=70)
 
 
 def main() -> None:
