@@ -15,8 +15,9 @@ Then `lgi reconstruct` (defaults otherwise) of:
 - **(a') diagonal only** (an ablation): the covariances with their off-diagonal entries zeroed: each marker's
   own noise per head-frame axis, without its orientation;
 - **(a'') one covariance for all** (an ablation): every bundle given the covariances' median per head-frame axis
-  (the noise level of (a), the same for every marker; with the estimated per-axis noise instead, this gives (b)
-  to the last digit);
+  (the noise level of (a), the same for every marker);
+- **(b') the same at the estimated noise** (a check): every bundle given the diagonal covariance of (b)'s
+  estimated per-axis noise, which should reconstruct as (b) does;
 - **(c) `--noise 0`**: the same bundles treated as exact;
 - **(d) `--method blendshape`**: the rigged bounded blendshape fit of the same bundles;
 - the true bundles (`--noise auto`, read as exact), for scale.
@@ -26,11 +27,14 @@ run.json's `noise_mm` and, per head-frame axis, the solver's (the same `Shot` th
 The smoothed bundles (what the frames are fitted to) against the true bundles, RMS mm, across and along each
 bundle's rays (its covariance's short and long axes).
 
-The covariances against the truth (second table): their median standard deviation along and across the rays;
-the tracked bundles' error along / across (RMS, and 1.4826 x the median absolute value), the mean and median
-squared Mahalanobis distance (3 and 2.37 if calibrated), the part of the error shared by a frame's markers (the
-rigid motion that best carries the frame's tracked bundles onto the true ones: the head pose's error, which no
-per-bundle covariance holds) and each marker's mean error over the shot (a bias no smoothing removes).
+The covariances against the truth (second table; the first shot also tracked with the true cameras, unless
+`--no-true-cameras`): their median standard deviation along and across the rays; the tracked bundles' error
+along / across (RMS, and 1.4826 x the median absolute value); the mean and median squared Mahalanobis distance (3
+and 2.37 if calibrated), as tracked and with each marker's mean error over the shot (its bias, which no smoothing
+removes) taken off; that bias; the part of the error shared by a frame's markers (the rigid motion that best
+carries the frame's tracked bundles onto the true ones: the head pose's error, which no per-bundle covariance
+holds), beside the same fit to independent noise drawn from the covariances; per marker, its median covariance's
+std per head-frame axis, how it follows the spread of the marker's errors, and its long axis' tilt from z.
 """
 
 from __future__ import annotations
@@ -138,7 +142,12 @@ def covariance_figures(shot: Path, tracked: Path) -> dict:
     b_along, b_across = split(np.broadcast_to(bias, err.shape)[ok])
     marker_along = np.einsum("mi,mi->m", bias[seen], np.linalg.eigh(per_marker[seen])[1][:, :, 2])
     names = np.asarray(tb.markers)[seen]
-    worst = [(str(names[i]), float(marker_along[i])) for i in np.argsort(-np.abs(marker_along))[:3]]
+    order = np.argsort(-np.abs(marker_along))
+    worst = [(str(names[i]), float(marker_along[i])) for i in order[:3]]
+    # The squared Mahalanobis distance without the two markers of the largest biases.
+    rest = ok.copy()
+    rest[:, np.flatnonzero(seen)[order[:2]]] = False
+    d2_rest = float(np.einsum("ni,ni->n", err[rest], np.linalg.solve(C[rest], err[rest][..., None])[..., 0]).mean())
     # The part of the error a frame's markers share (its rigid motion onto the truth), and the same fit of
     # independent noise drawn from the covariances: what the fit takes of the per-bundle noise alone.
     sh_along, sh_across = split(rigid_part(x, t, ok)[ok])
@@ -153,7 +162,7 @@ def covariance_figures(shot: Path, tracked: Path) -> dict:
             "corr": [float(np.corrcoef(pred[seen, a], meas[seen, a])[0, 1]) for a in range(3)],
             "spread": [np.percentile(pred[seen, a], [10, 90]) for a in range(3)],
             "tilt": float(np.median(np.degrees(np.arccos(np.clip(np.abs(long_axis[:, 2]), 0, 1))))),
-            "bias_median": float(np.median(np.abs(marker_along))), "worst": worst}
+            "bias_median": float(np.median(np.abs(marker_along))), "worst": worst, "d2_rest": d2_rest}
 
 
 def covariance_row(label: str, f: dict) -> str:
@@ -192,7 +201,7 @@ def main() -> None:
     ap.add_argument("--vertices", type=int, default=None, help="lgi synth --vertices (default the actor's own)")
     ap.add_argument("--work", type=Path, default=None)
     ap.add_argument("--no-true-cameras", dest="true_cameras", action="store_false",
-                    help="do not track the first shot again with the true cameras (the covariance table's last row)")
+                    help="do not track the first shot again with the true cameras (a row of the covariance table)")
     ap.add_argument("--doc", type=Path, action="append", default=[],
                     help=f"rewrite the table between <!-- table:{TABLE} --> markers in this Markdown file")
     args = ap.parse_args()
@@ -202,17 +211,27 @@ def main() -> None:
         a, slip, seed = spec.split(":")
         shots.append((int(a), slip, int(seed)))
     rows, cov_rows, bias_lines, track_lines = [], [], [], []
-    for actor, slip, seed in shots:
+    for k, (actor, slip, seed) in enumerate(shots):
         shot = work / f"actor{actor}-{slip}-s{seed}"
         label = f"actor {actor}, {slip}, seed {seed}"
         prepare(shot, args.frames, actor, slip, seed, args.vertices)
-        track_lines.append(next((ln for ln in (shot / "track.log").read_text().splitlines()
-                                 if ln.startswith("bundle covariance")), "") if (shot / "track.log").exists() else "")
+        if (shot / "track.log").exists():
+            track_lines += [ln for ln in (shot / "track.log").read_text().splitlines()
+                            if ln.startswith("bundle covariance")]
         truth = np.load(shot / "truth.npz")["vertices"]
+        solved = {b: solver_noise(shot, shot / b) for b in ("tracked.csv", "tracked-nocov.csv", "tracked-diag.csv",
+                                                             "tracked-uniform.csv")}
+        # (b'): every bundle the diagonal covariance of the noise estimated without the covariances (cm^2).
+        est = pd.read_csv(shot / "tracked-uniform.csv")
+        for c, sigma in zip(("cov_xx", "cov_yy", "cov_zz"), solved["tracked-nocov.csv"][0], strict=True):
+            est[c] = np.where(est[c].notna(), (sigma / 10) ** 2, np.nan)
+        est.to_csv(shot / "tracked-uniform-est.csv", index=False)
+        solved["tracked-uniform-est.csv"] = solver_noise(shot, shot / "tracked-uniform-est.csv")
         runs = [("(a) with their covariances", "tracked.csv", []),
                 ("(b) without them (noise estimated)", "tracked-nocov.csv", []),
                 ("(a') covariances, diagonal only", "tracked-diag.csv", []),
                 ("(a'') one covariance for all markers", "tracked-uniform.csv", []),
+                ("(b') (a'') at (b)'s estimated noise", "tracked-uniform-est.csv", []),
                 ("(c) `--noise 0` (exact)", "tracked.csv", ["--noise", "0"]),
                 ("(d) `--method blendshape`", "tracked.csv", ["--method", "blendshape"]),
                 ("true bundles", "bundles.csv", [])]
@@ -230,7 +249,7 @@ def main() -> None:
             elif extra:
                 noise = f"{run['noise_mm']:g} (given)"
             elif bundles.startswith("tracked"):
-                axes, sm = solver_noise(shot, shot / bundles)
+                axes, sm = solved[bundles]
                 how = "estimated" if run["noise_estimated"] else "covariances"
                 noise = f"{run['noise_mm']:.3f} ({how}; {axes[0]:.3f} / {axes[1]:.3f} / {axes[2]:.3f})"
                 smoothed = f"{sm[0]:.3f} / {sm[1]:.3f}"
@@ -240,8 +259,9 @@ def main() -> None:
         fig = covariance_figures(shot, shot / "tracked.csv")
         cov_rows.append(covariance_row(label, fig))
         bias_lines.append(f"{label}: median {fig['bias_median']:.3f} mm; largest "
-                          + ", ".join(f"{n} {b:+.3f}" for n, b in fig["worst"]))
-        if shot == work / f"actor{shots[0][0]}-{shots[0][1]}-s{shots[0][2]}" and args.true_cameras:
+                          + ", ".join(f"{n} {b:+.3f}" for n, b in fig["worst"])
+                          + f" (d^2 mean without the first two markers {fig['d2_rest']:.2f})")
+        if k == 0 and args.true_cameras:
             # Is the markers' bias the calibration's? The first shot tracked again with the true cameras.
             true_cam = shot / "tracked-true-cameras.csv"
             if not true_cam.exists():
@@ -277,13 +297,13 @@ def main() -> None:
            "axis to z, deg |",
            "|---|---|---|---|---|---|---|---|---|---|---|", *cov_rows,
            "",
-           "Each marker's bias along its rays (its mean error over the shot), |median| and the largest: "
+           "Each marker's bias along its rays (its mean error over the shot), median size over the markers and the "
+           "largest: "
            + "; ".join(bias_lines) + "."]
     text = "\n".join(doc)
     print(text)
     for line in track_lines:
-        if line:
-            print(f"\nlgi track: {line}")
+        print(f"\nlgi track: {line}")
     for d in args.doc:
         write_marked(d, TABLE, text)
 

@@ -9,6 +9,7 @@ as two cameras a few centimetres apart triangulate; then 5 % of marker-frames ar
 (:func:`lgi.evaluation.benchsets.tracking_noise`). Every method is given the same dataset, rig and frames:
 
 * ``LGI (default)``: ``lgi reconstruct``'s defaults (the noise estimated from the shot, per axis);
+* ``LGI, true sigma``: the same told the true noise per axis (``--noise`` per axis);
 * ``fit``: the bounded blendshape fit with the jaw rig, frame by frame (no smoothing);
 * ``fit, smoothed``: the same fit of the bundles smoothed exactly as LGI smooths them (its estimate);
 * ``fit, smoothed (true sigma)``: the same, the smoothing told the true noise per axis.
@@ -66,6 +67,10 @@ def run_one(bs, index, pos: np.ndarray, axes: np.ndarray) -> dict:
     est = solver.noise_estimate
     row["estimate"] = np.full(3, np.nan) if est is None else est.axis_mm
     row["noise_used"] = solver.noise_axes
+    told_lgi = LGISolver(index, **opts)
+    told_lgi.set_noise(axes)
+    told_res = told_lgi.solve_sequence(pos, max_gap=LGI_DEFAULTS["max_gap"], noise=None)
+    row["lgi_true"] = errors(told_res.vertices, bs.truth, bs.mask)
     fit = RiggedBlendshapeSolver(index)
     row["fit"] = errors(fit.solve_sequence(pos), bs.truth, bs.mask)
     smooth = LGISolver(index)
@@ -79,7 +84,8 @@ def run_one(bs, index, pos: np.ndarray, axes: np.ndarray) -> dict:
 
 def table(rows: list[dict]) -> str:
     head = ("| set | noise | sigma mm | LGI RMS / p95 | fit | fit, smoothed | fit, smoothed (true sigma) "
-            "| LGI / best RMS | LGI / best p95 | estimated sigma x / y / z mm |\n" + "|---" * 10 + "|")
+            "| LGI / best RMS | LGI / best p95 | estimated sigma x / y / z mm | LGI, true sigma | estimated / true "
+            "sigma, LGI RMS |\n" + "|---" * 12 + "|")
     lines = [head]
     for r in rows:
         base = [r["fit"], r["fit_smoothed"], r["fit_true"]]
@@ -88,7 +94,8 @@ def table(rows: list[dict]) -> str:
         est = " / ".join(f"{v:.4f}" for v in r["estimate"]) if np.isfinite(r["estimate"]).all() else "exact"
         lines.append(f"| {r['set']} | {r['kind']} | {r['sigma']:g} | {r['lgi'][0]:.4f} / {r['lgi'][1]:.4f} | "
                      + " | ".join(f"{b[0]:.4f} / {b[1]:.4f}" for b in base)
-                     + f" | {r['lgi'][0] / best_rms:.2f} | {r['lgi'][1] / best_p95:.2f} | {est} |")
+                     + f" | {r['lgi'][0] / best_rms:.2f} | {r['lgi'][1] / best_p95:.2f} | {est} "
+                     f"| {r['lgi_true'][0]:.4f} / {r['lgi_true'][1]:.4f} | {r['lgi'][0] / r['lgi_true'][0]:.3f} |")
     return "\n".join(lines)
 
 

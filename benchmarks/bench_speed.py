@@ -82,6 +82,8 @@ ICT_SHAPES = 57
 MIX_SEED = 9
 STEP = 10  # frames from one key pose to the next
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
+# --stereo: the noisy copies' deviation per axis as shares of --noise-mm (x, y across the cameras' rays, z along).
+STEREO_AXES = (0.25, 0.25, 1.0)
 THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 KINDS = {
     "clean": "clean",
@@ -222,7 +224,7 @@ class Material:
 
 
 def build_material(work: Path, ict_dir: Path, shapes: list[int], frames: int, short: int, kinds: list[str],
-                   noise_mm: float, records: Records) -> Material:
+                   noise_mm: float, records: Records, stereo: bool = False) -> Material:
     """Import, augment, rig, index and test frames in ``work``; what exists there is reused."""
     markers = ICT_MARKERS
     ict = work / "ict"
@@ -295,9 +297,9 @@ def build_material(work: Path, ict_dir: Path, shapes: list[int], frames: int, sh
     files[("clean", frames)] = clean
     sigma = noise_mm / MM_PER_UNIT[units]
     if "noisy" in kinds:
-        dst = fdir / f"noisy{noise_mm:g}mm.csv"
-        log(f"{noise_mm:g} mm noise ({sigma:g} {units}) -> {dst.name}")
-        add_noise(clean, dst, sigma, seed=1)
+        dst = fdir / f"noisy{noise_mm:g}mm{'-stereo' if stereo else ''}.csv"
+        log(f"{noise_mm:g} mm noise ({sigma:g} {units}{', stereo' if stereo else ''}) -> {dst.name}")
+        add_noise(clean, dst, [sigma * a for a in STEREO_AXES] if stereo else sigma, seed=1)
         files[("noisy", frames)] = dst
     for kind in kinds:
         long = files[(kind, frames)]
@@ -516,6 +518,8 @@ def main() -> int:
     ap.add_argument("--doc", type=Path, action="append", default=[], help="rewrite the speed table of this Markdown "
                     "file (repeatable: docs/benchmarks.md and README.md)")
     ap.add_argument("--noise-mm", type=float, default=0.3, help="noise per coordinate of the noisy copies (0.3)")
+    ap.add_argument("--stereo", action="store_true",
+                    help="the noisy copies' noise along z only, a quarter of it along x and y (two cameras' depth)")
     ap.add_argument("--given-noise", action="store_true", help="pass --noise MM to lgi reconstruct for the noisy "
                     "copies (default: --noise auto, which may call unrelated poses exact)")
     ap.add_argument("--stage-config", default="500,rig,clean", help="SHAPES,rig|norig,KIND for the per-stage "
@@ -552,7 +556,8 @@ def main() -> int:
     t_start = time.perf_counter()
     try:
         records = Records(work / "records.json")
-        mat = build_material(work, args.ict, shapes, args.frames, args.short, kinds, args.noise_mm, records)
+        mat = build_material(work, args.ict, shapes, args.frames, args.short, kinds, args.noise_mm, records,
+                             args.stereo)
         run_all(args, mat, shapes, kinds, env, work, records)
     finally:
         if tmp is not None:

@@ -87,12 +87,13 @@ def dir_mib(path: Path) -> float:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) / 2**20
 
 
-def add_noise(src: Path, dst: Path, sigma: float, seed: int) -> None:
-    """Copy of a bundles CSV with Gaussian noise ``sigma`` (file units) on every coordinate, written in the
-    format ``lgi bundles`` writes (``frame, marker, x, y, z``, ``%.9g``)."""
+def add_noise(src: Path, dst: Path, sigma: float | np.ndarray, seed: int) -> None:
+    """Copy of a bundles CSV with Gaussian noise ``sigma`` (file units; a number, or (3,) per axis) on every
+    coordinate, written in the format ``lgi bundles`` writes (``frame, marker, x, y, z``, ``%.9g``)."""
     df = pd.read_csv(src)
     rng = np.random.default_rng(seed)
-    df[["x", "y", "z"]] = df[["x", "y", "z"]].to_numpy(np.float64) + rng.normal(0.0, sigma, (len(df), 3))
+    noise = rng.normal(0.0, 1.0, (len(df), 3)) * np.broadcast_to(np.asarray(sigma, np.float64), (3,))
+    df[["x", "y", "z"]] = df[["x", "y", "z"]].to_numpy(np.float64) + noise
     df.to_csv(dst, index=False, float_format="%.9g")
 
 

@@ -427,7 +427,9 @@ def _summary(recon: Path, index_dir: str | Path, index, diag: pd.DataFrame, per_
         from lgi.jobs.reconstruct import report_lines
 
         if summary.get("noise_estimate_mm") is not None:
-            rows.append(["noise estimate", f"{summary['noise_estimate_mm']:.4f} mm (coherence "
+            axes = summary.get("noise_estimate_axes_mm")
+            per_axis = "" if not axes or None in axes else " (x {:.4f}, y {:.4f}, z {:.4f})".format(*axes)
+            rows.append(["noise estimate", f"{summary['noise_estimate_mm']:.4f} mm{per_axis} (coherence "
                                            f"{summary.get('noise_coherence', float('nan')):.2f})"])
         if summary.get("noise_mm") is not None:
             rows.append(["noise used", f"{summary['noise_mm']:.4f} mm"])

@@ -122,7 +122,8 @@ def reconstruct_blendshape(index_dir: str | Path, bundles: str | Path, out: str 
         "neighbour_share": 0.0, "fitted_share": float((st == "fitted").mean()),
         "missing_share": float((st == "missing").mean()), "median_projection_mm": 0.0,
         "max_residual_mm": float(np.nanmax(r)) if np.isfinite(r).any() else float("nan"), "local_fit_share": 0.0,
-        "noise_mm": 0.0, "noise_estimated": False, "noise_estimate_mm": None, "noise_coherence": None,
+        "noise_mm": 0.0, "noise_estimated": False, "noise_estimate_mm": None, "noise_estimate_axes_mm": None,
+        "noise_coherence": None,
         "seconds": {"load": t1 - t0, "solve": t2 - t1, "write": time.perf_counter() - t2},
         "outputs": [n for n in OUTPUTS if (Path(out) / n).exists()],
     }

@@ -81,8 +81,9 @@ def plot_per_frame(per_frame: pd.DataFrame, path: Path) -> None:
 def run_record(options: ReconstructOptions, noise_mm: float | None, estimate=None) -> dict[str, Any]:
     """What a reconstruction was made with, stored beside it as ``run.json`` so that a later ``lgi review`` shows
     it: the method and options (not the scheduling: the results do not depend on it), the noise used and, when
-    it was estimated, the estimate (mm) and its neighbour coherence. Nothing that varies between runs of the same
-    job (no times, no absolute paths): the flow and the command line write the same file."""
+    it was estimated, the estimate (mm, and per axis x, y, z) and its neighbour coherence. Nothing that varies
+    between runs of the same job (no times, no absolute paths): the flow and the command line write the same
+    file."""
     from lgi import __version__
 
     def number(x: float | None) -> float | None:  # JSON has no NaN: an estimate that failed is null
@@ -92,6 +93,7 @@ def run_record(options: ReconstructOptions, noise_mm: float | None, estimate=Non
     return {"lgi": __version__, "method": options.method, "options": opts, "noise_mm": number(noise_mm),
             "noise_estimated": estimate is not None,
             "noise_estimate_mm": None if estimate is None else number(estimate.noise_mm),
+            "noise_estimate_axes_mm": None if estimate is None else [number(v) for v in estimate.axis_mm],
             "noise_coherence": None if estimate is None else number(estimate.coherence)}
 
 

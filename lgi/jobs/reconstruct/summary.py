@@ -30,6 +30,7 @@ def summarise(res, shot: Shot, out: str | Path, seconds: dict[str, float]) -> di
         "local_fit_share": float((d.source == "local fit").mean()),
         "noise_mm": float(res.noise), "noise_estimated": est is not None,
         "noise_estimate_mm": None if est is None else float(est.noise_mm),
+        "noise_estimate_axes_mm": None if est is None else [float(v) for v in est.axis_mm],
         "noise_coherence": None if est is None else float(est.coherence),
         "seconds": seconds, "outputs": [n for n in OUTPUTS if (Path(out) / n).exists()],
     }
