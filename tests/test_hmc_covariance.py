@@ -1,6 +1,6 @@
 """The bundles' covariances (``lgi track``'s cov_* columns) improve ``lgi reconstruct`` on a synthetic HMC shot.
 
-What ``benchmarks/bench_hmc_covariance.py`` measures on 240-frame shots (docs/hmc.md, "Bundle covariance in the
+What ``benchmarks/bench_hmc_covariance.py`` measures on 240-frame shots (docs/hmc.md, "The covariances in the
 reconstruction"), on a small one: the same tracked bundles reconstructed with their covariances (each marker's noise
 in its own principal axes) and without them (the noise estimated per head-frame axis) against the true meshes.
 """
@@ -34,8 +34,9 @@ def tracked_shot(tmp_path_factory) -> Path:
 
 def test_covariances_beat_the_estimated_noise(tracked_shot: Path) -> None:
     """(a) the tracked bundles with their covariances reconstruct the face closer to the truth than (b) the same
-    bundles without them, in RMS and p95 (measured: 0.970x and 0.94x on this shot, 0.87-0.975x RMS over ten small
-    shots, 0.86x on the 240-frame shot); both far better than taking the bundles as exact."""
+    bundles without them, in RMS and p95 (measured: 0.97x and 0.94x on this shot; 0.85-0.97x and 0.83-0.96x over ten
+    40- and 60-frame shots of seeds 0-4; 0.91x and 0.94x RMS on the benchmark's 240-frame shots); both far better
+    than taking the bundles as exact."""
     shot = tracked_shot
     df = pd.read_csv(shot / "tracked.csv")
     cov = [c for c in df.columns if c.startswith("cov_")]
