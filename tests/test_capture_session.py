@@ -55,11 +55,11 @@ def test_capture_session_reconstructs_the_good_shot_and_reports_the_bad_one(pref
                         scans=str(tmp_path / "scans.csv"))
     assert s["failed"] == ["b_broken"]
     # What the library could not do as asked reaches the flow run's logs, where the UI shows them: 4 frames are
-    # too few to estimate the bundle noise (a warning of lgi.solve.solver, which the command line prints too).
+    # too few to smooth the noisy trajectories (a warning of lgi.solve.noise, which the command line prints too).
     APILogHandler().flush()  # the handler sends in batches
     with get_client(sync_client=True) as client:
         logs = client.read_logs(LogFilter(timestamp=LogFilterTimestamp(after_=t0)))
-    hits = [log for log in logs if "cannot be estimated" in log.message]
+    hits = [log for log in logs if "too few to smooth" in log.message]
     assert hits and all(log.level >= 30 and log.flow_run_id is not None for log in hits), [log.message for log in logs]
     assert any(log.name.startswith("lgi.") for log in hits)
     assert any("b_broken failed" in log.message for log in logs)

@@ -10,7 +10,7 @@ import numpy as np
 
 from lgi.errors import InputError
 from lgi.solve.globalfit import EXACT_GAIN, join_gain
-from lgi.solve.temporal import NoiseEstimate, denoise_with_model, estimate_noise
+from lgi.solve.temporal import MIN_SMOOTHED_FRAMES, NoiseEstimate, denoise_with_model, estimate_noise
 from lgi.units import MM_PER_CM
 
 # Bundles whose trajectories, off the face model's fit, change from frame to frame by less than this (mm per
@@ -83,6 +83,12 @@ class NoiseHandling:
         self.global_fit.gain = join_gain(self.noise)
         if self.noise <= 0:
             return positions
+        seen = np.all(np.isfinite(positions), axis=2).sum(axis=0)
+        short = int((seen < MIN_SMOOTHED_FRAMES).sum())
+        if short:
+            # Their trajectories are left as they are: the surface is still held off their bundles by the noise.
+            log.warning("%d of %d markers are seen in fewer than %d frames: too few to smooth their noisy "
+                        "trajectories, which are fitted frame by frame", short, len(seen), MIN_SMOOTHED_FRAMES)
         model = self._model
         if model is None or model[0] is not positions:
             model = (positions, *self.model_fit(positions))

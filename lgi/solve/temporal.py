@@ -272,6 +272,8 @@ def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None, fitte
 
 
 SG_WINDOWS = (1, 5, 7, 9, 11, 15, 21, 31)
+# A marker seen in fewer frames than this keeps its trajectory as it is (too short to smooth).
+MIN_SMOOTHED_FRAMES = 8
 
 
 def sg_matrix(window: int, order: int = 2) -> np.ndarray:
@@ -363,7 +365,7 @@ def denoise_trajectories(positions: np.ndarray, noise_mm: float | np.ndarray, wi
         risks.append(r)
     local = _running_mean(np.stack(risks).reshape(len(risks), len(p), -1), span).reshape(len(risks), *p.shape)
     best = np.argmin(local, axis=0)  # (F, M, 3)
-    best[:, n_ok < 8] = 0
+    best[:, n_ok < MIN_SMOOTHED_FRAMES] = 0
     best[:, s2 <= 0] = 0
     out = np.take_along_axis(np.stack(ys), best[None], axis=0)[0]
     chosen = np.array([1, *cand])[best]
