@@ -657,7 +657,8 @@ def run_all(args: argparse.Namespace, mat: Material, shapes: list[int], kinds: l
                             f"{r['extra_ms'] / f['extra_ms']:.2f} | {start:.2f} | {r['t_long']:.1f} | "
                             f"{r['peak_mib']:.0f} |")
     table = "\n".join([
-        f"Frames: {frames_text}; clean, and with {args.noise_mm:g} mm Gaussian noise per coordinate. "
+        f"Frames: {frames_text}; clean, and with {args.noise_mm:g} mm Gaussian noise "
+        f"{'along z and a quarter of it along x and y (stereo)' if args.stereo else 'per coordinate'}. "
         f"{os.cpu_count()} cores, whole processes, medians of {args.repeat}.\n",
         "| shapes | rig | bundles | LGI ms per extra frame | LGI frames/s | fit ms per extra frame | LGI / fit | "
         f"start-up s | {mat.frames} frames s | peak MiB |",
