@@ -658,9 +658,12 @@ def build_parser() -> argparse.ArgumentParser:
     g = s.add_argument_group("noise and time")
     g.add_argument("--noise", default="auto", metavar="MM|auto",
                    help="bundle noise per coordinate, mm: 0 = exact bundles (the surface passes through each); "
-                        "above 0 they are measurements: each marker's trajectory is smoothed (window chosen per "
-                        "marker by Stein's unbiased risk estimate) and fitted, not interpolated; auto: estimated "
-                        "from the shot's trajectories and reported (default %(default)s)")
+                        "above 0 they are measurements: each marker's trajectory is smoothed (windows chosen per "
+                        "marker and axis by Stein's unbiased risk estimate), each bundle keeps its local geometry as "
+                        "far as the noise allows, and the surface passes between the bundles by the share of each "
+                        "residual that is the face; auto: the bundles' covariances when the file has them (lgi "
+                        "track writes them), else estimated per axis from the shot's trajectories and reported "
+                        "(default %(default)s)")
     g.add_argument("--smooth", type=_window, default=1, metavar="WINDOW",
                    help="central moving average of each bundle's shape weights over WINDOW frames (default "
                         "%(default)s = none; 0 and below also mean none, and 'auto' means 1)")

@@ -36,10 +36,10 @@ class FrameResult:
     weights : (M, 4) float64
         Their convex barycentric weights.
     n_containing : (M,) int64
-        Simplices that contained the bundle (-1: not searched, noisy bundles).
+        Simplices that contained the bundle (-1: not searched, the global weights already fit it).
     status : (M,) int64
         0 contained, 1 projected, 2 missing, 3 neighbour (took a natural neighbour's mixture), 4 fitted
-        (noisy bundles: the global fit's weights, no simplex searched; ``projection`` NaN).
+        (the global fit's weights already fit the bundle's neighbourhood, no simplex searched; ``projection`` NaN).
     projection : (M,) float64, cm
         Distance from the bundle to where its chosen blend puts it before correction: to its cloud's
         volume when projected, to the neighbour's mixture when borrowed, 0 (or the snap offset) when
