@@ -74,7 +74,7 @@ def _with_covariance(bs, positions: np.ndarray, cov: np.ndarray) -> Bundles:
                    covariance=cov)
 
 
-def test_covariances_given_are_the_noise(synth) -> None:
+def test_covariances_given_are_the_noise(synth, caplog) -> None:
     bs, index = synth
     axes = np.array([0.005, 0.005, 0.02])
     cov = np.broadcast_to(np.diag((axes / 10) ** 2), (*bs.bundles.shape[:2], 3, 3)).copy()
@@ -83,6 +83,11 @@ def test_covariances_given_are_the_noise(synth) -> None:
     np.testing.assert_allclose(sol.noise_axes, axes)
     assert sol.noise_estimate is None and res.noise > 0
     np.testing.assert_allclose(np.sort(sol.noise_sigma, axis=1), np.tile(np.sort(axes), (bs.n_markers, 1)))
+    # A marker given no covariance takes the median marker's noise, and the user hears of it.
+    cov[:, 7] = np.nan
+    with caplog.at_level("WARNING", logger="lgi"):
+        LGISolver(index).prepare_shot(_with_covariance(bs, _noisy(bs.bundles, axes), cov))
+    assert any("no covariance" in r.getMessage() and bs.layout.names[7] in r.getMessage() for r in caplog.records)
 
 
 def test_a_bundle_with_a_huge_sigma_does_not_move_the_surface(synth, caplog) -> None:

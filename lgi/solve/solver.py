@@ -280,6 +280,11 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
             for i, n in enumerate(self.index.marker_names):
                 if n in col:
                     aligned[:, i] = cov[:, col[n]]
+            bare = np.isfinite(raw).all(axis=2).any(axis=0) & ~np.isfinite(aligned).all(axis=(2, 3)).any(axis=0)
+            if bare.any():
+                names = [self.index.marker_names[i] for i in np.flatnonzero(bare)]
+                log.warning("%d markers have positions but no covariance in any frame (%s): they take the median "
+                            "marker's noise", len(names), ", ".join(names[:5]) + (" ..." if len(names) > 5 else ""))
             self.set_noise_covariance(aligned)
             log.info("bundle noise from the bundles' covariances: x %.4f, y %.4f, z %.4f mm (median marker)",
                      *self.noise_axes)
