@@ -90,7 +90,8 @@ class NoiseHandling:
             log.warning("%d of %d markers are seen in fewer than %d frames: too few to smooth their noisy "
                         "trajectories, which are fitted frame by frame", short, len(seen), MIN_SMOOTHED_FRAMES)
         model = self._model
-        if model is None or model[0] is not positions:
+        # The shot's noise was resolved on these positions before its gaps were bridged (a copy): reuse that fit.
+        if model is None or not np.array_equal(model[0], positions, equal_nan=True):
             model = (positions, *self.model_fit(positions))
         rot = self.noise_rotations
         if rot is None:
