@@ -119,3 +119,17 @@ def test_noisy_shot_finished_in_chunks_gives_the_same_bits(synth) -> None:
     parts = [sol.finish_sequence(sels, pos, frames, bridged, fit_pos=fit_pos, lo=lo, hi=min(lo + 25, len(pos)),
                                  left=left) for lo in range(0, len(pos), 25)]
     assert np.array_equal(whole.vertices, np.concatenate([p.vertices for p in parts]))
+
+
+def test_the_fits_leverage_is_the_share_of_noise_it_takes_at_each_bundle(synth) -> None:
+    # The two-part smoothing gives each marker's fitted part its own share of the noise: the variance the fit
+    # passes on from noise on every bundle, measured over draws of it on one frame.
+    bs, index = synth
+    sol = LGISolver(index)
+    sigma_cm = 1e-4
+    draws = bs.bundles[40] + np.random.default_rng(3).normal(size=(400, *bs.bundles.shape[1:])) * sigma_cm
+    fitted, leverage = sol.model_fit(draws)
+    passed = np.var(fitted, axis=0) / sigma_cm**2
+    assert leverage.shape == passed.shape == (index.n_markers, 3)
+    assert leverage.max() > 3 * np.median(leverage)  # far from one share for all
+    np.testing.assert_allclose(leverage, passed, atol=0.03, rtol=0.25)

@@ -217,7 +217,7 @@ NOISE_MAX_COHERENCE = 0.3
 
 
 def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None, fitted: np.ndarray | None = None,
-                   leverage: float = 0.0) -> NoiseEstimate:
+                   leverage: float | np.ndarray = 0.0) -> NoiseEstimate:
     """Bundle noise of a shot from its trajectories, per axis.
 
     Each coordinate's residual from local polynomials over 7 frames (:func:`noise_filter`) is noise plus what the
@@ -227,8 +227,8 @@ def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None, fitte
     With ``fitted``, the trajectories are first taken off the frames' fit of the face model (the global fit,
     :class:`~lgi.solve.globalfit.GlobalFit`): what the face does together (real motion, where neighbouring
     markers move together from frame to frame) is in the fit, and what is left changes from frame to frame by the
-    noise and little else. The fit takes ``leverage`` of each coordinate's noise variance with it (its
-    parameters over the coordinates), which the estimate puts back.
+    noise and little else. The fit takes ``leverage`` of each coordinate's noise variance with it (the
+    diagonal of its hat matrix), which the estimate puts back.
 
     Parameters
     ----------
@@ -238,8 +238,8 @@ def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None, fitte
         Neighbouring markers, for the coherence test (without them coherence is 0).
     fitted : (F, M, 3) float, cm, optional
         The face model's bundle positions fitted to each frame.
-    leverage : float
-        Mean share of a coordinate's noise variance the fit takes (fitted parameters / seen coordinates).
+    leverage : float or (M, 3) float
+        Share of a coordinate's noise variance the fit takes, per marker and axis or for all.
     """
     p = np.asarray(positions, np.float64)
     if fitted is not None:
@@ -249,10 +249,11 @@ def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None, fitte
     if len(p) < len(g):
         return nan
     r = np.lib.stride_tricks.sliding_window_view(p, len(g), axis=0) @ g  # (F - 12, M, 3)
+    r = r / np.sqrt(np.maximum(1.0 - np.broadcast_to(leverage, p.shape[1:]), 0.05))
     ok = np.isfinite(r)
     if not ok.any():
         return nan
-    scale = MM_PER_CM / 0.6745 / np.sqrt(g @ g) / np.sqrt(max(1.0 - leverage, 0.05))
+    scale = MM_PER_CM / 0.6745 / np.sqrt(g @ g)
     axis = np.array([float(np.median(np.abs(r[..., a][ok[..., a]]))) * scale for a in range(3)])
     noise = float(np.sqrt(np.mean(axis**2)))
     coherence = 0.0
@@ -380,16 +381,16 @@ def denoise_trajectories(positions: np.ndarray, noise_mm: float | np.ndarray, wi
 RESIDUAL_NOISE_MARGIN = 1.5
 
 
-def denoise_with_model(positions: np.ndarray, fitted: np.ndarray, noise_mm: np.ndarray, leverage: float
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def denoise_with_model(positions: np.ndarray, fitted: np.ndarray, noise_mm: np.ndarray,
+                       leverage: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Smooth trajectories in two parts: the face model's fit of each frame, and what the fit leaves.
 
-    The fit (the frame's global fit) follows what the face does together and holds ``leverage`` of the noise's
-    variance; the rest is the model's error, small and slow, plus the other share of the noise. Each part is
-    smoothed by :func:`denoise_trajectories` with its own noise, so a fast move of the face (in the fit) keeps
-    short windows while the noise left beside it is averaged over long ones (synthetic actor, 0.02 mm per
-    coordinate: 0.0112 mm left by smoothing the bundles themselves, 0.0067 mm this way; 0.05 mm: 0.0256 and
-    0.0157).
+    The fit (the frame's global fit) follows what the face does together and holds ``leverage`` of each
+    coordinate's noise variance; the rest is the model's error, small and slow, plus the other share of the
+    noise. Each part is smoothed by :func:`denoise_trajectories` with its own noise, so a fast move of the face
+    (in the fit) keeps short windows while the noise left beside it is averaged over long ones (synthetic actor,
+    0.02 mm per coordinate: 0.0112 mm left by smoothing the bundles themselves, 0.0075 mm this way; 0.3 mm:
+    0.142 and 0.102).
 
     Parameters
     ----------
@@ -397,8 +398,8 @@ def denoise_with_model(positions: np.ndarray, fitted: np.ndarray, noise_mm: np.n
         The bundles (NaN rows missing) and the model's positions fitted to them.
     noise_mm : (3,) or (M, 3) float
         Noise deviation per axis, or per marker and axis.
-    leverage : float
-        Share of the noise's variance the fit holds.
+    leverage : float or (M, 3) float
+        Share of the noise's variance the fit holds, per marker and axis or for all.
 
     Returns
     -------
@@ -409,7 +410,7 @@ def denoise_with_model(positions: np.ndarray, fitted: np.ndarray, noise_mm: np.n
         The window of the residual part (the longer of the two).
     """
     s = np.broadcast_to(np.asarray(noise_mm, np.float64), np.shape(positions)[1:])
-    lev = float(np.clip(leverage, 0.0, 1.0))
+    lev = np.clip(np.broadcast_to(np.asarray(leverage, np.float64), s.shape), 0.0, 1.0)
     fit_s, fit_w = denoise_trajectories(fitted, s * np.sqrt(lev))
     res_s, res_w = denoise_trajectories(np.asarray(positions, np.float64) - fitted,
                                         s * np.sqrt(1.0 - lev) * RESIDUAL_NOISE_MARGIN)
