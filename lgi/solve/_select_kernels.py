@@ -548,3 +548,47 @@ def local_fits_serial(resid, seen, basis, nb_off, nb_idx, col_off, cols, w_globa
     """:func:`local_fits` on the calling thread alone (see :func:`solve_bundles_serial`)."""
     for i in range(resid.shape[0]):
         _local_fit_one(i, resid, seen, basis, nb_off, nb_idx, col_off, cols, w_global, beta, own_weight, out)
+
+
+@nb.njit(cache=True, nogil=True)
+def weight_misfits(rest, basis, q, seen, nb_off, nb_idx, w, rows, own_weight, out):  # pragma: no cover - compiled
+    """Each bundle's RMS misfit (cm) under its own weights: its seen natural neighbours (weight 1) and itself
+    (``own_weight``) against where ``rest + w[i] @ basis`` puts them. ``rows`` (M,) bool: the bundles scored
+    (NaN in ``out`` elsewhere). Each row's few nonzero weights are gathered first (tens of hundreds of shapes).
+
+    Parameters
+    ----------
+    rest : (M, 3) float64, cm
+    basis : (S, M, 3) float64, cm
+    q : (M, 3) float64, cm
+        The bundles (rows of missing ones unused).
+    w : (M, S) float64
+    out : (M,) float64
+    """
+    n_s = basis.shape[0]
+    nz = np.empty(n_s, np.int64)
+    for i in range(q.shape[0]):
+        if not rows[i]:
+            out[i] = np.nan
+            continue
+        n = 0
+        for k in range(n_s):
+            if w[i, k] != 0.0:
+                nz[n] = k
+                n += 1
+        tot = 0.0
+        cnt = 0.0
+        for e in range(nb_off[i] - 1, nb_off[i + 1]):
+            j = i if e < nb_off[i] else nb_idx[e]
+            if not seen[j]:
+                continue
+            d2 = 0.0
+            for c in range(3):
+                acc = rest[j, c] - q[j, c]
+                for t in range(n):
+                    acc += w[i, nz[t]] * basis[nz[t], j, c]
+                d2 += acc * acc
+            cw = own_weight if e < nb_off[i] else 1.0
+            tot += cw * d2
+            cnt += cw
+        out[i] = np.sqrt(tot / max(cnt, 1e-300))
