@@ -11,6 +11,7 @@ import numpy as np
 from lgi.errors import InputError
 from lgi.solve.globalfit import EXACT_GAIN, join_gain
 from lgi.solve.temporal import MIN_SMOOTHED_FRAMES, NoiseEstimate, denoise_with_model, estimate_noise
+from lgi.threads import one_blas_thread
 from lgi.units import MM_PER_CM
 
 # Bundles whose trajectories, off the face model's fit, change from frame to frame by less than this (mm per
@@ -31,6 +32,10 @@ NOISE_LEFT_MARGIN = 2.5
 # 1.020 / 1.016 on ICT with combinations (whose rigged fit is exact: every step is noise), 0.959 / 1.023 on the
 # 400-scan session; 2 gave 0.798 / 0.993, 1.018 / 1.013 and 0.957 / 1.010.
 GAIN_Z = 2.0
+# The fit's leverage is averaged over about this many frames spread over the shot (a marker's share changes
+# slowly with the expression; over a 1000-frame shot a fifth of the cost). A marker seen in none of them takes
+# the mean marker's.
+LEVERAGE_FRAMES = 200
 # A marker whose noise variance is this many times the median marker's is left out of the fits and the correction.
 NOISE_LEFT_OUT = 100.0
 
@@ -45,6 +50,7 @@ class NoiseHandling:
     pairs ``_pair_i``/``_pair_j``, ``layout``, ``rig``, ``global_fit``, ...).
     """
 
+    @one_blas_thread
     def model_fit(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each frame's global fit (:class:`~lgi.solve.globalfit.GlobalFit`, from the previous frame's) as bundle
         positions (F, M, 3) cm, and its leverage per marker and axis (M, 3): the share of a coordinate's noise
@@ -66,6 +72,7 @@ class NoiseHandling:
         gf = self.global_fit
         with_jaw = gf.rig is not None and gf.jaw_observable
         rot = self.noise_rotations
+        stride = max(1, len(p) // LEVERAGE_FRAMES)
         # Every shape the frame wants joins: what a coarser fit leaves of the motion would be smoothed as noise (the
         # synthetic actor at 0.3 mm: LGI at 1.071x the smoothed fit with a noise-sized join gain, 1.014x exact).
         gain, gf.gain = gf.gain, EXACT_GAIN
@@ -77,12 +84,17 @@ class NoiseHandling:
                     continue
                 init = gf.solve(p[f], init=init)
                 out[f] = gf.predict(init.weights, init.jaw)
-                h = self._fit_leverage(init, out[f], seen, with_jaw, rot)
-                lev[seen] += h
-                count[seen] += 1
+                if f % stride == 0:
+                    lev[seen] += self._fit_leverage(init, out[f], seen, with_jaw, rot)
+                    count[seen] += 1
         finally:
             gf.gain = gain
-        return out, np.clip(lev / np.maximum(count, 1)[:, None], 0.0, 0.9)
+        sampled = count > 0
+        if not sampled.any():
+            return out, np.zeros(p.shape[1:])
+        lev[sampled] /= count[sampled, None]
+        lev[~sampled] = np.mean(lev[sampled], axis=0)
+        return out, np.clip(lev, 0.0, 0.9)
 
     def _fit_leverage(self, fit, at: np.ndarray, seen: np.ndarray, with_jaw: bool, rot: np.ndarray | None
                       ) -> np.ndarray:
@@ -118,6 +130,7 @@ class NoiseHandling:
             q = np.einsum("mij,mjk->mik", rot[seen], q)
         return np.sum(q**2, axis=2)
 
+    @one_blas_thread
     def denoise(self, positions: np.ndarray) -> np.ndarray:
         """The positions the frames are fitted to: with noisy bundles (``noise`` > 0) each marker's trajectory
         smoothed in two parts, the face model's fit and what it leaves (:func:`lgi.solve.temporal.denoise_with_model`);

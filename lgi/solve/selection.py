@@ -213,11 +213,9 @@ class Selection:
         counts = np.where(todo, len(support) + n_ext, 0)
         col_off = np.zeros(m + 1, np.int64)
         col_off[1:] = np.cumsum(counts)
-        flat = np.empty(col_off[-1], np.int64)
-        for i in np.flatnonzero(todo):
-            c = np.concatenate([support, ext[i][ext[i] >= 0]])
-            c.sort()
-            flat[col_off[i]:col_off[i + 1]] = c
+        rows = np.concatenate([np.broadcast_to(support, (m, len(support))), np.where(ext >= 0, ext, n_s)], axis=1)
+        rows.sort(axis=1)  # the unused slots (n_s) last
+        flat = rows[todo][np.arange(rows.shape[1])[None] < counts[todo][:, None]]
         resid = np.where(seen[:, None], q - self._rest - np.tensordot(wg[wg != 0], self._basis[wg != 0], axes=1), 0.0)
         w_local = np.empty((m, n_s))
         beta = np.full(m, self.local_prior)

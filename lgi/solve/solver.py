@@ -263,6 +263,7 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         sels = self.select_sequence(fit_pos, frames, jaw, show_progress)
         return self.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth, show_progress, fit_pos)
 
+    @one_blas_thread
     def prepare_shot(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None, max_gap: int = 0,
                      noise: float | str | None = "auto") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """A shot's positions (F, M, 3) in layout order, frame numbers and bridged mask (F, M), with the
