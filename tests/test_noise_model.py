@@ -133,3 +133,17 @@ def test_the_fits_leverage_is_the_share_of_noise_it_takes_at_each_bundle(synth) 
     assert leverage.shape == passed.shape == (index.n_markers, 3)
     assert leverage.max() > 3 * np.median(leverage)  # far from one share for all
     np.testing.assert_allclose(leverage, passed, atol=0.03, rtol=0.25)
+
+
+def test_an_exact_shot_is_fitted_once_per_frame(synth) -> None:
+    # Resolving the noise fits every frame; an exact shot's choice takes those fits instead of solving again,
+    # and gives the bits it would have given solving them.
+    bs, index = synth
+    sol = LGISolver(index)
+    calls = []
+    solve = sol.global_fit.solve
+    sol.global_fit.solve = lambda *a, **k: calls.append(1) or solve(*a, **k)
+    res = sol.solve_sequence(bs.bundles)
+    assert sol.noise == 0 and len(calls) == len(bs.bundles)
+    told = LGISolver(index).solve_sequence(bs.bundles, noise=0)
+    assert np.array_equal(res.vertices, told.vertices)

@@ -69,6 +69,7 @@ class NoiseHandling:
         lev = np.zeros(p.shape[1:])
         count = np.zeros(p.shape[1])
         init = None
+        fits: list = [None] * len(p)
         gf = self.global_fit
         with_jaw = gf.rig is not None and gf.jaw_observable
         rot = self.noise_rotations
@@ -82,13 +83,14 @@ class NoiseHandling:
                 if not seen.any():
                     out[f] = np.nan
                     continue
-                init = gf.solve(p[f], init=init)
+                init = fits[f] = gf.solve(p[f], init=init)
                 out[f] = gf.predict(init.weights, init.jaw)
                 if f % stride == 0:
                     lev[seen] += self._fit_leverage(init, out[f], seen, with_jaw, rot)
                     count[seen] += 1
         finally:
             gf.gain = gain
+        self._last_fits = fits
         sampled = count > 0
         if not sampled.any():
             return out, np.zeros(p.shape[1:])
@@ -151,6 +153,7 @@ class NoiseHandling:
         # The shot's noise was resolved on these positions before its gaps were bridged (a copy): reuse that fit.
         if model is None or not np.array_equal(model[0], positions, equal_nan=True):
             model = (positions, *self.model_fit(positions))
+            self._last_fits = None
         rot = self.noise_rotations
         if rot is None:
             out, left, windows = denoise_with_model(positions, model[1], self.noise_sigma, model[2])
@@ -215,6 +218,9 @@ class NoiseHandling:
         self.global_fit.gain = join_gain(self.noise)
         self.noise_left = None
         self._model = None
+        #: an exact shot's frame numbers, positions and each frame's model fit (:meth:`model_fit`), for its choice
+        self._frame_fits: tuple | None = None
+        self._last_fits: list | None = None
         # A marker seen by one camera stands on its ray; with noisy bundles its point is fitted like them.
         self.noise_gain = 1.0 if self.noise == 0 else 0.0
 
@@ -274,6 +280,7 @@ class NoiseHandling:
             self.independent_poses = False
             return None
         fitted, leverage = self.model_fit(positions)
+        fits, self._last_fits = self._last_fits, None
         est = estimate_noise(positions, self._nb_pairs, fitted, leverage)
         self.noise_estimate = est
         self.independent_poses = bool(np.isfinite(est.noise_mm) and est.noise_mm >= EXACT_NOISE_MM and not est.is_noise)
@@ -297,4 +304,22 @@ class NoiseHandling:
                      "neighbour correlation %.2f)", est.noise_mm, *est.axis_mm, est.samples, est.coherence)
             self.set_noise(est.axis_mm)
             self._model = (positions, fitted, leverage)
+        if self.noise == 0:
+            # Exact bundles are chosen from the same fit of the same positions: the choice takes it (see
+            # :meth:`cached_fits`; :meth:`prepare_shot` names the frames) instead of solving every frame twice.
+            self._frame_fits = (None, positions, fits)
         return est
+
+    def cached_fits(self, positions: np.ndarray, frames: np.ndarray) -> list:
+        """Per frame of ``positions`` (F, M, 3) cm, numbered ``frames``, the global fit that resolving an exact
+        shot made of the same frame (:meth:`resolve_noise` through ``prepare_shot``); None where there is none
+        or the frame's bundles differ from those fitted (a bridged gap)."""
+        cache = self._frame_fits
+        if cache is None or cache[0] is None or self.noise != 0:
+            return [None] * len(positions)
+        row = {int(f): r for r, f in enumerate(cache[0])}
+        out = []
+        for q, f in zip(positions, frames, strict=True):
+            r = row.get(int(f))
+            out.append(None if r is None or not np.array_equal(q, cache[1][r], equal_nan=True) else cache[2][r])
+        return out

@@ -103,10 +103,12 @@ class Selection:
         return self.global_fit.solve(bundles, init=start).jaw
 
     def select_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,
-                     jaw: np.ndarray | None = None, left: np.ndarray | None = None) -> FrameResult:
+                     jaw: np.ndarray | None = None, left: np.ndarray | None = None,
+                     fit: GlobalFitResult | None = None) -> FrameResult:
         """Choose shapes and weights (unskinning the bundles first with a jaw rig); no vertices yet. ``left``
         (M, 3) cm^2: the noise variance left in ``bundles`` (default: all of the solver's noise, none for exact
-        bundles), which holds each bundle's local fit toward the global weights (:data:`LOCAL_WEIGHT_SPREAD`)."""
+        bundles), which holds each bundle's local fit toward the global weights (:data:`LOCAL_WEIGHT_SPREAD`).
+        ``fit``: the frame's global fit of these bundles when already made (:meth:`cached_fits`)."""
         p = np.asarray(bundles, np.float64)
         if p.shape != (self.index.n_markers, 3):
             raise InputError(f"bundles have shape {p.shape}, the index has {self.index.n_markers} markers")
@@ -118,7 +120,8 @@ class Selection:
         seen = np.all(np.isfinite(p), axis=1)
         if not seen.any():
             raise InputError("no marker seen in this frame")
-        fit = self.global_fit.solve(p, jaw=jaw, init=None if previous is None else previous.fit)
+        if fit is None:
+            fit = self.global_fit.solve(p, jaw=jaw, init=None if previous is None else previous.fit)
         theta = fit.jaw
         q = p
         if self.rig is not None:
@@ -304,10 +307,11 @@ class Selection:
             left = self.noise_left
         sels = []
         prev = previous
+        fits = self.cached_fits(pos, frames) if jaw is None else [None] * len(pos)
         for f in progress(range(len(pos)), "choosing shapes", disable=not show_progress):
             try:
                 prev = self.select_frame(pos[f], prev, None if jaw is None else jaw[f],
-                                         None if left is None else left[f])
+                                         None if left is None else left[f], fits[f])
             except InputError as exc:
                 raise InputError(exc.message, frame=int(frames[f])) from None
             sels.append(prev)

@@ -293,6 +293,8 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
             self.independent_poses = False
         elif noise is not None:
             self.resolve_noise(raw, noise)
+            if self._frame_fits is not None:
+                self._frame_fits = (np.asarray(frames), *self._frame_fits[1:])
         if max_gap > 0 and self.independent_poses and not np.all(np.isfinite(raw)):
             log.warning("missing markers are not bridged: the frames change like independent poses")
             max_gap = 0
