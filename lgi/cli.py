@@ -1255,6 +1255,10 @@ def _run(args: argparse.Namespace, name: str, debug: bool, interrupted=None) -> 
         if stop is not None:
             how = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
             print(f"{name}: {how}; the outputs of this run were not written", file=sys.stderr)
+            # The local Prefect server is torn down after this; a database connection cancelled with it is
+            # logged by SQLAlchemy with its traceback (seen once in four interrupted flow runs), which is
+            # noise once the run has been reported as stopped.
+            logging.getLogger("sqlalchemy").setLevel(logging.CRITICAL)
             return 143 if isinstance(stop, Terminated) else 130
         err = _in_chain(exc, LgiError)
         if err is not None:

@@ -23,8 +23,8 @@ EXACT_NOISE_MM = 1e-3
 # The smoothed positions' error is 1.2-1.9x that share in variance (the windows chosen where the noise looked
 # smooth, the runs' ends; per axis at 0.01-0.3 mm, isotropic and stereo), and a residual pooled over a frame's
 # bundles is a noisy estimate of what is left beyond it. Measured (synthetic actor, 5 % missing; LGI / the smoothed
-# fit at 0.02 / 0.05 / 0.3 mm): 1 gave 0.83 / 0.95 / 1.10; 2: 0.806 / 0.885 / 1.026; 3: 0.799 / 0.904 / 1.007;
-# 6: 0.810 / 0.957 / 1.001.
+# fit at 0.02 / 0.05 / 0.3 mm, before the local fits' James-Stein shrink and GAIN_Z: the trend, not the final
+# figures): 1 gave 0.83 / 0.95 / 1.10; 2: 0.806 / 0.885 / 1.026; 3: 0.799 / 0.904 / 1.007; 6: 0.810 / 0.957 / 1.001.
 NOISE_LEFT_MARGIN = 2.5
 
 # Standard errors of the frame's mean squared residual taken off the face's share of it (see correction_step).
