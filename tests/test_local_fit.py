@@ -209,3 +209,32 @@ def test_far_field_option() -> None:
     assert ReconstructOptions().far_field_cm() == (0.5, 1.5)
     assert ReconstructOptions(far_field="off").far_field_cm() is None
     assert ReconstructOptions(far_field="0:20").far_field_cm() == (0.0, 2.0)
+
+
+def test_neighbourhood_misfits_are_each_bundles_weights_at_its_neighbours(synth_set) -> None:
+    # The compiled misfit against the definition: each bundle's weights predict itself (weight OWN_WEIGHT) and its
+    # seen natural neighbours; missing bundles are not scored against, rows not asked for are NaN.
+    from lgi.solve._select_kernels import OWN_WEIGHT
+
+    bs, index = synth_set
+    sol = LGISolver(index)
+    rng = np.random.default_rng(5)
+    q = bs.bundles[30].astype(np.float64).copy()
+    q[rng.random(len(q)) < 0.1] = np.nan
+    seen = np.isfinite(q).all(axis=1)
+    n_s = sol._basis.shape[0]
+    w = np.where(rng.random((len(q), n_s)) < 0.3, rng.random((len(q), n_s)), 0.0)
+    rows = rng.random(len(q)) < 0.7
+    got = sol._misfits(q, seen, w, rows)
+    nb_off, nb_idx = index.arrays["nb_off"], index.arrays["nb_idx"]
+    for i in range(len(q)):
+        if not rows[i]:
+            assert np.isnan(got[i])
+            continue
+        pred = sol._rest + np.tensordot(w[i], sol._basis, axes=1)
+        js = [i, *nb_idx[nb_off[i]:nb_off[i + 1]]]
+        cw = np.array([OWN_WEIGHT] + [1.0] * (len(js) - 1))
+        ok = seen[js]
+        d2 = np.sum((pred[js] - q[js]) ** 2, axis=1)
+        want = np.sqrt(np.sum(cw[ok] * d2[ok]) / max(cw[ok].sum(), 1e-300))
+        assert got[i] == pytest.approx(want, rel=1e-12, abs=1e-15)
