@@ -12,6 +12,7 @@ from lgi.errors import InputError
 from lgi.evaluation.accuracy import build_set_index
 from lgi.evaluation.baselines import RiggedBlendshapeSolver
 from lgi.evaluation.benchsets import ict_jaw_set, synthetic_set
+from lgi.solve.results import join_results
 from lgi.solve.solver import LGISolver
 from lgi.solve.temporal import denoise_trajectories, estimate_noise
 from tests.checks import THROUGH_MM, gaps_mm
@@ -159,6 +160,30 @@ def test_sequence_on_two_threads_equals_the_two_passes(synth_set, noise) -> None
     with pytest.raises(InputError) as err:
         sol.solve_sequence(bad, noise=noise)
     assert err.value.frame == 37 and "no marker seen" in err.value.message
+
+
+@pytest.mark.parametrize("smooth", [1, 5], ids=["unsmoothed", "smoothed"])
+def test_a_shot_streamed_in_blocks_gives_the_bits_of_the_whole(synth_set, smooth) -> None:
+    # A long take is solved block by block, holding one block's surfaces and the choices its windows reach; the
+    # blocks (an odd size, so that windows straddle them) must join into the whole shot's result.
+    bs, index = synth_set
+    sol = LGISolver(index)
+    pos, frames, bridged = sol.prepare_shot(bs.noisy, None, 0, "auto")
+    fit_pos = sol.denoise(pos)
+    whole = sol.solve_prepared(pos, frames, bridged, fit_pos, smooth)
+    blocks = list(sol.stream_prepared(pos, frames, bridged, fit_pos, smooth, block=23))
+    assert [(lo, hi) for lo, hi, _ in blocks] == [(lo, min(lo + 23, len(pos))) for lo in range(0, len(pos), 23)]
+    assert all(len(r.vertices) == hi - lo for lo, hi, r in blocks)
+    joined = join_results([r for _, _, r in blocks])
+    assert np.array_equal(whole.vertices, joined.vertices)
+    assert whole.diagnostics.equals(joined.diagnostics)
+    assert np.array_equal(whole.jaw, joined.jaw)
+    # Closed midway (a writer that failed), the chooser thread is stopped and the solver is usable again.
+    stream = sol.stream_prepared(pos, frames, bridged, fit_pos, smooth, block=23)
+    next(stream)
+    stream.close()
+    assert not sol._serial
+    assert np.array_equal(sol.solve_prepared(pos, frames, bridged, fit_pos, smooth).vertices, whole.vertices)
 
 
 def test_a_failing_blend_stops_the_choosing_thread(synth_set, monkeypatch) -> None:

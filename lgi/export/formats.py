@@ -46,7 +46,6 @@ def write_usd(
     """
     from pxr import Sdf, Usd, UsdGeom, Vt
 
-    vertices = np.asarray(vertices, np.float32)
     frames = np.arange(len(vertices)) if frames is None else np.asarray(frames)
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
@@ -70,7 +69,10 @@ def write_usd(
     points = mesh.CreatePointsAttr()
     extent = mesh.CreateExtentAttr()
     for f, v in zip(frames, vertices, strict=True):
-        points.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(v)), Usd.TimeCode(float(f)))
+        # Frame by frame, so that a memory-mapped shot (lgi.io.npz.npz_member: rows not 4-byte aligned in the
+        # zip, which USD's buffers refuse) is read a frame at a time.
+        v = np.require(v, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
+        points.Set(Vt.Vec3fArray.FromNumpy(v), Usd.TimeCode(float(f)))
         extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([v.min(0), v.max(0)])), Usd.TimeCode(float(f)))
     path = Path(path)
     with atomic_file(path, suffix=path.suffix or ".usdc") as tmp:

@@ -4,6 +4,10 @@
 write different files. Content-addressed caches and resumable flows need byte-identical outputs, so
 every stored archive goes through :func:`save_npz` (entries in the given order, a fixed timestamp, no
 compression; readable by ``numpy.load`` as usual).
+
+A long shot's meshes do not fit in memory: :class:`NpzWriter` writes an entry block by block (the same bytes as
+:func:`save_npz` of the whole array), and :func:`npz_member` maps an entry of a stored archive without reading
+it, so that a reader takes a range of frames.
 """
 
 from __future__ import annotations
@@ -17,15 +21,147 @@ import numpy as np
 _EPOCH = (1980, 1, 1, 0, 0, 0)
 
 
+def _entry(name: str) -> zipfile.ZipInfo:
+    info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
+    info.external_attr = 0o644 << 16
+    return info
+
+
 def save_npz(path: str | os.PathLike[str], **arrays: np.ndarray) -> None:
     """Write ``arrays`` to ``path`` as an uncompressed npz with fixed metadata (not atomic by itself)."""
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
         for name, arr in arrays.items():
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.asanyarray(arr), allow_pickle=False)
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=_EPOCH)
-            info.external_attr = 0o644 << 16
-            zf.writestr(info, buf.getvalue())
+            zf.writestr(_entry(name), buf.getvalue())
+
+
+class NpzWriter:
+    """An npz written entry by entry, a large entry block by block along its first axis: the file holds the
+    bytes :func:`save_npz` writes for the same arrays, without the whole array in memory.
+
+    Use as a context manager; :meth:`add` writes a whole array, :meth:`begin` / :meth:`write` / :meth:`end` one
+    of known shape in blocks (entries one at a time, in order).
+    """
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = path
+        self._zf = zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED, allowZip64=True)
+        self._open: tuple[object, str, np.dtype, tuple[int, ...], int] | None = None
+
+    def __enter__(self) -> NpzWriter:
+        return self
+
+    def __exit__(self, kind, value, tb) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self.abort()
+
+    def close(self) -> None:
+        """Write the archive's directory; every entry must be ended."""
+        if self._open is not None:
+            raise ValueError(f"{self.path}: entry {self._open[1]!r} not ended")
+        self._zf.close()
+
+    def abort(self) -> None:
+        """Close an archive left unfinished: an entry begun is cut short, so the file is no result (remove it)."""
+        if self._open is not None:
+            self._open[0].close()
+            self._open = None
+        self._zf.close()
+
+    def add(self, name: str, array: np.ndarray) -> None:
+        """Write a whole array as entry ``name``."""
+        array = np.ascontiguousarray(array)
+        self.begin(name, array.shape, array.dtype)
+        self.write(array)
+        self.end()
+
+    def begin(self, name: str, shape: tuple[int, ...], dtype: np.dtype | str) -> None:
+        """Start entry ``name`` of ``shape`` and ``dtype``; its rows (along the first axis) follow by
+        :meth:`write`."""
+        if self._open is not None:
+            raise ValueError(f"{self.path}: entry {self._open[1]!r} not ended")
+        dtype = np.dtype(dtype)
+        if dtype.hasobject:
+            raise ValueError("object arrays are not stored")
+        head = io.BytesIO()
+        # The header numpy.lib.format.write_array gives a C-ordered array: version 1.0 while it fits, else 2.0.
+        fmt = np.lib.format
+        d = {"descr": fmt.dtype_to_descr(dtype), "fortran_order": False, "shape": tuple(int(n) for n in shape)}
+        try:
+            fmt.write_array_header_1_0(head, d)
+        except ValueError:
+            head = io.BytesIO()
+            fmt.write_array_header_2_0(head, d)
+        info = _entry(name)
+        rows = int(shape[0]) if len(shape) else 1
+        info.file_size = len(head.getvalue()) + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        dest = self._zf.open(info, "w")
+        dest.write(head.getvalue())
+        self._open = (dest, name, dtype, tuple(shape), rows)
+        self._rows = 0
+
+    def write(self, rows: np.ndarray) -> None:
+        """Append rows (along the first axis) to the entry begun."""
+        if self._open is None:
+            raise ValueError(f"{self.path}: no entry begun")
+        dest, name, dtype, shape, n = self._open
+        rows = np.ascontiguousarray(rows, dtype=dtype)
+        if rows.shape[1:] != shape[1:] or self._rows + len(rows) > n:
+            raise ValueError(f"{self.path}: rows of shape {rows.shape} do not fit entry {name!r} {shape} after "
+                             f"{self._rows} rows")
+        dest.write(memoryview(rows.reshape(-1)).cast("B"))
+        self._rows += len(rows)
+
+    def end(self) -> None:
+        """Close the entry begun, which must have all its rows."""
+        dest, name, _, shape, n = self._open
+        if self._rows != n:
+            raise ValueError(f"{self.path}: entry {name!r} has {self._rows} of its {n} rows")
+        dest.close()
+        self._open = None
+
+
+def npz_member(path: str | os.PathLike[str], name: str) -> np.ndarray:
+    """Entry ``name`` of a stored (uncompressed) npz, memory-mapped read-only: rows are read from disk as they
+    are used, so a frame range of a long shot's meshes costs its own size. An
+    :class:`~lgi.errors.InputError` names the file when it is not such an archive or has no such entry."""
+    from lgi.errors import InputError
+
+    try:
+        with zipfile.ZipFile(path) as zf:
+            info = zf.getinfo(f"{name}.npy")
+            if info.compress_type != zipfile.ZIP_STORED:
+                raise InputError(f"entry {name!r} is compressed (not written by lgi)", path=path)
+        with open(path, "rb") as fp:
+            fp.seek(info.header_offset)
+            local = fp.read(30)
+            if local[:4] != b"PK\x03\x04":
+                raise InputError(f"entry {name!r}: bad local header", path=path)
+            fp.seek(info.header_offset + 30 + int.from_bytes(local[26:28], "little")
+                    + int.from_bytes(local[28:30], "little"))
+            version = np.lib.format.read_magic(fp)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read(fp)
+            offset = fp.tell()
+    except FileNotFoundError:
+        raise InputError("file not found", path=path) from None
+    except KeyError:
+        raise InputError(f"no array {name!r}", path=path) from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise InputError(f"not a readable npz file ({exc})", path=path) from None
+    if dtype.hasobject:
+        raise InputError(f"holds an array that is not plain data ({name!r})", path=path)
+    if dtype.isnative:  # "<f4" read from the header, as numpy's own float32 (which USD's buffers take)
+        dtype = dtype.newbyteorder("=")
+    size = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if size > info.file_size or offset + size > os.path.getsize(path):
+        raise InputError(f"entry {name!r} is truncated", path=path)
+    if size == 0:
+        return np.zeros(shape, dtype)
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape, order="F" if fortran else "C")
 
 
 def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:

@@ -77,10 +77,10 @@ def finish_chunk(index_dir: str, bundles: str, options: dict, choices: list[str]
 def rays_task(index_dir: str, bundles: str, options: dict, first: str, out: str) -> dict:
     """Markers seen by one camera onto their rays, from the first pass's meshes (see
     :func:`lgi.jobs.reconstruct.constrain_to_rays`)."""
-    from lgi.io.npz import load_npz
+    from lgi.io.npz import npz_member
 
     shot = job.prepared_shot(index_dir, bundles, job.ReconstructOptions.from_json(options))
-    return job.constrain_to_rays(shot, load_npz(Path(first) / "meshes.npz", ("vertices",))["vertices"], out)
+    return job.constrain_to_rays(shot, npz_member(Path(first) / "meshes.npz", "vertices"), out)
 
 
 @task(name="write-shot", **_T)

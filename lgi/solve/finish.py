@@ -3,7 +3,7 @@ second thread beside the choice when nothing is smoothed), and the per-bundle di
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pandas as pd
@@ -24,12 +24,15 @@ class Finishing:
     pairs ``_pair_i``/``_pair_j``, ``layout``, ``rig``, ``global_fit``, ...).
     """
 
-    def _select_and_finish(self, fit_pos: np.ndarray, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
-                           jaw: np.ndarray | None, show_progress: bool) -> SequenceResult:
-        """:meth:`select_sequence` then :meth:`finish_sequence` without temporal smoothing, on two threads: the
-        choice of frame f + 1 (its kernels compiled without the GIL) runs while frame f is blended. Each frame's
-        choice still follows the previous one's in order, and the one-thread kernels give the parallel ones'
-        bits, so the result is the one the two calls in turn give (tested); only the wall time changes."""
+    def _stream_unsmoothed(self, fit_pos: np.ndarray, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
+                           jaw: np.ndarray | None, show_progress: bool, block: int
+                           ) -> Iterator[tuple[int, int, SequenceResult]]:
+        """:meth:`select_sequence` then :meth:`finish_sequence` without temporal smoothing, on two threads, in
+        blocks of ``block`` frames: yields ``(lo, hi, result of frames lo:hi)`` in order, holding one block's
+        surfaces and choices at a time. The choice of frame f + 1 (its kernels compiled without the GIL) runs
+        while frame f is blended, and goes on while a block is written. Each frame's choice still follows the
+        previous one's in order, and the one-thread kernels give the parallel ones' bits, so the result is the one
+        the two calls in turn give (tested); only the wall time changes."""
         import queue
         import threading
 
@@ -51,7 +54,7 @@ class Finishing:
 
         def produce() -> None:
             try:
-                self.select_sequence(fit_pos, frames, jaw, False, lambda f, sel: put((f, sel)))
+                self.select_sequence(fit_pos, frames, jaw, False, lambda f, sel: put((f, sel)), keep=False)
             except _Stopped:
                 return
             except BaseException as exc:  # handed to the consumer, which raises it
@@ -60,23 +63,33 @@ class Finishing:
                 except _Stopped:
                     return
 
+        n = len(pos)
+        left = self.noise_left if self.noise_left is not None and len(self.noise_left) == n else None
         worker = threading.Thread(target=produce, name="lgi-select", daemon=True)
-        fin = _Finisher(self, pos, fit_pos, self.noise_left if self.noise_left is not None
-                        and len(self.noise_left) == len(pos) else None)
-        sels: list[FrameResult] = []
         self._serial = True
         worker.start()
         try:
-            for _ in progress(range(len(pos)), "reconstructing", disable=not show_progress):
-                f, sel = chosen.get()
-                if f < 0:
-                    raise sel
-                sels.append(sel)
-                fin.frame(f, *self.blend_slots(sel), sel.jaw, sel.far_share)
+            bar = iter(progress(range(n), "reconstructing", disable=not show_progress))
+            for lo in range(0, n, block):
+                hi = min(n, lo + block)
+                fin = _Finisher(self, pos[lo:hi], fit_pos[lo:hi], None if left is None else left[lo:hi])
+                sels: list[FrameResult] = []
+                for _ in range(lo, hi):
+                    next(bar, None)
+                    f, sel = chosen.get()
+                    if f < 0:
+                        raise sel
+                    sels.append(sel)
+                    fin.frame(f - lo, *self.blend_slots(sel), sel.jaw, sel.far_share)
+                thetas = None if self.rig is None else np.stack([s.jaw for s in sels]).astype(np.float64)
+                diag = self._diagnostics(sels, frames[lo:hi], bridged[lo:hi], fin.before, fin.r_final, thetas)
+                yield lo, hi, SequenceResult(np.asarray(frames[lo:hi]), fin.out, diag, thetas, self.noise, 1,
+                                             fin.before, fin.r_final)
+            next(bar, None)
         except BaseException:
-            # Interrupted or failed: the chooser stops at its next frame, but it may be deep in a first call's
-            # compilation (a minute on a loaded machine); waiting for it would hold a Ctrl-C that long. It only
-            # computes choices, and as a daemon thread it ends with the process.
+            # Interrupted, failed or closed: the chooser stops at its next frame, but it may be deep in a first
+            # call's compilation (a minute on a loaded machine); waiting for it would hold a Ctrl-C that long. It
+            # only computes choices, and as a daemon thread it ends with the process.
             stop.set()
             worker.join(timeout=1.0)
             self._serial = False
@@ -84,9 +97,34 @@ class Finishing:
         stop.set()
         worker.join()
         self._serial = False
-        thetas = None if self.rig is None else np.stack([s.jaw for s in sels]).astype(np.float64)
-        diag = self._diagnostics(sels, frames, bridged, fin.before, fin.r_final, thetas)
-        return SequenceResult(np.asarray(frames), fin.out, diag, thetas, self.noise, 1, fin.before, fin.r_final)
+
+    def _stream_smoothed(self, fit_pos: np.ndarray, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
+                         smooth: int, jaw_smooth: int | None, jaw: np.ndarray | None, show_progress: bool,
+                         block: int) -> Iterator[tuple[int, int, SequenceResult]]:
+        """The same with temporal smoothing: each block is chosen (continuing from the last choice), then
+        finished from the choices its smoothing windows reach (:func:`smoothing_reach`), which are all that is
+        kept. A frame's result depends only on the frames in its windows, so the blocks give the bits of the
+        whole shot finished at once (tested)."""
+        n = len(pos)
+        left = self.noise_left if self.noise_left is not None and len(self.noise_left) == n else None
+        reach = smoothing_reach(smooth, jaw_smooth)
+        sels: list[FrameResult] = []
+        first = chosen = 0
+        for lo in progress(range(0, n, block), "reconstructing", disable=not show_progress):
+            hi = min(n, lo + block)
+            a, b = max(0, lo - reach), min(n, hi + reach)
+            if chosen < b:
+                new = self.select_sequence(fit_pos[chosen:b], frames[chosen:b], None if jaw is None else jaw[chosen:b],
+                                           previous=sels[-1] if sels else None,
+                                           left=None if left is None else left[chosen:b])
+                sels += new
+                chosen = b
+            del sels[:a - first]
+            first = a
+            k = slice(first, chosen)
+            yield lo, hi, self.finish_sequence(sels, pos[k], frames[k], bridged[k], smooth, jaw_smooth, False,
+                                               fit_pos[k], lo - first, hi - first,
+                                               None if left is None else left[k])
 
     @one_blas_thread
     def finish_sequence(self, sels: list[FrameResult], pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
@@ -235,6 +273,14 @@ class _Finisher:
         x, resid, t = self.blend(f, shapes, lam, jaw, share)
         self.before[f] = np.linalg.norm(resid, axis=1)
         self.finish(f, x, resid, t)
+
+
+def smoothing_reach(smooth: int, jaw_smooth: int | None = None) -> int:
+    """How many frames on either side of a frame its finished surface reads the choices of: its blend spans the
+    smoothing window, each blend's weights a window more, and the jaw its own window on top."""
+    h = smooth // 2 if smooth > 1 else 0
+    hj = (smooth if jaw_smooth is None else jaw_smooth) // 2
+    return 2 * h + hj
 
 
 def slot_labels(shapes: np.ndarray, weights: np.ndarray, shape_names: list[str]) -> tuple[np.ndarray, np.ndarray]:

@@ -102,3 +102,14 @@ class SequenceResult:
     smooth: int = 1
     before: np.ndarray | None = None
     after: np.ndarray | None = None
+
+
+def join_results(parts: list[SequenceResult]) -> SequenceResult:
+    """Consecutive blocks of a sequence (:meth:`LGISolver.stream_prepared`) as one result."""
+    def cat(get):
+        got = [get(p) for p in parts]
+        return None if got[0] is None else np.concatenate(got)
+
+    return SequenceResult(cat(lambda p: p.frames), cat(lambda p: p.vertices),
+                          pd.concat([p.diagnostics for p in parts], ignore_index=True), cat(lambda p: p.jaw),
+                          parts[0].noise, parts[0].smooth, cat(lambda p: p.before), cat(lambda p: p.after))

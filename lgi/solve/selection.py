@@ -297,9 +297,11 @@ class Selection:
     def select_sequence(self, pos: np.ndarray, frames: np.ndarray, jaw: np.ndarray | None = None,
                         show_progress: bool = False,
                         emit: Callable[[int, FrameResult], None] | None = None,
-                        previous: FrameResult | None = None, left: np.ndarray | None = None) -> list[FrameResult]:
+                        previous: FrameResult | None = None, left: np.ndarray | None = None,
+                        keep: bool = True) -> list[FrameResult]:
         """Each frame's choice of shapes and weights, in order (the previous frame's carried into the next);
-        ``emit(f, choice)`` is called with each as it is made. ``previous``: the choice of the frame before
+        ``emit(f, choice)`` is called with each as it is made (with ``keep`` False, the only place they go: a long
+        shot's choices are not held). ``previous``: the choice of the frame before
         ``pos[0]`` when a shot is chosen in chunks (the result is then the one a single call gives). ``left``
         (F, M, 3) cm^2: the noise variance left in ``pos`` (default: the solver's, :meth:`denoise`, when it covers
         these frames)."""
@@ -314,7 +316,8 @@ class Selection:
                                          None if left is None else left[f], fits[f])
             except InputError as exc:
                 raise InputError(exc.message, frame=int(frames[f])) from None
-            sels.append(prev)
+            if keep:
+                sels.append(prev)
             if emit is not None:
                 emit(f, prev)
         return sels

@@ -20,9 +20,11 @@ The solver composes the stages a frame goes through, each in its own module: the
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 
 import numpy as np
 import scipy.sparse
+from threadpoolctl import threadpool_limits
 
 from lgi.capture.bundles import Bundles
 from lgi.errors import InputError
@@ -33,7 +35,7 @@ from lgi.solve._select_kernels import (
 from lgi.solve.finish import Finishing, slot_labels
 from lgi.solve.globalfit import GlobalFit
 from lgi.solve.noise import NoiseHandling
-from lgi.solve.results import FITTED, STATUS, FrameResult, SequenceResult
+from lgi.solve.results import FITTED, STATUS, FrameResult, SequenceResult, join_results
 from lgi.solve.selection import LOCAL_MIN_MISFIT, Selection
 from lgi.solve.surface import FAR_FIELD, FAR_MARGIN, Surface, _FarField
 from lgi.solve.temporal import NoiseEstimate
@@ -141,7 +143,7 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         self._deltas = np.ascontiguousarray(index.deltas)  # read once: the blend touches all of it every frame
         self._deltas_flat = self._deltas.reshape(len(self._deltas), -1)  # a view: rows of 3V for blend_uniform
         self._w_sum: np.ndarray | None = None  # (V,) total blend weight per vertex, for uniform blends
-        # Set while a shot is chosen on one thread and blended on another (:meth:`_select_and_finish`): each
+        # Set while a shot is chosen on one thread and blended on another (:meth:`_stream_unsmoothed`): each
         # thread then runs the kernels' one-thread twins, the same bits, so no parallel region is launched from
         # two threads (the "workqueue" threading layer aborts on that) or competes for the two cores.
         self._serial = False
@@ -254,14 +256,26 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
                        smooth: int = 1, jaw_smooth: int | None = None, jaw: np.ndarray | None = None,
                        show_progress: bool = False) -> SequenceResult:
         """:meth:`solve_sequence` of a shot already prepared (:meth:`prepare_shot`, :meth:`denoise`)."""
+        parts = [r for _, _, r in self.stream_prepared(pos, frames, bridged, fit_pos, smooth, jaw_smooth, jaw,
+                                                         show_progress, max(len(pos), 1))]
+        return parts[0] if len(parts) == 1 else join_results(parts)
+
+    def stream_prepared(self, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray, fit_pos: np.ndarray,
+                        smooth: int = 1, jaw_smooth: int | None = None, jaw: np.ndarray | None = None,
+                        show_progress: bool = False, block: int = 256) -> Iterator[tuple[int, int, SequenceResult]]:
+        """:meth:`solve_prepared` in blocks of ``block`` frames: yields ``(lo, hi, result of frames lo:hi)`` in
+        order, the same bits as the whole shot, while holding one block's surfaces (and the choices its smoothing
+        reaches) at a time: a long take's memory does not grow with its length."""
         if jaw is not None and len(jaw) != len(pos):
             raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
-        if smooth <= 1 and (jaw_smooth is None or jaw_smooth <= 1 or self.rig is None):
-            # Without smoothing each frame can be blended as soon as it is chosen: the choice of the next frame
-            # runs beside it, each thread with the one-thread kernels.
-            return self._select_and_finish(fit_pos, pos, frames, bridged, jaw, show_progress)
-        sels = self.select_sequence(fit_pos, frames, jaw, show_progress)
-        return self.finish_sequence(sels, pos, frames, bridged, smooth, jaw_smooth, show_progress, fit_pos)
+        with threadpool_limits(limits=1, user_api="blas"):
+            if smooth <= 1 and (jaw_smooth is None or jaw_smooth <= 1 or self.rig is None):
+                # Without smoothing each frame can be blended as soon as it is chosen: the choice of the next
+                # frame runs beside it, each thread with the one-thread kernels.
+                yield from self._stream_unsmoothed(fit_pos, pos, frames, bridged, jaw, show_progress, block)
+            else:
+                yield from self._stream_smoothed(fit_pos, pos, frames, bridged, smooth, jaw_smooth, jaw,
+                                                 show_progress, block)
 
     @one_blas_thread
     def prepare_shot(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None, max_gap: int = 0,

@@ -3,9 +3,11 @@ asked extras): the one writer, its per-frame table, and the output folder's chec
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -99,40 +101,148 @@ def run_record(options: ReconstructOptions, noise_mm: float | None, estimate=Non
 
 def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], options: ReconstructOptions,
                          constrained: Path | None = None, noise_estimate=None) -> None:
-    """The one writer of a reconstruction: ``meshes.npz`` (vertices (F, V, 3) float32 cm, frames, jaw (F, 4)
-    with a rig), ``diagnostics.csv``, ``per_frame.csv``, ``run.json`` (:func:`run_record`; ``noise_estimate``
-    is the solver's :class:`~lgi.solve.noise.NoiseEstimate` when it estimated one) and, as asked, ``obj/``,
-    ``shot.usdc``,
-    ``per_frame.png`` and ``bundles_constrained.parquet`` (the bundles with the rays' points: ``constrained``);
-    through :func:`lgi.io.atomic.job_outputs` (an earlier run's outputs not written now are
-    removed)."""
-    from lgi._stages import stage as debug_stage
+    """A whole reconstruction ``res`` (a :class:`~lgi.solve.results.SequenceResult`) written into ``out`` as one
+    block of :class:`ReconstructionWriter` (see there for the files)."""
+    with reconstruction_outputs(out, res.frames, arrays, options, res.jaw is not None, constrained) as writer:
+        writer.append(res)
+        writer.close(getattr(res, "noise", None), noise_estimate)
+
+
+@contextlib.contextmanager
+def reconstruction_outputs(out: str | Path, frames: np.ndarray, arrays: dict[str, np.ndarray],
+                           options: ReconstructOptions, with_jaw: bool, constrained: Path | None = None
+                           ) -> Iterator[ReconstructionWriter]:
+    """A :class:`ReconstructionWriter` staging a reconstruction of ``frames`` for ``out``, through
+    :func:`lgi.io.atomic.job_outputs`: the outputs replace an earlier run's only once it is closed, and an
+    error or interrupt leaves ``out`` as it was (an earlier run's outputs not written now are removed)."""
     from lgi.io.atomic import job_outputs
-    from lgi.io.csvio import write_csv
-    from lgi.io.npz import save_npz
 
     with job_outputs(out, OUTPUTS, OUTPUT_CONTENTS) as stage:
-        debug_stage("write")
-        extra = {} if res.jaw is None else {"jaw": res.jaw.astype(np.float32)}
-        save_npz(stage / "meshes.npz", vertices=res.vertices, frames=res.frames, **extra)
-        write_csv(res.diagnostics, stage / "diagnostics.csv")
-        per_frame = per_frame_table(res.diagnostics)
-        per_frame.to_csv(stage / "per_frame.csv", index=False, float_format="%.6g")
-        record = run_record(options, getattr(res, "noise", None), noise_estimate)
-        (stage / "run.json").write_text(json.dumps(record, indent=1, sort_keys=True, allow_nan=False) + "\n")
-        if options.plot:
-            plot_per_frame(per_frame, stage / "per_frame.png")
+        writer = ReconstructionWriter(stage, frames, arrays, options, with_jaw, constrained)
+        try:
+            yield writer
+        except BaseException:
+            writer.abandon()
+            raise
+        if not writer.closed:
+            writer.abandon()
+            raise RuntimeError("the reconstruction's writer was not closed")
+
+
+class ReconstructionWriter:
+    """The one writer of a reconstruction, block of frames by block, into a staging folder: ``meshes.npz``
+    (vertices (F, V, 3) float32 cm, frames, jaw (F, 4) with a rig), ``diagnostics.csv``, ``per_frame.csv``,
+    ``run.json`` (:func:`run_record`) and, as asked, ``obj/``, ``shot.usdc``, ``per_frame.png`` and
+    ``bundles_constrained.parquet`` (the bundles with the rays' points: ``constrained``).
+
+    Each block's surfaces go to disk as they come (:class:`lgi.io.npz.NpzWriter`; the same bytes as the whole
+    shot written at once), its diagnostics rows are appended, and only per-frame rows stay in memory, so a long
+    take is written in memory bounded by a block. Use :func:`reconstruction_outputs`.
+
+    Parameters
+    ----------
+    stage : Path
+        The staging folder (:func:`lgi.io.atomic.job_outputs`).
+    frames : (F,) int
+        The shot's frame numbers; blocks come in this order.
+    arrays : dict
+        The index's arrays (faces and UVs for OBJ and USD).
+    options : ReconstructOptions
+    with_jaw : bool
+        Whether the blocks carry jaw parameters (an index with a rig).
+    """
+
+    def __init__(self, stage: Path, frames: np.ndarray, arrays: dict[str, np.ndarray],
+                 options: ReconstructOptions, with_jaw: bool, constrained: Path | None = None) -> None:
+        from lgi.io.npz import NpzWriter
+
+        self.stage, self.frames, self.arrays, self.options = stage, np.asarray(frames), arrays, options
+        self.constrained = constrained
+        self.done = 0
+        self.closed = False
+        self._npz = NpzWriter(stage / "meshes.npz")
+        self._npz.begin("vertices", (len(self.frames), len(arrays["neutral"]), 3), np.float32)
+        self._jaw: list[np.ndarray] | None = [] if with_jaw else None
+        self._csv = None
+        self._schema = None
+        self._per_frame: list[pd.DataFrame] = []
         if options.obj:
+            (stage / "obj").mkdir()
+
+    def append(self, res) -> None:
+        """Write the next block of frames (a :class:`~lgi.solve.results.SequenceResult` of frames following the
+        last block's)."""
+        from lgi._stages import stage as debug_stage
+
+        n = len(res.frames)
+        if not np.array_equal(res.frames, self.frames[self.done:self.done + n]):
+            raise ValueError(f"block of frames {res.frames[:1]}... does not follow frame {self.done} of the shot")
+        if self.done == 0:
+            debug_stage("write")
+        self._npz.write(np.asarray(res.vertices, np.float32))
+        if self._jaw is not None:
+            self._jaw.append(np.asarray(res.jaw, np.float32))
+        self._append_diagnostics(res.diagnostics)
+        self._per_frame.append(per_frame_table(res.diagnostics))
+        if self.options.obj:
             from lgi.io.obj import write_obj
 
-            (stage / "obj").mkdir()
+            a = self.arrays
             for f, frame in enumerate(res.frames):
-                write_obj(stage / "obj" / f"frame_{int(frame):05d}.obj", res.vertices[f], arrays["face_vertices"],
-                          arrays["face_offsets"], arrays.get("uvs"), arrays.get("face_uvs"))
-        if constrained is not None:
-            shutil.copyfile(constrained, stage / CONSTRAINED)
-        if options.usd:
-            from lgi.export.formats import write_usd
+                write_obj(self.stage / "obj" / f"frame_{int(frame):05d}.obj", res.vertices[f], a["face_vertices"],
+                          a["face_offsets"], a.get("uvs"), a.get("face_uvs"))
+        self.done += n
 
-            write_usd(stage / "shot.usdc", res.vertices, arrays["face_vertices"], arrays["face_offsets"],
-                      arrays.get("uvs"), arrays.get("face_uvs"), res.frames, fps=options.fps)
+    def _append_diagnostics(self, table: pd.DataFrame) -> None:
+        # pyarrow's C++ writer (lgi.io.csvio), its batches appended to one file: the bytes of the whole table.
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+
+        arrow = pa.Table.from_pandas(table, preserve_index=False)
+        if self._csv is None:
+            self._schema = arrow.schema.remove_metadata()
+            self._csv = pacsv.CSVWriter(str(self.stage / "diagnostics.csv"), self._schema,
+                                        write_options=pacsv.WriteOptions(quoting_style="needed"))
+        elif not arrow.schema.equals(self._schema, check_metadata=False):
+            arrow = arrow.cast(self._schema)
+        self._csv.write_table(arrow.replace_schema_metadata(None))
+
+    def close(self, noise_mm: float | None, noise_estimate=None) -> None:
+        """Finish the files once every frame is written: the meshes' frames and jaw, the per-frame table (and
+        plot), ``run.json``, and the asked USD and constrained bundles."""
+        if self.done != len(self.frames):
+            raise ValueError(f"{self.done} of the shot's {len(self.frames)} frames written")
+        self._npz.end()
+        self._npz.add("frames", self.frames)
+        if self._jaw is not None:
+            self._npz.add("jaw", np.concatenate(self._jaw))
+        self._npz.close()
+        if self._csv is not None:
+            self._csv.close()
+        per_frame = pd.concat(self._per_frame, ignore_index=True)
+        per_frame.to_csv(self.stage / "per_frame.csv", index=False, float_format="%.6g")
+        record = run_record(self.options, noise_mm, noise_estimate)
+        (self.stage / "run.json").write_text(json.dumps(record, indent=1, sort_keys=True, allow_nan=False) + "\n")
+        if self.options.plot:
+            plot_per_frame(per_frame, self.stage / "per_frame.png")
+        if self.constrained is not None:
+            shutil.copyfile(self.constrained, self.stage / CONSTRAINED)
+        if self.options.usd:
+            from lgi.export.formats import write_usd
+            from lgi.io.npz import npz_member
+
+            a = self.arrays
+            write_usd(self.stage / "shot.usdc", npz_member(self.stage / "meshes.npz", "vertices"),
+                      a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"), self.frames,
+                      fps=self.options.fps)
+        self.closed = True
+
+    def abandon(self) -> None:
+        """Close the files of a run that stopped (the staging folder is then removed)."""
+        import contextlib
+
+        with contextlib.suppress(Exception):
+            self._npz.abort()
+        if self._csv is not None:
+            with contextlib.suppress(Exception):
+                self._csv.close()

@@ -9,16 +9,22 @@ from pathlib import Path
 from typing import Any
 
 from lgi.jobs.reconstruct.options import ReconstructOptions
-from lgi.jobs.reconstruct.outputs import check_output, write_reconstruction
+from lgi.jobs.reconstruct.outputs import check_output, reconstruction_outputs
 from lgi.jobs.reconstruct.rays import CONSTRAINED
 from lgi.jobs.reconstruct.shot import Shot, constrain_to_rays
-from lgi.jobs.reconstruct.summary import summarise
+from lgi.jobs.reconstruct.stages import replace_outputs
+from lgi.jobs.reconstruct.summary import ShotSummary
+
+#: Frames solved and written at a time by the job in this process: a long take's memory is bounded by a block of
+#: surfaces (ICT, 26,719 vertices: 38 MB), whatever its length.
+BLOCK_FRAMES = 120
 
 
 def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
                 options: ReconstructOptions | None = None, show_progress: bool = False) -> dict[str, Any]:
     """Reconstruct a shot in this process and write its outputs into ``out``; returns the summary
-    (:func:`summarise`; :func:`report_lines` formats it).
+    (:class:`ShotSummary`; :func:`report_lines` formats it). The shot is solved and written in blocks of
+    :data:`BLOCK_FRAMES` frames.
 
     With ``options.observations``, twice: without the markers seen by one camera, then through their points on
     their rays (:func:`constrain_to_rays`)."""
@@ -34,27 +40,47 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
     shot = Shot(index_dir, bundles, options)
     t1 = time.perf_counter()
     stage("solve")
-    res = shot.run(show_progress)
-    t2 = time.perf_counter()
     if not options.observations:
-        write_reconstruction(out, res, shot.index.arrays, options, noise_estimate=shot.solver.noise_estimate)
-        return summarise(res, shot, out, {"load": t1 - t0, "solve": t2 - t1, "write": time.perf_counter() - t2})
+        tally, solve, write = write_shot(shot, out, options, show_progress=show_progress)
+        return tally.result(shot, out, {"load": t1 - t0, "solve": solve, "write": write})
     from lgi.io.atomic import make_temp_dir, sweep
+    from lgi.io.npz import npz_member
 
     parent, prefix = Path(out).absolute().parent, f".{Path(out).name}.rays-"
     parent.mkdir(parents=True, exist_ok=True)
     sweep(parent, prefix)
     work = make_temp_dir(parent, prefix)
     try:
-        counts = constrain_to_rays(shot, res.vertices, work / CONSTRAINED)
+        _, solve1, write1 = write_shot(shot, work / "first", replace_outputs(options), show_progress=show_progress)
+        t2 = time.perf_counter()
+        counts = constrain_to_rays(shot, npz_member(work / "first" / "meshes.npz", "vertices"), work / CONSTRAINED)
         t3 = time.perf_counter()
         shot = Shot(index_dir, work / CONSTRAINED, options)
-        res = shot.run(show_progress)
-        t4 = time.perf_counter()
-        write_reconstruction(out, res, shot.index.arrays, options, shot.constrained_file,
-                             noise_estimate=shot.solver.noise_estimate)
+        tally, solve2, write2 = write_shot(shot, out, options, shot.constrained_file, show_progress)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    s = summarise(res, shot, out, {"load": t1 - t0, "solve": (t2 - t1) + (t4 - t3), "rays": t3 - t2,
-                                   "write": time.perf_counter() - t4})
+    s = tally.result(shot, out, {"load": t1 - t0, "solve": solve1 + solve2, "rays": t3 - t2,
+                                 "write": write1 + write2})
     return {**s, **counts}
+
+
+def write_shot(shot: Shot, out: str | Path, options: ReconstructOptions, constrained: Path | None = None,
+               show_progress: bool = False) -> tuple[ShotSummary, float, float]:
+    """Solve ``shot`` in blocks of :data:`BLOCK_FRAMES` frames and write each as it comes
+    (:func:`reconstruction_outputs`); returns the summary gathered on the way and the seconds spent solving and
+    writing."""
+    writing = 0.0
+    tally = ShotSummary(shot.index.n_markers)
+    start = time.perf_counter()
+    with reconstruction_outputs(out, shot.frames, shot.index.arrays, options, shot.index.jaw_rig() is not None,
+                                constrained) as writer:
+        for res in shot.stream(BLOCK_FRAMES, show_progress):
+            t = time.perf_counter()
+            writer.append(res)
+            tally.add(res)
+            writing += time.perf_counter() - t
+        t = time.perf_counter()
+        writer.close(shot.solver.noise, shot.solver.noise_estimate)
+    end = time.perf_counter()
+    writing += end - t
+    return tally, end - start - writing, writing

@@ -6,6 +6,7 @@ denoised, the given jaw; the stages it runs (choose, finish, the whole shot) and
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +22,11 @@ log = logging.getLogger(__name__)
 
 
 def chunk_needs(options: ReconstructOptions, n_frames: int, lo: int, hi: int) -> tuple[int, int]:
-    """The frames whose choices finishing frames lo:hi reads: its blends span the smoothing window, each blend's
-    weights a window more, and the jaw its own window on top (the shot's edges clamp)."""
-    o = options
-    h, hj = o.smooth // 2, (o.smooth if o.jaw_smooth is None else o.jaw_smooth) // 2
-    m = 2 * h + hj
+    """The frames whose choices finishing frames lo:hi reads (:func:`lgi.solve.finish.smoothing_reach`; the
+    shot's edges clamp)."""
+    from lgi.solve.finish import smoothing_reach
+
+    m = smoothing_reach(options.smooth, options.jaw_smooth)
     return max(0, lo - m), min(n_frames, hi + m)
 
 
@@ -139,12 +140,22 @@ class Shot:
         return chunk_needs(self.options, self.n_frames, lo, hi)
 
     def run(self, show_progress: bool = False):
-        """The whole shot in this process (the solver's fastest schedule for it)."""
+        """The whole shot in this process, as one result (:meth:`stream` in one block)."""
+        from lgi.solve.results import join_results
+
+        parts = list(self.stream(max(self.n_frames, 1), show_progress))
+        return parts[0] if len(parts) == 1 else join_results(parts)
+
+    def stream(self, block: int, show_progress: bool = False) -> Iterator[Any]:
+        """The whole shot in this process in blocks of ``block`` frames, in order: each a
+        :class:`~lgi.solve.results.SequenceResult` of its frames, the bits of the shot solved at once
+        (:meth:`lgi.solve.solver.LGISolver.stream_prepared`, the solver's fastest schedule), with the rays and
+        contours met. Only a block's surfaces are held."""
         o = self.options
-        res = self.solver.solve_prepared(self.pos, self.frames, self.bridged, self.fit_pos, o.smooth,
-                                         o.jaw_smooth, self.given_jaw, show_progress)
-        self.meet_rays(res)
-        return res
+        for lo, hi, res in self.solver.stream_prepared(self.pos, self.frames, self.bridged, self.fit_pos, o.smooth,
+                                                       o.jaw_smooth, self.given_jaw, show_progress, block):
+            self.meet_rays(res, lo, hi)
+            yield res
 
     def meet_rays(self, res, lo: int = 0, hi: int | None = None) -> None:
         """Correct the surfaces of frames lo:hi (``res``, in place) so that each marker that stands for a ray

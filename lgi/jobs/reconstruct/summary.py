@@ -8,43 +8,109 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from lgi.jobs.reconstruct.outputs import OUTPUTS
 from lgi.jobs.reconstruct.shot import Shot
 
 
 def summarise(res, shot: Shot, out: str | Path, seconds: dict[str, float]) -> dict[str, Any]:
-    """The job's summary (JSON-friendly): counts, shares of bundle statuses, residuals, noise, jaw range."""
-    d = res.diagnostics
-    st = d.status.to_numpy()
-    proj = d.projection_mm.to_numpy()[st == "projected"]
-    est = shot.solver.noise_estimate
-    s: dict[str, Any] = {
-        "out": str(Path(out).resolve()), "frames": len(res.frames), "markers": shot.index.n_markers,
-        "vertices": shot.index.n_vertices,
-        "contained_share": float((st == "contained").mean()), "projected_share": float((st == "projected").mean()),
-        "neighbour_share": float((st == "neighbour").mean()), "fitted_share": float((st == "fitted").mean()),
-        "missing_share": float(np.isin(st, ["missing", "bridged"]).mean()),
-        "median_projection_mm": float(np.median(proj)) if proj.size else 0.0,
-        "max_residual_mm": float(np.nanmax(d.residual_mm)) if np.isfinite(d.residual_mm).any() else float("nan"),
-        "local_fit_share": float((d.source == "local fit").mean()),
-        "noise_mm": float(res.noise), "noise_estimated": est is not None,
-        "noise_estimate_mm": None if est is None else float(est.noise_mm),
-        "noise_estimate_axes_mm": None if est is None else [float(v) for v in est.axis_mm],
-        "noise_coherence": None if est is None else float(est.coherence),
-        "seconds": seconds, "outputs": [n for n in OUTPUTS if (Path(out) / n).exists()],
-    }
-    if "far_share" in d and d.far_share.notna().any():
-        # Bundle-frames whose weights gave way, far from the markers, to the frame's global fit (share over a half).
-        s["far_field_share"] = float((d.far_share > 0.5).mean())
-    if "constraint" in d and (d.constraint == "ray").any():
-        r = d.ray_distance_mm.to_numpy()[(d.constraint == "ray").to_numpy()]
-        s["rays_used"] = int(r.size)
-        s["ray_residual_max_mm"] = float(np.nanmax(r)) if np.isfinite(r).any() else float("nan")
-    if res.jaw is not None:
-        s["jaw_open_deg"] = [float(res.jaw[:, 0].min()), float(res.jaw[:, 0].max())]
-        s["fit_rms_mm"] = {"median": float(d.fit_rms_mm.median()), "max": float(d.fit_rms_mm.max())}
-    return s
+    """The job's summary (JSON-friendly) of a whole result ``res``: :class:`ShotSummary` of one block."""
+    tally = ShotSummary(shot.index.n_markers)
+    tally.add(res)
+    return tally.result(shot, out, seconds)
+
+
+class ShotSummary:
+    """The job's summary, gathered block by block (:meth:`add`) as a long take is written: counts, shares of
+    bundle statuses, residuals, noise and jaw range (:meth:`result`), holding a few numbers per frame.
+
+    Parameters
+    ----------
+    n_markers : int
+        Rows per frame of the diagnostics.
+    """
+
+    def __init__(self, n_markers: int) -> None:
+        self.n_markers = n_markers
+        self.frames = 0
+        self.rows = 0
+        self.status: dict[str, int] = {}
+        self.projections: list[np.ndarray] = []
+        self.max_residual = -np.inf
+        self.local_fits = 0
+        self.far_rows = self.far_given = 0
+        self.rays: list[np.ndarray] = []
+        self.jaw_open = [np.inf, -np.inf]
+        self.fit_rms: list[np.ndarray] = []
+        self.noise = 0.0
+
+    def add(self, res) -> None:
+        """Count a block (a :class:`~lgi.solve.results.SequenceResult`)."""
+        d = res.diagnostics
+        st = d.status.to_numpy()
+        names, counts = np.unique(st.astype(str), return_counts=True)
+        for k, c in zip(names, counts, strict=True):
+            self.status[k] = self.status.get(k, 0) + int(c)
+        self.frames += len(res.frames)
+        self.rows += len(st)
+        self.projections.append(d.projection_mm.to_numpy()[st == "projected"])
+        r = d.residual_mm.to_numpy(np.float64)
+        if np.isfinite(r).any():
+            self.max_residual = max(self.max_residual, float(np.nanmax(r)))
+        self.local_fits += int((d.source == "local fit").sum())
+        if "far_share" in d:
+            share = d.far_share
+            self.far_given += int(share.notna().sum())
+            self.far_rows += int((share > 0.5).sum())
+        if "constraint" in d:
+            on = (d.constraint == "ray").to_numpy()
+            if on.any():
+                self.rays.append(d.ray_distance_mm.to_numpy()[on])
+        self.noise = float(res.noise)
+        if res.jaw is not None:
+            self.jaw_open = [min(self.jaw_open[0], float(res.jaw[:, 0].min())),
+                             max(self.jaw_open[1], float(res.jaw[:, 0].max()))]
+            # The fit's RMS repeats on every row of its frame: one value per frame gives the rows' median.
+            self.fit_rms.append(d.fit_rms_mm.to_numpy(np.float64).reshape(-1, self.n_markers)[:, 0])
+
+    def result(self, shot: Shot, out: str | Path, seconds: dict[str, float]) -> dict[str, Any]:
+        """The summary (JSON-friendly) of every block added."""
+        n = max(self.rows, 1)
+
+        def share(*names: str) -> float:
+            return float(sum(self.status.get(k, 0) for k in names) / n)
+
+        proj = np.concatenate(self.projections) if self.projections else np.zeros(0)
+        est = shot.solver.noise_estimate
+        s: dict[str, Any] = {
+            "out": str(Path(out).resolve()), "frames": self.frames, "markers": shot.index.n_markers,
+            "vertices": shot.index.n_vertices,
+            "contained_share": share("contained"), "projected_share": share("projected"),
+            "neighbour_share": share("neighbour"), "fitted_share": share("fitted"),
+            "missing_share": share("missing", "bridged"),
+            "median_projection_mm": float(np.median(proj)) if proj.size else 0.0,
+            "max_residual_mm": self.max_residual if np.isfinite(self.max_residual) else float("nan"),
+            "local_fit_share": self.local_fits / n,
+            "noise_mm": self.noise, "noise_estimated": est is not None,
+            "noise_estimate_mm": None if est is None else float(est.noise_mm),
+            "noise_estimate_axes_mm": None if est is None else [float(v) for v in est.axis_mm],
+            "noise_coherence": None if est is None else float(est.coherence),
+            "seconds": seconds, "outputs": [n for n in OUTPUTS if (Path(out) / n).exists()],
+        }
+        if self.far_given:
+            # Bundle-frames whose weights gave way, far from the markers, to the frame's global fit (share over a
+            # half).
+            s["far_field_share"] = self.far_rows / n
+        if self.rays:
+            r = np.concatenate(self.rays)
+            s["rays_used"] = int(r.size)
+            s["ray_residual_max_mm"] = float(np.nanmax(r)) if np.isfinite(r).any() else float("nan")
+        if self.fit_rms:
+            rms = pd.Series(np.concatenate(self.fit_rms))
+            s["jaw_open_deg"] = list(self.jaw_open)
+            s["fit_rms_mm"] = {"median": float(rms.median()), "max": float(rms.max())}
+        return s
 
 
 def report_lines(s: dict[str, Any]) -> list[str]:

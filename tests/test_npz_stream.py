@@ -1,0 +1,70 @@
+"""The meshes' store for long takes: an npz written block by block and read by frame range."""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lgi.errors import InputError
+from lgi.io.npz import NpzWriter, npz_member, save_npz
+
+
+def test_an_npz_written_in_blocks_has_the_bytes_of_one_written_whole(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(37, 101, 3)).astype(np.float32)
+    arrays = {"vertices": v, "frames": np.arange(37) * 2, "jaw": rng.normal(size=(37, 4)).astype(np.float32)}
+    save_npz(tmp_path / "whole.npz", **arrays)
+    with NpzWriter(tmp_path / "blocks.npz") as w:
+        w.begin("vertices", v.shape, v.dtype)
+        for lo in range(0, 37, 10):
+            w.write(v[lo:lo + 10])
+        w.end()
+        w.add("frames", arrays["frames"])
+        w.add("jaw", arrays["jaw"])
+    assert (tmp_path / "whole.npz").read_bytes() == (tmp_path / "blocks.npz").read_bytes()
+    with np.load(tmp_path / "blocks.npz") as z:
+        assert np.array_equal(z["vertices"], v)
+
+
+def test_a_member_is_read_by_frame_range_without_loading_it(tmp_path: Path) -> None:
+    v = np.arange(20 * 7 * 3, dtype=np.float32).reshape(20, 7, 3)
+    save_npz(tmp_path / "m.npz", frames=np.arange(20), vertices=v)
+    m = npz_member(tmp_path / "m.npz", "vertices")
+    assert isinstance(m, np.memmap) and m.shape == v.shape
+    assert np.array_equal(m[5:9], v[5:9])
+    assert np.array_equal(npz_member(tmp_path / "m.npz", "frames"), np.arange(20))
+    with pytest.raises(InputError, match="no array 'jaw'"):
+        npz_member(tmp_path / "m.npz", "jaw")
+
+
+def test_a_cut_or_foreign_archive_is_refused_with_its_name(tmp_path: Path) -> None:
+    v = np.ones((50, 9, 3), np.float32)
+    save_npz(tmp_path / "m.npz", vertices=v)
+    cut = tmp_path / "cut.npz"
+    data = (tmp_path / "m.npz").read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError) as err:
+        npz_member(cut, "vertices")
+    assert err.value.path == str(cut)
+    packed = tmp_path / "packed.npz"
+    np.savez_compressed(packed, vertices=v)
+    with pytest.raises(InputError, match="compressed"):
+        npz_member(packed, "vertices")
+    with zipfile.ZipFile(tmp_path / "short.npz", "w") as zf:  # an entry shorter than its header says
+        zf.writestr("vertices.npy", data[data.index(b"\x93NUMPY"):][:200])
+    with pytest.raises(InputError, match="truncated"):
+        npz_member(tmp_path / "short.npz", "vertices")
+
+
+def test_a_block_that_does_not_fit_is_refused(tmp_path: Path) -> None:
+    with NpzWriter(tmp_path / "x.npz") as w:
+        w.begin("vertices", (4, 2, 3), np.float32)
+        w.write(np.zeros((3, 2, 3)))
+        with pytest.raises(ValueError, match="do not fit"):
+            w.write(np.zeros((2, 2, 3)))
+        with pytest.raises(ValueError, match="3 of its 4 rows"):
+            w.end()
+        w.abort()
