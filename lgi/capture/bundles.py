@@ -103,8 +103,9 @@ def _read_csv_typed(path: Path, extra: list[str]) -> pd.DataFrame | None:
     import pyarrow as pa
     import pyarrow.csv as pacsv
 
-    types = {"frame": pa.float64(), "marker": pa.string(), "x": pa.float64(), "y": pa.float64(), "z": pa.float64(),
-             **{c: pa.float64() for c in extra}}
+    # Marker names as a dictionary (pandas: categorical): a long take repeats a hundred names millions of times.
+    types = {"frame": pa.float64(), "marker": pa.dictionary(pa.int32(), pa.string()), "x": pa.float64(),
+             "y": pa.float64(), "z": pa.float64(), **{c: pa.float64() for c in extra}}
     try:
         table = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(
             column_types=types, include_columns=COLUMNS + extra, null_values=["", "nan", "NaN", "NA"],
@@ -158,7 +159,8 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None)
         if pd.api.types.is_bool_dtype(df[col]) or (df[col].dtype == object and
                                                    df[col].map(lambda v: isinstance(v, bool)).any()):
             raise InputError(f"column {col!r} holds true/false values, not numbers", path=path)
-    no_name = df["marker"].isna().to_numpy() | (df["marker"].astype(str).str.strip() == "").to_numpy()
+    codes, names = _marker_codes(df["marker"])
+    no_name = codes < 0
     if no_name.any():
         r = int(np.flatnonzero(no_name)[0])
         raise InputError("row without a marker name", **_row_ref(path, df, r, is_csv))
@@ -194,30 +196,43 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None)
         raise InputError(f"coordinate {xyz[r].tolist()} is beyond {MAX_COORDINATE_CM:g} cm from the origin (bundles "
                          "are in cm, in the head's frame)", **_row_ref(path, df, r, is_csv))
 
-    names = df["marker"].astype(str).to_numpy()
     if markers is None:
-        markers = list(dict.fromkeys(names.tolist()))
+        markers = [names[c] for c in pd.unique(codes)]
     col_of = {m: i for i, m in enumerate(markers)}
-    unknown = np.array([n not in col_of for n in names])
+    column = np.array([col_of.get(n, -1) for n in names], np.int64)[codes]
+    unknown = column < 0
     if unknown.any():
         r = int(np.flatnonzero(unknown)[0])
         raise InputError("unknown marker name (not in the marker layout)", **_row_ref(path, df, r, is_csv))
-    dup = df.duplicated(subset=["frame", "marker"], keep="first").to_numpy()
+    frames, frame_row = np.unique(df["frame"].to_numpy(), return_inverse=True)
+    dup = pd.Series(frame_row.astype(np.int64) * len(markers) + column).duplicated(keep="first").to_numpy()
     if dup.any():
         r = int(np.flatnonzero(dup)[0])
         raise InputError("duplicate (frame, marker) row", **_row_ref(path, df, r, is_csv))
 
     cov_rows = _row_covariances(path, df, is_csv, xyz, sigma_col, cov_cols)
 
-    frames, frame_row = np.unique(df["frame"].to_numpy(), return_inverse=True)
     pos = np.full((len(frames), len(markers), 3), np.nan)
-    where = (frame_row, [col_of[n] for n in names])
+    where = (frame_row, column)
     pos[where] = xyz
     cov = None
     if cov_rows is not None:
         cov = np.full((len(frames), len(markers), 3, 3), np.nan)
         cov[where] = cov_rows
     return Bundles(frames=frames, markers=list(markers), positions=pos, covariance=cov)
+
+
+def _marker_codes(column: pd.Series) -> tuple[np.ndarray, list[str]]:
+    """The marker column as codes (N,) int64 into its distinct names as written (code -1: a row without a name,
+    empty, blank or missing), and those names."""
+    if isinstance(column.dtype, pd.CategoricalDtype):
+        names = [str(c) for c in column.cat.categories]
+        codes = column.cat.codes.to_numpy().astype(np.int64)
+    else:
+        codes, uniq = pd.factorize(column.astype(str).where(column.notna(), ""))
+        names = [str(c) for c in uniq]
+    blank = np.array([n.strip() == "" for n in names] + [True])  # the last entry stands for code -1
+    return np.where(blank[codes], -1, codes), names
 
 
 def _numbers(path: Path, df: pd.DataFrame, col: str, is_csv: bool) -> np.ndarray:
