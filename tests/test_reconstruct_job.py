@@ -11,6 +11,7 @@ import pytest
 
 from lgi.cli import main
 from lgi.jobs.reconstruct import ReconstructOptions
+from lgi.jobs.reconstruct.stages import save_part as _save_part
 
 FILES = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json")
 
@@ -77,6 +78,23 @@ def test_noisy_rig_shot_same_on_every_schedule(prefect_harness, shot: Path) -> N
     a = np.load(shot / "np" / "meshes.npz")["vertices"]
     b = np.load(shot / "s8" / "meshes.npz")["vertices"]
     assert np.abs(a - b).max() > 1e-4  # the smoothing did something
+
+
+def test_a_flow_over_its_memory_budget_hands_chunks_on_through_files(prefect_harness, shot: Path,
+                                                                     monkeypatch) -> None:
+    """A long take's finished chunks wait for the writer on disk once those held in memory reach the budget: the
+    same files as the plain path, and none held afterwards."""
+    from lgi.jobs.reconstruct import stages
+
+    monkeypatch.setattr(stages, "PARTS_KEPT_BYTES", 2 * 8 * 2600 * 12)  # two chunks of 8 frames in memory, no more
+    saved = []
+    monkeypatch.setattr(stages, "save_part", lambda path, *a: (saved.append(path), _save_part(path, *a)))
+    common = [str(shot / "idxr"), "--bundles", str(shot / "noisy.csv"), "-q"]
+    assert main(["reconstruct", *common, "--out", str(shot / "bp")]) == 0
+    assert main(["reconstruct", *common, "--out", str(shot / "bf"), "--flow", "--chunk-size", "8"]) == 0
+    _same(shot / "bp", shot / "bf", FILES)
+    assert saved, "every chunk was held in memory"
+    assert not stages._PARTS and stages._PARTS_BYTES[0] == 0
 
 
 def test_jaw_none_on_a_rigged_index_refused_on_both_paths(prefect_harness, shot: Path, capsys) -> None:

@@ -17,9 +17,9 @@ import pandas as pd
 
 from lgi.errors import InputError
 from lgi.jobs.reconstruct.options import ReconstructOptions
-from lgi.jobs.reconstruct.outputs import write_reconstruction
+from lgi.jobs.reconstruct.outputs import reconstruction_outputs
 from lgi.jobs.reconstruct.shot import Shot
-from lgi.jobs.reconstruct.summary import summarise
+from lgi.jobs.reconstruct.summary import ShotSummary
 
 
 def replace_outputs(options: ReconstructOptions) -> ReconstructOptions:
@@ -134,6 +134,7 @@ def forget_shots() -> None:
         _SHOTS.clear()
         _MEMO.clear()
         _PARTS.clear()
+        _PARTS_BYTES[0] = 0
 
 
 def choose_chunk(index_dir: str, bundles: str, options: ReconstructOptions, lo: int, hi: int, out: str,
@@ -181,21 +182,31 @@ def finish_chunk(index_dir: str, bundles: str, options: ReconstructOptions, choi
     """Blend, skin and correct frames lo:hi from the choice files ``choices`` (consecutive chunks from frame
     ``first``, covering :meth:`Shot.needs`; by default the whole shot's); write the part to ``out``
     (:func:`save_part`), or with ``keep`` hold it in this process's memory under that name for
-    :func:`assemble` in the same process (a flow on threads: the same values, without the disk)."""
+    :func:`assemble` in the same process (a flow on threads: the same values, without the disk), while the parts
+    held stay within :data:`PARTS_KEPT_BYTES`."""
     shot = prepared_shot(index_dir, bundles, options)
     sels = [s for path in choices for s in _recall(path, load_choices)]
     res = shot.finish(sels, lo, hi, first=first)
     part = (res.vertices, res.jaw, res.diagnostics)
-    if keep:
-        with _SHOTS_LOCK:
-            _PARTS[str(out)] = part
-    else:
+    size = res.vertices.nbytes + int(res.diagnostics.memory_usage(deep=False).sum())
+    with _SHOTS_LOCK:
+        # Held in memory up to a budget, on disk beyond: a long take's finished chunks wait for the writer there.
+        keep = keep and _PARTS_BYTES[0] + size <= PARTS_KEPT_BYTES
+        if keep:
+            _PARTS[str(out)] = (part, size)
+            _PARTS_BYTES[0] += size
+    if not keep:
         save_part(out, *part)
     return out
 
 
-# Finished chunks kept in memory (finish_chunk's ``keep``) until assemble takes them, or forget_parts.
-_PARTS: dict[str, tuple[np.ndarray, np.ndarray | None, pd.DataFrame]] = {}
+#: Finished chunks of a flow on threads are handed to the writer in memory up to this many bytes, through files
+#: beyond: memory stays bounded however long the take.
+PARTS_KEPT_BYTES = 256 * 2**20
+# Finished chunks kept in memory (finish_chunk's ``keep``) until assemble takes them, or forget_parts; and their
+# total size.
+_PARTS: dict[str, tuple[tuple[np.ndarray, np.ndarray | None, pd.DataFrame], int]] = {}
+_PARTS_BYTES = [0]
 
 
 def forget_parts(folder: str | Path) -> None:
@@ -203,7 +214,7 @@ def forget_parts(folder: str | Path) -> None:
     prefix = str(Path(folder)) + os.sep
     with _SHOTS_LOCK:
         for k in [k for k in _PARTS if k.startswith(prefix)]:
-            del _PARTS[k]
+            _PARTS_BYTES[0] -= _PARTS.pop(k)[1]
 
 
 def save_part(path: str | Path, vertices: np.ndarray, jaw: np.ndarray | None, diagnostics: pd.DataFrame) -> None:
@@ -228,19 +239,26 @@ def load_part(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, pd.DataF
 
 def assemble(index_dir: str, bundles: str, options: ReconstructOptions, parts: list[str],
              out: str) -> dict[str, Any]:
-    """Join the finished chunks (in frame order) into the shot's result and write it
-    (:func:`write_reconstruction`); returns the summary."""
+    """Write the finished chunks (in frame order) as the shot's outputs, one after another
+    (:func:`reconstruction_outputs`: a chunk at a time in memory); returns the summary."""
     from lgi.solve.results import SequenceResult
 
     t0 = time.perf_counter()
     shot = prepared_shot(index_dir, bundles, options)
-    with _SHOTS_LOCK:
-        kept = [_PARTS.pop(str(path), None) for path in parts]
-    p = [load_part(path) if k is None else k for path, k in zip(parts, kept, strict=True)]
-    jaw = np.concatenate([x[1] for x in p]) if p[0][1] is not None else None
-    diag = pd.concat([x[2] for x in p], ignore_index=True)
-    res = SequenceResult(np.asarray(shot.frames), np.concatenate([x[0] for x in p]), diag, jaw,
-                         shot.solver.noise, options.smooth)
-    write_reconstruction(out, res, shot.index.arrays, options, shot.constrained_file,
-                         noise_estimate=shot.solver.noise_estimate)
-    return summarise(res, shot, out, {"finish": time.perf_counter() - t0})
+    tally = ShotSummary(shot.index.n_markers)
+    done = 0
+    with reconstruction_outputs(out, shot.frames, shot.index.arrays, options, shot.index.jaw_rig() is not None,
+                                shot.constrained_file) as writer:
+        for path in parts:
+            with _SHOTS_LOCK:
+                kept = _PARTS.pop(str(path), None)
+                if kept is not None:
+                    _PARTS_BYTES[0] -= kept[1]
+            vertices, jaw, diag = load_part(path) if kept is None else kept[0]
+            res = SequenceResult(np.asarray(shot.frames[done:done + len(vertices)]), vertices, diag, jaw,
+                                 shot.solver.noise, options.smooth)
+            writer.append(res)
+            tally.add(res)
+            done += len(vertices)
+        writer.close(shot.solver.noise, shot.solver.noise_estimate)
+    return tally.result(shot, out, {"finish": time.perf_counter() - t0})
