@@ -68,3 +68,21 @@ def test_a_block_that_does_not_fit_is_refused(tmp_path: Path) -> None:
         with pytest.raises(ValueError, match="3 of its 4 rows"):
             w.end()
         w.abort()
+
+
+def test_readers_map_lgis_meshes_and_load_anyone_elses(tmp_path: Path) -> None:
+    from lgi.io.arrays import nonfinite_frames
+    from lgi.io.npz import load_meshes
+
+    v = np.zeros((300, 5, 3), np.float32)
+    v[[7, 250], 2, 1] = np.nan
+    v[130, 0, 0] = np.inf
+    save_npz(tmp_path / "ours.npz", vertices=v, frames=np.arange(300))
+    np.savez_compressed(tmp_path / "theirs.npz", vertices=v, frames=np.arange(300))
+    ours, theirs = load_meshes(tmp_path / "ours.npz", ("vertices", "frames")), load_meshes(tmp_path / "theirs.npz")
+    assert isinstance(ours["vertices"], np.memmap) and not isinstance(ours["frames"], np.memmap)
+    assert not isinstance(theirs["vertices"], np.memmap)
+    for m in (ours, theirs):
+        assert np.array_equal(nonfinite_frames(m["vertices"]), [7, 130, 250])
+    with pytest.raises(InputError, match="missing arrays \\['jaw'\\]"):
+        load_meshes(tmp_path / "ours.npz", ("vertices", "jaw"))

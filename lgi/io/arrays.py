@@ -90,3 +90,11 @@ def check_mesh(arrays: Mapping[str, np.ndarray], n_vertices: int, path: str | os
         if "uvs" not in arrays or fu.shape != fv.shape:
             raise _damaged(path, "face_uvs without uvs, or not one per face corner")
         check_range(fu, 0, len(arrays["uvs"]), "face_uvs", path)
+
+
+def nonfinite_frames(vertices: np.ndarray, block: int = 64) -> np.ndarray:
+    """Indices of the frames of ``vertices`` (F, V, 3) that hold a NaN or an infinity, checked ``block`` frames at
+    a time, so that a memory-mapped long take is not copied whole."""
+    bad = [lo + np.flatnonzero(~np.isfinite(vertices[lo:lo + block]).all(axis=(1, 2)))
+           for lo in range(0, len(vertices), block)]
+    return np.concatenate(bad) if bad else np.zeros(0, np.int64)

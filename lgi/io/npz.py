@@ -185,6 +185,31 @@ def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> di
 
 
 
+def load_meshes(path: str | os.PathLike[str], required: tuple[str, ...] = ("vertices",)) -> dict[str, np.ndarray]:
+    """A reconstruction's ``meshes.npz`` for a reader that goes frame by frame: ``vertices`` memory-mapped
+    (:func:`npz_member`) when stored uncompressed, as lgi writes it, the other arrays loaded; an archive
+    compressed by another tool is loaded whole. Errors as :func:`load_npz`."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            infos = {i.filename: i for i in zf.infolist()}
+    except (OSError, zipfile.BadZipFile, EOFError):
+        return load_npz(path, required)  # its message names what is wrong
+    entry = infos.get("vertices.npy")
+    if entry is None or entry.compress_type != zipfile.ZIP_STORED:
+        return load_npz(path, required)
+    out = {}
+    for name in infos:
+        if name.endswith(".npy"):
+            key = name[:-4]
+            out[key] = npz_member(path, key) if key == "vertices" else np.array(npz_member(path, key))
+    missing = [k for k in required if k not in out]
+    if missing:
+        from lgi.errors import InputError
+
+        raise InputError(f"missing arrays {missing}", path=path)
+    return out
+
+
 def load_npy(path: str | os.PathLike[str], mmap: bool = False) -> np.ndarray:
     """An ``.npy`` array (memory-mapped with ``mmap``, never unpickled), or an InputError naming the file."""
     from lgi.errors import InputError

@@ -270,7 +270,7 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
     """``lgi compare``: each (frame, scan) pair measured; with ``options.out``, the tables and heat maps written
     there (all at the end, atomically: nothing on failure). Returns the summary (:func:`compare_report`)."""
     from lgi.evaluation.compare import compare_frame, frame_fingerprint, read_scan, rotation_deg, stats_mm
-    from lgi.io.npz import load_npz
+    from lgi.io.npz import load_meshes
 
     o = options
     pairs = checked_pairs(o)
@@ -278,7 +278,7 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
     src = Path(recon_dir) / "meshes.npz"
     if not src.is_file():
         raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)
-    z = load_npz(src, required=("vertices", "frames"))
+    z = load_meshes(src, required=("vertices", "frames"))
     vertices, frames = z["vertices"], np.asarray(z["frames"]).astype(np.int64)
     if vertices.ndim != 3 or vertices.shape[2] != 3 or len(frames) != len(vertices):
         raise InputError(f"vertices of shape {vertices.shape} and {len(frames)} frames: not a reconstruction",

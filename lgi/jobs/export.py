@@ -45,8 +45,9 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     written last, so none appears if the maps fail)."""
     from lgi.export.formats import displacement_map, write_exr, write_usd
     from lgi.index.build import LGIIndex
+    from lgi.io.arrays import nonfinite_frames
     from lgi.io.atomic import atomic_dir, check_distinct, check_output
-    from lgi.io.npz import load_npz
+    from lgi.io.npz import load_meshes
     from lgi.progress import progress
 
     o = options
@@ -58,16 +59,16 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     src = Path(recon_dir) / "meshes.npz"
     if not src.is_file():
         raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)
-    z = load_npz(src, required=("vertices", "frames"))
+    z = load_meshes(src, required=("vertices", "frames"))
     vertices, frames = z["vertices"], z["frames"]
     index = LGIIndex.load(index_dir)
     a = index.arrays
     if vertices.ndim != 3 or vertices.shape[1:] != (index.n_vertices, 3) or len(frames) != len(vertices):
         raise InputError(f"vertices of shape {vertices.shape} and {len(frames)} frames do not fit the index's "
                          f"{index.n_vertices} vertices", path=src)
-    if not np.all(np.isfinite(vertices)):
-        f = int(np.flatnonzero(~np.isfinite(vertices).all(axis=(1, 2)))[0])
-        raise InputError("non-finite vertex positions", path=src, frame=int(frames[f]))
+    bad = nonfinite_frames(vertices)
+    if len(bad):
+        raise InputError("non-finite vertex positions", path=src, frame=int(frames[bad[0]]))
     s: dict[str, Any] = {"frames": len(frames)}
     if o.exr:
         if "uvs" not in a:

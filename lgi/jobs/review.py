@@ -88,7 +88,8 @@ class ReviewOptions:
 
 
 def _read_meshes(recon_dir: Path, what: str) -> dict[str, np.ndarray]:
-    from lgi.io.npz import load_npz
+    from lgi.io.arrays import nonfinite_frames
+    from lgi.io.npz import load_meshes
 
     path = recon_dir / "meshes.npz"
     if not recon_dir.is_dir():
@@ -96,12 +97,12 @@ def _read_meshes(recon_dir: Path, what: str) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise InputError(f"no meshes.npz: {what} is not a reconstruction (lgi reconstruct writes meshes.npz, "
                          "diagnostics.csv and per_frame.csv)", path=path)
-    m = load_npz(path, required=("vertices", "frames"))
+    m = load_meshes(path, required=("vertices", "frames"))
     v = m["vertices"]
     if v.ndim != 3 or v.shape[2] != 3 or v.dtype.kind != "f" or len(m["frames"]) != len(v):
         raise InputError(f"vertices {v.shape} / frames {m['frames'].shape} are not a shot's (F, V, 3) and (F,)",
                          path=path)
-    if not np.all(np.isfinite(v)):
+    if len(nonfinite_frames(v)):
         raise InputError("vertices hold non-finite values", path=path)
     return m
 

@@ -107,8 +107,9 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
     import pandas as pd
 
     from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
+    from lgi.io.arrays import nonfinite_frames
     from lgi.io.atomic import check_distinct, check_output, files_in, job_outputs
-    from lgi.io.npz import load_npz
+    from lgi.io.npz import load_meshes
     from lgi.progress import progress
     from lgi.retarget.solve import RigSolver, solve_shot
 
@@ -128,7 +129,7 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
         raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)
     t0 = time.perf_counter()
     rig, ds = load_rig(rig_dir)
-    z = load_npz(src, required=("vertices",))
+    z = load_meshes(src, required=("vertices",))
     meshes = z["vertices"]
     frames = np.asarray(z.get("frames", np.arange(len(meshes))))
     if meshes.ndim != 3 or meshes.shape[2] != 3 or len(meshes) == 0:
@@ -136,8 +137,8 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
     if meshes.shape[1] != len(rig.neutral):
         raise InputError(f"the reconstruction has {meshes.shape[1]} vertices and the rig {len(rig.neutral)}: the "
                          "rig is on another mesh topology (generate it with this actor's index)", path=src)
-    if not np.all(np.isfinite(meshes)):
-        bad = np.flatnonzero(~np.all(np.isfinite(meshes), axis=(1, 2)))
+    bad = nonfinite_frames(meshes)
+    if len(bad):
         raise InputError(f"{len(bad)} frames hold non-finite vertices (first: frame {int(frames[bad[0]])})", path=src)
     jaw_in = _recon_jaw(z, len(meshes), src)
     if rig.jaw is None:
