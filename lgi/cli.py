@@ -651,7 +651,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "0 = none)")
     g.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
                    help="tie-break toward shapes the neighbours agree on, mm (default %(default)s; 0 = none)")
-    g.add_argument("--far-field", default="2:10", metavar="START:END|off",
+    g.add_argument("--far-field", default="5:15", metavar="START:END|off",
                    help="mm from the nearest marker over the skin: beyond START, a bundle whose weights predict the "
                         "markers beyond its neighbourhood clearly worse than the frame's global fit gives way to "
                         "that fit, wholly beyond END; off = the bundles' weights everywhere (default %(default)s)")

@@ -210,18 +210,17 @@ def test_far_field_keeps_captured_scans_from_extrapolating() -> None:
     # Bundles whose weights predict their second ring of neighbours as well as the global fit keep them.
     from lgi.evaluation.benchsets import session_set
     from lgi.index.build import build_index
-    from lgi.solve.surface import FAR_FIELD as FF
 
     bs = session_set(100, frames=60, n_vertices=5000)
     index, _ = build_index(bs.dataset, bs.layout, show_progress=False)
     fit = np.linalg.norm(RiggedBlendshapeSolver(index).solve_sequence(bs.bundles) - bs.truth, axis=2) * 10
-    runs = {ff: LGISolver(index, far_field=ff).solve_sequence(bs.bundles) for ff in (None, FF)}
+    runs = {ff: LGISolver(index, far_field=ff).solve_sequence(bs.bundles) for ff in (None, (0.5, 1.5))}
     err = {ff: np.linalg.norm(r.vertices - bs.truth, axis=2) * 10 for ff, r in runs.items()}
     assert err[None].max() > 5 * fit.max()  # the failure the far field is for
-    near = index.arrays["nn_distance"] < FF[0]
-    np.testing.assert_array_equal(err[None][:, near], err[FF][:, near])  # untouched near the markers
-    assert err[FF].max() <= fit.max()
-    assert np.sqrt(np.mean(err[FF] ** 2)) < 0.7 * np.sqrt(np.mean(fit**2))
+    near = index.arrays["nn_distance"] < 0.5
+    np.testing.assert_array_equal(err[None][:, near], err[(0.5, 1.5)][:, near])  # untouched near the markers
+    assert err[(0.5, 1.5)].max() <= fit.max()
+    assert np.sqrt(np.mean(err[(0.5, 1.5)] ** 2)) < 0.7 * np.sqrt(np.mean(fit**2))
     for r in runs.values():
         assert gaps_mm(r.vertices, bs.layout, bs.bundles).max() < THROUGH_MM
     solver = LGISolver(index)
@@ -231,10 +230,8 @@ def test_far_field_keeps_captured_scans_from_extrapolating() -> None:
 
 def test_far_field_option() -> None:
     from lgi.jobs.reconstruct import ReconstructOptions
-    from lgi.solve.surface import FAR_FIELD
 
-    assert ReconstructOptions().far_field_cm() == FAR_FIELD  # the command line's default is the library's
-    assert ReconstructOptions(far_field="5:15").far_field_cm() == (0.5, 1.5)  # the former default still taken
+    assert ReconstructOptions().far_field_cm() == (0.5, 1.5)
     assert ReconstructOptions(far_field="off").far_field_cm() is None
     assert ReconstructOptions(far_field="0:20").far_field_cm() == (0.0, 2.0)
 

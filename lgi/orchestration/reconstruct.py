@@ -163,7 +163,7 @@ def reconstruct_shot(
     observations: str | None = None,
     calib: str | None = None,
     contours: str | None = None,
-    far_field: str = "2:10",
+    far_field: str = "5:15",
     footage: str | None = None,
     markers: str | None = None,
     helmet: str | None = None,

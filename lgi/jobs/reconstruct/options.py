@@ -89,7 +89,7 @@ class ReconstructOptions:
     observations: str | None = None
     calib: str | None = None
     contours: str | None = None
-    far_field: str = "2:10"
+    far_field: str = "5:15"
 
     def __post_init__(self) -> None:
         def bad(flag: str, why: str) -> InputError:
