@@ -296,11 +296,12 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
     out.mkdir(parents=True, exist_ok=True)
     for prefix in (".lgi-staging-", *(f".{name}.old-" for name in owned)):
         sweep(out, prefix)
+    stage = None
     try:
-        stage = make_temp_dir(out, ".lgi-staging-")
-    except OSError as exc:
-        raise (storage_error(exc, out) or exc) from exc
-    try:
+        try:
+            stage = make_temp_dir(out, ".lgi-staging-")
+        except OSError as exc:
+            raise (storage_error(exc, out) or exc) from exc
         yield stage
         written = {e.name for e in stage.iterdir()}
         unknown = written - set(owned)
@@ -323,8 +324,14 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
                 target.unlink()
         stage.rmdir()
     except BaseException as exc:
-        full = storage_error(exc, _written(exc, stage, out)) if isinstance(exc, Exception) else None
-        shutil.rmtree(stage, ignore_errors=True)
+        if stage is None:
+            # Stopped (a signal) while the staging folder was being made: this process's own, by its name.
+            full = storage_error(exc, out) if isinstance(exc, Exception) else None
+            for left in out.glob(f".lgi-staging-{os.getpid()}-*"):
+                shutil.rmtree(left, ignore_errors=True)
+        else:
+            full = storage_error(exc, _written(exc, stage, out)) if isinstance(exc, Exception) else None
+            shutil.rmtree(stage, ignore_errors=True)
         if created:  # a failed first run leaves no empty folder behind either
             with contextlib.suppress(OSError):
                 out.rmdir()

@@ -1,0 +1,172 @@
+"""Long takes: peak memory, speed and output size of every path and reader against the shot's length, as whole
+processes.
+
+    python benchmarks/bench_long.py [--work DIR] [--shapes 500] [--frames 1000,9000,36000] [--kinds clean,noisy]
+                                    [--paths plain,flow,dask] [--readers export,review,compare,rig-solve]
+                                    [--doc docs/benchmarks.md]
+
+1. Test material, built in ``--work`` through the ``lgi`` command line as ``bench_speed.py`` builds it (and
+   reused): ICT with ``--shapes`` shapes and the jaw rig, its index with the rig, a continuous 1,000-frame shot
+   of held-out shape mixes eased into each other (holds and fast moves), and a copy with 0.1 mm of stereo-like
+   noise (``noisy``: 0.1 mm along z, a quarter of it across). A shot of F frames is that shot played forwards
+   and backwards until it has F frames ("looped": continuous motion, the same poses again).
+2. For every F, kind and path (``plain``: ``lgi reconstruct``; ``flow``: with ``--flow``; ``dask``: with
+   ``--flow --dask local:2``): the process's wall time, frames per second and peak resident memory
+   (``os.wait4`` of the command's process; Dask's worker processes are not counted, and their peak is not
+   known here), and the size of the output folder.
+3. For every F and kind, the readers of the plain path's output, each a whole process: ``lgi export --usd``,
+   ``lgi review``, ``lgi compare`` of one scan (the reconstruction's middle frame written as OBJ), and
+   ``lgi rig-solve`` onto a rig made once by ``lgi rig-generate``: wall time, peak memory and output size.
+
+Every figure is printed; nothing is asserted. ``--doc FILE`` rewrites the table between
+``<!-- table:long -->`` and ``<!-- /table -->`` in FILE.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from bench_speed import Records, build_material
+from common import ICT_DIR, dir_mib, has_ict, lgi_timed, log, write_marked
+
+NOISE_MM = 0.1
+BASE_FRAMES = 1000
+
+
+def looped(src: Path, dst: Path, n: int) -> None:
+    """A bundles CSV of ``n`` frames: ``src``'s frames played forwards, then backwards, and so on."""
+    df = pd.read_csv(src)
+    frames = np.sort(df["frame"].unique())
+    order = []
+    k = 0
+    while len(order) < n:
+        order.extend(frames if k % 2 == 0 else frames[::-1][1:-1] if len(frames) > 2 else frames)
+        k += 1
+    groups = {f: g for f, g in df.groupby("frame")}
+    parts = [groups[f].assign(frame=i) for i, f in enumerate(order[:n])]
+    pd.concat(parts, ignore_index=True).to_csv(dst, index=False, float_format="%.7g")
+
+
+def size_mib(path: Path) -> float:
+    return dir_mib(path) if path.is_dir() else path.stat().st_size / 2**20
+
+
+def row(what: str, frames: int, kind: str, run, out: Path) -> dict:
+    r = {"what": what, "frames": frames, "kind": kind, "wall_s": run.wall_s, "fps": frames / run.wall_s,
+         "peak_mib": run.peak_mib, "out_mib": size_mib(out)}
+    log(f"{what} {frames} {kind}: {r['wall_s']:.1f} s, {r['fps']:.0f} frames/s, peak {r['peak_mib']:.0f} MiB, "
+        f"output {r['out_mib']:.0f} MiB")
+    return r
+
+
+def readers(recon: Path, index: Path, rig_dir: Path, frames: int, kind: str, which: list[str],
+            scratch: Path) -> list[dict]:
+    from lgi.io.npz import load_meshes
+    from lgi.io.obj import write_obj
+
+    out = []
+    if "export" in which:
+        usd = scratch / "shot.usdc"
+        out.append(row("export --usd", frames, kind, lgi_timed("export", str(recon), "--index", str(index), "--usd",
+                                                               str(usd), "-q"), usd))
+    if "review" in which:
+        page = scratch / "review"
+        out.append(row("review", frames, kind, lgi_timed("review", str(recon), "--index", str(index), "--out",
+                                                         str(page)), page))
+    if "compare" in which:
+        m = load_meshes(recon / "meshes.npz", ("vertices", "frames"))
+        mid = len(m["frames"]) // 2
+        from lgi.index.build import LGIIndex
+
+        a = LGIIndex.load(index).arrays
+        scan = scratch / "scan.obj"
+        write_obj(scan, np.asarray(m["vertices"][mid]) * 10.0, a["face_vertices"], a["face_offsets"])
+        cmp_out = scratch / "compare"
+        out.append(row("compare (one scan)", frames, kind,
+                       lgi_timed("compare", str(recon), "--index", str(index), "--frame", str(int(m["frames"][mid])),
+                                 "--scan", str(scan), "--units", "mm", "--out", str(cmp_out)), cmp_out))
+    if "rig-solve" in which:
+        solved = scratch / "solved"
+        out.append(row("rig-solve", frames, kind, lgi_timed("rig-solve", str(recon), "--rig", str(rig_dir), "--out",
+                                                            str(solved), "-q"), solved))
+    return out
+
+
+def table(rows: list[dict], shapes: int) -> str:
+    lines = [f"ICT with {shapes} shapes and the jaw rig; the 1,000-frame eased shot looped to F frames (clean, and "
+             f"{NOISE_MM:g} mm stereo noise); whole processes, one run each. Peak: the command's own process "
+             "(Dask's workers not counted).", "",
+             "| what | bundles | frames | wall s | frames/s | peak MiB | output MiB |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['what']} | {r['kind']} | {r['frames']} | {r['wall_s']:.1f} | {r['fps']:.0f} | "
+                     f"{r['peak_mib']:.0f} | {r['out_mib']:.0f} |")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--work", type=Path, help="material folder (default: a temporary one, removed at the end)")
+    ap.add_argument("--shapes", type=int, default=500)
+    ap.add_argument("--frames", default="1000,9000,36000")
+    ap.add_argument("--kinds", default="clean,noisy")
+    ap.add_argument("--paths", default="plain,flow,dask")
+    ap.add_argument("--readers", default="export,review,compare,rig-solve")
+    ap.add_argument("--doc", type=Path, action="append", default=[])
+    args = ap.parse_args()
+    if not has_ict(ICT_DIR):
+        print(f"ICT FaceKit not found in {ICT_DIR}: nothing to measure")
+        return 0
+    frames = [int(f) for f in args.frames.split(",")]
+    kinds = args.kinds.split(",")
+    paths = args.paths.split(",")
+    which = [r for r in args.readers.split(",") if r]
+    work = args.work or Path(tempfile.mkdtemp(prefix="lgi-bench-long-"))
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        mat = build_material(work, ICT_DIR, [args.shapes], BASE_FRAMES, 100, kinds, NOISE_MM,
+                             Records(work / "records.json"), stereo=True)
+        index = mat.indexes[(args.shapes, True)]
+        rig_dir = work / "rig-generated"
+        if which and "rig-solve" in which and not (rig_dir / "manifest.json").is_file():
+            log("lgi rig-generate --template ict --index ...")
+            lgi_timed("rig-generate", "--template", str(mat.ict), "--index", str(index), "--out", str(rig_dir), "-q")
+        rows = []
+        for n in frames:
+            for kind in kinds:
+                bundles = work / f"long-{kind}-{n}.csv"
+                if not bundles.is_file():
+                    log(f"{kind}: the shot looped to {n} frames")
+                    looped(mat.files[(kind, mat.frames)], bundles, n)
+                for path in paths:
+                    out = work / f"out-{path}-{kind}-{n}"
+                    extra = {"plain": [], "flow": ["--flow"], "dask": ["--flow", "--dask", "local:2"]}[path]
+                    run = lgi_timed("reconstruct", str(index), "--bundles", str(bundles), "--out", str(out), "-q",
+                                    *extra)
+                    rows.append(row(f"reconstruct ({path})", n, kind, run, out))
+                    if path != "plain":
+                        shutil.rmtree(out, ignore_errors=True)
+                recon = work / f"out-plain-{kind}-{n}"
+                if which and recon.is_dir():
+                    scratch = work / f"readers-{kind}-{n}"
+                    shutil.rmtree(scratch, ignore_errors=True)
+                    scratch.mkdir()
+                    rows += readers(recon, index, rig_dir, n, kind, which, scratch)
+                    shutil.rmtree(scratch, ignore_errors=True)
+        text = table(rows, args.shapes)
+        print(text)
+        for doc in args.doc:
+            write_marked(doc, "long", text)
+    finally:
+        if args.work is None:
+            shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
