@@ -86,3 +86,18 @@ def test_readers_map_lgis_meshes_and_load_anyone_elses(tmp_path: Path) -> None:
         assert np.array_equal(nonfinite_frames(m["vertices"]), [7, 130, 250])
     with pytest.raises(InputError, match="missing arrays \\['jaw'\\]"):
         load_meshes(tmp_path / "ours.npz", ("vertices", "jaw"))
+
+
+def test_a_table_appended_in_parts_is_the_table_written_whole(tmp_path: Path) -> None:
+    import pandas as pd
+
+    from lgi.io.csvio import CsvAppender, write_csv
+
+    t = pd.DataFrame({"frame": np.repeat(np.arange(5), 3), "marker": ["a", "b,c", 'd"e'] * 5,
+                      "x": np.linspace(0, 1, 15), "far_share": [np.nan] * 7 + list(np.linspace(0, 1, 8))})
+    write_csv(t, tmp_path / "whole.csv")
+    out = CsvAppender(tmp_path / "parts.csv")
+    for lo in range(0, 15, 6):
+        out.append(t.iloc[lo:lo + 6])
+    out.close()
+    assert (tmp_path / "whole.csv").read_bytes() == (tmp_path / "parts.csv").read_bytes()

@@ -16,11 +16,37 @@ import pandas as pd
 
 def write_csv(table: pd.DataFrame, path: str | os.PathLike[str]) -> None:
     """Write ``table`` (no index) to ``path`` as CSV with pyarrow."""
-    import pyarrow as pa
-    import pyarrow.csv as pacsv
+    out = CsvAppender(path)
+    out.append(table)
+    out.close()
 
-    arrow = pa.Table.from_pandas(table, preserve_index=False)
-    pacsv.write_csv(arrow, os.fspath(path), write_options=pacsv.WriteOptions(quoting_style="needed"))
+
+class CsvAppender:
+    """A CSV written table by table (no index): the header from the first, every later table's rows after it in
+    the first's columns; the bytes :func:`write_csv` writes for the tables joined."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = path
+        self._writer = None
+        self._schema = None
+
+    def append(self, table: pd.DataFrame) -> None:
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+
+        arrow = pa.Table.from_pandas(table, preserve_index=False).replace_schema_metadata(None)
+        if self._writer is None:
+            self._schema = arrow.schema
+            self._writer = pacsv.CSVWriter(os.fspath(self.path), self._schema,
+                                           write_options=pacsv.WriteOptions(quoting_style="needed"))
+        elif not arrow.schema.equals(self._schema):
+            arrow = arrow.cast(self._schema)
+        self._writer.write_table(arrow)
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
 
 
 def read_table(path: str | os.PathLike[str], what: str, columns: tuple[str, ...], numeric: tuple[str, ...] = (),

@@ -154,6 +154,7 @@ class ReconstructionWriter:
 
     def __init__(self, stage: Path, frames: np.ndarray, arrays: dict[str, np.ndarray],
                  options: ReconstructOptions, with_jaw: bool, constrained: Path | None = None) -> None:
+        from lgi.io.csvio import CsvAppender
         from lgi.io.npz import NpzWriter
 
         self.stage, self.frames, self.arrays, self.options = stage, np.asarray(frames), arrays, options
@@ -163,8 +164,7 @@ class ReconstructionWriter:
         self._npz = NpzWriter(stage / "meshes.npz")
         self._npz.begin("vertices", (len(self.frames), len(arrays["neutral"]), 3), np.float32)
         self._jaw: list[np.ndarray] | None = [] if with_jaw else None
-        self._csv = None
-        self._schema = None
+        self._csv = CsvAppender(stage / "diagnostics.csv")
         self._per_frame: list[pd.DataFrame] = []
         if options.obj:
             (stage / "obj").mkdir()
@@ -176,13 +176,13 @@ class ReconstructionWriter:
 
         n = len(res.frames)
         if not np.array_equal(res.frames, self.frames[self.done:self.done + n]):
-            raise ValueError(f"block of frames {res.frames[:1]}... does not follow frame {self.done} of the shot")
+            raise RuntimeError(f"block of frames {res.frames[:1]}... does not follow frame {self.done} of the shot")
         if self.done == 0:
             debug_stage("write")
         self._npz.write(np.asarray(res.vertices, np.float32))
         if self._jaw is not None:
             self._jaw.append(np.asarray(res.jaw, np.float32))
-        self._append_diagnostics(res.diagnostics)
+        self._csv.append(res.diagnostics)
         self._per_frame.append(per_frame_table(res.diagnostics))
         if self.options.obj:
             from lgi.io.obj import write_obj
@@ -193,32 +193,17 @@ class ReconstructionWriter:
                           a["face_offsets"], a.get("uvs"), a.get("face_uvs"))
         self.done += n
 
-    def _append_diagnostics(self, table: pd.DataFrame) -> None:
-        # pyarrow's C++ writer (lgi.io.csvio), its batches appended to one file: the bytes of the whole table.
-        import pyarrow as pa
-        import pyarrow.csv as pacsv
-
-        arrow = pa.Table.from_pandas(table, preserve_index=False)
-        if self._csv is None:
-            self._schema = arrow.schema.remove_metadata()
-            self._csv = pacsv.CSVWriter(str(self.stage / "diagnostics.csv"), self._schema,
-                                        write_options=pacsv.WriteOptions(quoting_style="needed"))
-        elif not arrow.schema.equals(self._schema, check_metadata=False):
-            arrow = arrow.cast(self._schema)
-        self._csv.write_table(arrow.replace_schema_metadata(None))
-
     def close(self, noise_mm: float | None, noise_estimate=None) -> None:
         """Finish the files once every frame is written: the meshes' frames and jaw, the per-frame table (and
         plot), ``run.json``, and the asked USD and constrained bundles."""
         if self.done != len(self.frames):
-            raise ValueError(f"{self.done} of the shot's {len(self.frames)} frames written")
+            raise RuntimeError(f"{self.done} of the shot's {len(self.frames)} frames written")
         self._npz.end()
         self._npz.add("frames", self.frames)
         if self._jaw is not None:
             self._npz.add("jaw", np.concatenate(self._jaw))
         self._npz.close()
-        if self._csv is not None:
-            self._csv.close()
+        self._csv.close()
         per_frame = pd.concat(self._per_frame, ignore_index=True)
         per_frame.to_csv(self.stage / "per_frame.csv", index=False, float_format="%.6g")
         record = run_record(self.options, noise_mm, noise_estimate)
@@ -243,6 +228,5 @@ class ReconstructionWriter:
 
         with contextlib.suppress(Exception):
             self._npz.abort()
-        if self._csv is not None:
-            with contextlib.suppress(Exception):
-                self._csv.close()
+        with contextlib.suppress(Exception):
+            self._csv.close()
