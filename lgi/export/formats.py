@@ -69,8 +69,8 @@ def write_usd(
     points = mesh.CreatePointsAttr()
     extent = mesh.CreateExtentAttr()
     for f, v in zip(frames, vertices, strict=True):
-        # Frame by frame, so that a memory-mapped shot (lgi.io.npz.npz_member: rows not 4-byte aligned in the
-        # zip, which USD's buffers refuse) is read a frame at a time.
+        # Frame by frame, so that a shot read by frame range (lgi.io.npz.npz_member) is never read whole; USD's
+        # buffers take aligned float32 only.
         v = np.require(v, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
         points.Set(Vt.Vec3fArray.FromNumpy(v), Usd.TimeCode(float(f)))
         extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([v.min(0), v.max(0)])), Usd.TimeCode(float(f)))

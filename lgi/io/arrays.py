@@ -94,7 +94,7 @@ def check_mesh(arrays: Mapping[str, np.ndarray], n_vertices: int, path: str | os
 
 def nonfinite_frames(vertices: np.ndarray, block: int = 64) -> np.ndarray:
     """Indices of the frames of ``vertices`` (F, V, 3) that hold a NaN or an infinity, checked ``block`` frames at
-    a time, so that a memory-mapped long take is not copied whole."""
+    a time, so that a long take read by frame range (:class:`lgi.io.npz.StoredArray`) is not read whole."""
     bad = [lo + np.flatnonzero(~np.isfinite(vertices[lo:lo + block]).all(axis=(1, 2)))
            for lo in range(0, len(vertices), block)]
     return np.concatenate(bad) if bad else np.zeros(0, np.int64)
