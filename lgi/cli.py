@@ -8,6 +8,7 @@ import sys
 
 from lgi import __version__
 from lgi.errors import InputError, LgiError, Terminated
+from lgi.export.clips import USD_CLIP_FRAMES
 
 
 def _import_options(args: argparse.Namespace):
@@ -622,7 +623,8 @@ def build_parser() -> argparse.ArgumentParser:
                  ("lgi reconstruct synth/index --bundles synth/bundles.csv --out synth/recon --obj --smooth 3",),
                  outputs="OUT_DIR/meshes.npz, OUT_DIR/diagnostics.csv, OUT_DIR/per_frame.csv, OUT_DIR/run.json; with "
                          "--obj OUT_DIR/obj/,"
-                         " --usd OUT_DIR/shot.usdc, --plot OUT_DIR/per_frame.png; with --observations "
+                         " --usd OUT_DIR/shot.usdc (and OUT_DIR/shot.clips/ for a long shot), --plot "
+                         "OUT_DIR/per_frame.png; with --observations "
                          "OUT_DIR/bundles_constrained.parquet.")
     g = s.add_argument_group("inputs")
     g.add_argument("index_dir", metavar="INDEX_DIR", help="the LGI index (lgi build)")
@@ -631,7 +633,8 @@ def build_parser() -> argparse.ArgumentParser:
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="OUT_DIR", help="folder for the reconstruction's files")
     g.add_argument("--obj", action="store_true", help="also write one OBJ per frame, OUT_DIR/obj/frame_NNNNN.obj")
-    g.add_argument("--usd", action="store_true", help="also write OUT_DIR/shot.usdc (animated mesh, see --fps)")
+    g.add_argument("--usd", action="store_true", help="also write OUT_DIR/shot.usdc (animated mesh, see --fps; a "
+                   f"shot of over {USD_CLIP_FRAMES} frames keeps them in value clips, OUT_DIR/shot.clips/)")
     g.add_argument("--fps", type=float, default=30.0, metavar="F",
                    help="USD time codes per second (default %(default)s)")
     g.add_argument("--plot", action="store_true", help="also write OUT_DIR/per_frame.png")
@@ -921,7 +924,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("recon_dir", metavar="RECON_DIR", help="a reconstruction (lgi reconstruct's OUT_DIR)")
     g.add_argument("--index", required=True, metavar="INDEX_DIR", help="the index it was reconstructed with")
     g = s.add_argument_group("outputs")
-    g.add_argument("--usd", metavar="FILE", help="animated mesh: .usdc (binary) or .usda (text)")
+    g.add_argument("--usd", metavar="FILE", help="animated mesh: .usdc (binary) or .usda (text); a shot of over "
+                   f"{USD_CLIP_FRAMES} frames keeps them in value clips beside it, in NAME.clips/ (FILE without its "
+                   "extension)")
     g.add_argument("--fps", type=float, default=30.0, metavar="F",
                    help="USD time codes per second (default %(default)s)")
     g.add_argument("--exr", metavar="DIR", help="displacement maps: one frame_NNNNN.exr per frame")

@@ -27,6 +27,30 @@ def test_usd_roundtrip(tmp_path: Path, small_actor) -> None:
     np.testing.assert_allclose(np.asarray(st.Get())[np.asarray(st.GetIndices())], a.uvs[a.face_uvs], atol=1e-6)
 
 
+def test_a_long_shot_is_value_clips_that_compose_to_the_single_file(tmp_path: Path, small_actor) -> None:
+    from pxr import Usd, UsdGeom
+
+    a = small_actor
+    verts = a.evaluate_many(synth.random_performance(23, seed=2))
+    frames = np.r_[np.arange(7), np.arange(12, 28)]  # a gap where the second clip starts
+    write_usd(tmp_path / "one.usdc", verts, a.face_vertices, a.face_offsets, a.uvs, a.face_uvs, frames, clip_frames=0)
+    write_usd(tmp_path / "clips.usda", verts, a.face_vertices, a.face_offsets, a.uvs, a.face_uvs, frames,
+              clip_frames=7)
+    assert sorted(p.name for p in (tmp_path / "clips.clips").iterdir()) == [
+        "clip_00000.usdc", "clip_00001.usdc", "clip_00002.usdc", "clip_00003.usdc", "manifest.usda"]
+    one, clips = (Usd.Stage.Open(str(tmp_path / n)) for n in ("one.usdc", "clips.usda"))
+    m1, m2 = (UsdGeom.Mesh(s.GetPrimAtPath("/Face/mesh")) for s in (one, clips))
+    assert m1.GetPointsAttr().GetTimeSamples() == m2.GetPointsAttr().GetTimeSamples()
+    assert (clips.GetStartTimeCode(), clips.GetEndTimeCode()) == (0, 27)
+    for t in np.arange(-1, 29, 0.25):  # between frames and across the gap too, as one file interpolates
+        for get in (lambda m: m.GetPointsAttr(), lambda m: m.GetExtentAttr()):
+            assert np.array_equal(np.asarray(get(m1).Get(float(t))), np.asarray(get(m2).Get(float(t)))), t
+    np.testing.assert_allclose(np.asarray(m2.GetPointsAttr().Get(14.0)), verts[9], atol=1e-6)
+    # A shorter export of the same name is one file again, and the clips it no longer uses go.
+    write_usd(tmp_path / "clips.usda", verts[:5], a.face_vertices, a.face_offsets, frames=frames[:5], clip_frames=7)
+    assert not (tmp_path / "clips.clips").exists()
+
+
 def test_displacement_map_and_exr(tmp_path: Path, small_actor) -> None:
     a = small_actor
     disp = np.tile([0.1, -0.2, 0.3], (a.n_vertices, 1))  # a constant shift paints a constant image
@@ -43,7 +67,11 @@ def test_displacement_map_and_exr(tmp_path: Path, small_actor) -> None:
     np.testing.assert_allclose(img[32, mask[32], 0], u[mask[32]], atol=1e-5)
 
 
-def test_export_command(tmp_path: Path) -> None:
+def test_export_command(tmp_path: Path, monkeypatch) -> None:
+    from pxr import Usd, UsdGeom
+
+    from lgi.export import clips
+
     s = tmp_path / "s"
     main(["synth", "--out", str(s), "--vertices", "2500", "--frames", "4", "-q"])
     main(["build", str(s / "dataset"), "--markers", str(s / "markers.csv"), "--out", str(tmp_path / "idx"), "-q"])
@@ -54,6 +82,29 @@ def test_export_command(tmp_path: Path) -> None:
     assert (tmp_path / "p.usda").read_text().startswith("#usda")
     assert sorted(p.name for p in (tmp_path / "exr").iterdir()) == [f"frame_{i:05d}.exr" for i in range(4)]
     assert main(["export", str(tmp_path / "nothing"), "--index", str(tmp_path / "idx"), "--usd", "x.usdc"]) == 2
+    # Over USD_CLIP_FRAMES frames: value clips beside the file, from export and from reconstruct --usd alike.
+    monkeypatch.setattr(clips, "USD_CLIP_FRAMES", 3)
+    (tmp_path / "mine.clips").mkdir()
+    (tmp_path / "mine.clips" / "notes.txt").write_text("a user's folder")
+    assert main(["export", str(tmp_path / "r"), "--index", str(tmp_path / "idx"), "--usd",
+                 str(tmp_path / "mine.usdc"), "-q"]) == 2
+    assert not (tmp_path / "mine.usdc").exists() and (tmp_path / "mine.clips" / "notes.txt").exists()
+    assert main(["export", str(tmp_path / "r"), "--index", str(tmp_path / "idx"), "--usd", str(tmp_path / "c.usdc"),
+                 "-q"]) == 0
+    assert sorted(p.name for p in (tmp_path / "c.clips").iterdir()) == ["clip_00000.usdc", "clip_00001.usdc",
+                                                                          "manifest.usda"]
+    main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(s / "bundles.csv"), "--out", str(tmp_path / "r"),
+          "--usd", "-q"])
+    assert (tmp_path / "r" / "shot.clips" / "clip_00001.usdc").is_file()
+    ref = Usd.Stage.Open(str(tmp_path / "p.usda"))
+    single = UsdGeom.Mesh(ref.GetPrimAtPath("/Face/mesh")).GetPointsAttr()
+    for usd in (tmp_path / "c.usdc", tmp_path / "r" / "shot.usdc"):
+        stage = Usd.Stage.Open(str(usd))
+        pts = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/mesh")).GetPointsAttr()
+        assert all(np.array_equal(np.asarray(pts.Get(f)), np.asarray(single.Get(f))) for f in range(4))
+    main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(s / "bundles.csv"), "--out", str(tmp_path / "r"),
+          "-q"])
+    assert not (tmp_path / "r" / "shot.clips").exists() and not (tmp_path / "r" / "shot.usdc").exists()
 
 
 def test_usd_200_frames_of_ict(tmp_path: Path, ict_dir: Path) -> None:

@@ -6,13 +6,17 @@ Every writer works on plain arrays and writes atomically (a temporary name, then
 from __future__ import annotations
 
 import os
+import shutil
+from fnmatch import fnmatch
 from pathlib import Path
 
 import numba as nb
 import numpy as np
 
 from lgi.dataset.mesh import triangulate
-from lgi.io.atomic import atomic_file
+from lgi.export import clips
+from lgi.export.clips import USD_CLIP_CONTENTS, usd_clip_dir
+from lgi.io.atomic import atomic_dir, atomic_file
 
 
 def write_usd(
@@ -26,8 +30,14 @@ def write_usd(
     fps: float = 30.0,
     units_per_meter: float = 100.0,
     prim: str = "/Face/mesh",
+    clip_frames: int | None = None,
 ) -> Path:
     """Write an animated mesh as USD (binary ``.usdc``, or text ``.usda``, by extension).
+
+    A shot of more than ``clip_frames`` frames is written as value clips: the file
+    and, beside it, the folder :func:`usd_clip_dir` of binary layers of ``clip_frames`` frames each. Composed,
+    the stage is the single file's. A shorter shot is one file, and a clip folder an earlier, longer export of
+    the same name left is removed.
 
     Parameters
     ----------
@@ -43,6 +53,8 @@ def write_usd(
         Time codes per second.
     units_per_meter : float
         100 for centimetres (``metersPerUnit`` 0.01).
+    clip_frames : int, optional
+        Frames per value clip (0: always one file; default :data:`~lgi.export.clips.USD_CLIP_FRAMES`).
     """
     from pxr import Sdf, Usd, UsdGeom, Vt
 
@@ -68,16 +80,59 @@ def write_usd(
         st.SetIndices(Vt.IntArray.FromNumpy(np.asarray(face_uvs, np.int32)))
     points = mesh.CreatePointsAttr()
     extent = mesh.CreateExtentAttr()
+    path = Path(path)
+    clip_dir = usd_clip_dir(path)
+    clip_frames = clips.USD_CLIP_FRAMES if clip_frames is None else clip_frames
+    if clip_frames <= 0 or len(frames) <= clip_frames:
+        _set_samples(points, extent, frames, vertices)
+        with atomic_file(path, suffix=path.suffix or ".usdc") as tmp:
+            stage.GetRootLayer().Export(str(tmp))
+        if clip_dir.is_dir() and all(any(fnmatch(e.name, pat) for pat in USD_CLIP_CONTENTS)
+                                     for e in clip_dir.iterdir()):
+            shutil.rmtree(clip_dir, ignore_errors=True)
+        return path
+    from pxr import Gf
+
+    spans = [(lo, min(lo + clip_frames, len(frames))) for lo in range(0, len(frames), clip_frames)]
+    names = [f"clip_{k:05d}.usdc" for k in range(len(spans))]
+    with atomic_dir(clip_dir, USD_CLIP_CONTENTS, "lgi USD clip folder") as tmp_dir:
+        for name, (lo, hi) in zip(names, spans, strict=True):
+            # One clip's samples in memory at a time: its own stage, written and dropped. It ends with the next
+            # clip's first frame, so that a time between the two interpolates as in one file.
+            hi = min(hi + 1, len(frames))
+            clip = Usd.Stage.CreateInMemory()
+            clip_mesh = UsdGeom.Mesh.Define(clip, prim)
+            _set_samples(clip_mesh.CreatePointsAttr(), clip_mesh.CreateExtentAttr(), frames[lo:hi], vertices[lo:hi])
+            clip.GetRootLayer().Export(str(tmp_dir / name))
+            del clip, clip_mesh
+        # The manifest names the attributes the clips animate (USD would otherwise open every clip to learn it).
+        manifest = Usd.Stage.CreateInMemory()
+        shape = UsdGeom.Mesh.Define(manifest, prim)
+        shape.CreatePointsAttr()
+        shape.CreateExtentAttr()
+        manifest.GetRootLayer().Export(str(tmp_dir / "manifest.usda"))
+        api = Usd.ClipsAPI(mesh.GetPrim())
+        api.SetClipAssetPaths([Sdf.AssetPath(f"./{clip_dir.name}/{n}") for n in names])
+        api.SetClipPrimPath(prim)
+        api.SetClipManifestAssetPath(Sdf.AssetPath(f"./{clip_dir.name}/manifest.usda"))
+        api.SetClipActive([Gf.Vec2d(float(frames[lo]), k) for k, (lo, _) in enumerate(spans)])
+        # Stage time is clip time: the clips keep the frames' own time codes.
+        api.SetClipTimes([Gf.Vec2d(float(frames[0]), float(frames[0])), Gf.Vec2d(float(frames[-1]), float(frames[-1]))])
+        with atomic_file(path, suffix=path.suffix or ".usdc") as tmp:
+            stage.GetRootLayer().Export(str(tmp))
+    return path
+
+
+def _set_samples(points, extent, frames: np.ndarray, vertices) -> None:
+    """One time sample per frame of ``vertices`` (F, V, 3) cm on a mesh's ``points`` and ``extent`` attributes."""
+    from pxr import Usd, Vt
+
     for f, v in zip(frames, vertices, strict=True):
         # Frame by frame, so that a shot read by frame range (lgi.io.npz.npz_member) is never read whole; USD's
         # buffers take aligned float32 only.
         v = np.require(v, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
         points.Set(Vt.Vec3fArray.FromNumpy(v), Usd.TimeCode(float(f)))
         extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([v.min(0), v.max(0)])), Usd.TimeCode(float(f)))
-    path = Path(path)
-    with atomic_file(path, suffix=path.suffix or ".usdc") as tmp:
-        stage.GetRootLayer().Export(str(tmp))
-    return path
 
 
 @nb.njit(cache=True)

@@ -48,7 +48,8 @@ class ReconstructOptions:
     obj : bool
         Also write one OBJ mesh per frame, ``obj/frame_NNNNN.obj``.
     usd : bool
-        Also write the animated mesh as ``shot.usdc`` (``fps`` time codes per second).
+        Also write the animated mesh as ``shot.usdc`` (``fps`` time codes per second; a shot of over
+        :data:`~lgi.export.clips.USD_CLIP_FRAMES` frames keeps them in value clips, ``shot.clips/``).
     plot : bool
         Also write ``per_frame.png``: per frame, the largest distance to the bundles before the correction and
         the bundles projected, missing or bridged.

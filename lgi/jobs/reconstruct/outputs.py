@@ -14,14 +14,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lgi.export.clips import USD_CLIP_CONTENTS
 from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.jobs.reconstruct.rays import CONSTRAINED
 
 #: Every entry a reconstruction writes into its output directory (see :func:`lgi.io.atomic.job_outputs`).
-OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json", "per_frame.png", "shot.usdc", "obj",
-           "bundles_constrained.parquet")
+OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json", "per_frame.png", "shot.usdc", "shot.clips",
+           "obj", "bundles_constrained.parquet")
 #: What the output folders hold (anything else there is someone else's: the run refuses to replace it).
-OUTPUT_CONTENTS = {"obj": ("frame_*.obj", "*.mtl")}
+OUTPUT_CONTENTS = {"obj": ("frame_*.obj", "*.mtl"), "shot.clips": USD_CLIP_CONTENTS}
 
 
 def check_output(out: str | Path, inputs: tuple[Any, ...] = ()) -> None:
@@ -33,7 +34,7 @@ def check_output(out: str | Path, inputs: tuple[Any, ...] = ()) -> None:
     check(out, "dir")
     check_contents(out, OUTPUT_CONTENTS)
     for name in OUTPUTS:
-        check(Path(out) / name, "dir" if name == "obj" else "file", inputs=inputs)
+        check(Path(out) / name, "dir" if name in OUTPUT_CONTENTS else "file", inputs=inputs)
 
 
 def per_frame_table(diagnostics: pd.DataFrame) -> pd.DataFrame:
