@@ -186,7 +186,7 @@ def solver_noise(shot: Path, bundles: Path) -> tuple[np.ndarray, np.ndarray]:
     names = s.index.marker_names
     truth = read_bundles(shot / "bundles.csv", names).positions
     cov = read_bundles(shot / "tracked.csv", names).covariance
-    e = (s.fit_pos - truth) * 10
+    e = (np.asarray(s.fit_pos) - truth) * 10
     ok = np.isfinite(e).all(-1) & np.isfinite(cov).all((-1, -2))
     _, v = np.linalg.eigh(cov[ok])
     along = np.einsum("ni,ni->n", e[ok], v[:, :, 2])

@@ -394,7 +394,7 @@ def run(pos):
     return verts
 
 
-verts = run(shot.fit_pos)
+verts = run(np.asarray(shot.fit_pos))
 np.savez(out, vertices=verts)
 """
 

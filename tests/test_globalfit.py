@@ -113,3 +113,26 @@ def test_joint_jaw_fit_recovers_the_jaw_and_stops_at_its_own_solution() -> None:
                                   w, th, r)
     assert steps <= 2
     assert np.abs(th - res.jaw).max() < 1e-6
+
+
+def test_a_shots_fits_kept_on_disk_come_back_bit_for_bit() -> None:
+    from lgi.solve.globalfit import FitStore, GlobalFitResult
+
+    rng = np.random.default_rng(4)
+    fits = {f: GlobalFitResult(rng.random(7), rng.normal(size=4), rng.random(5), float(rng.random()),
+                               ["estimated", "given"][f % 2]) for f in (0, 1, 2, 5, 6, 9)}
+    store = FitStore(10, 7, 5, jaw=True)
+    store.BLOCK = 4  # several writes, one of them of a run with a gap
+    for f, fit in fits.items():
+        store.put(f, fit)
+    got = store.take(np.arange(10))
+    for f in range(10):
+        if f not in fits:
+            assert got[f] is None
+            continue
+        a, b = fits[f], got[f]
+        assert np.array_equal(a.weights, b.weights) and np.array_equal(a.jaw, b.jaw)
+        assert np.array_equal(a.residual, b.residual) and a.rms == b.rms and a.jaw_source == b.jaw_source
+    no_jaw = FitStore(2, 3, 2, jaw=False)
+    no_jaw.put(1, GlobalFitResult(np.ones(3), None, np.zeros(2), 0.5, ""))
+    assert no_jaw.take([0, 1])[0] is None and no_jaw.take([1])[0].jaw is None

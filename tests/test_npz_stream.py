@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from lgi.errors import InputError
-from lgi.io.npz import NpzWriter, StoredArray, npz_member, save_npz
+from lgi.io.npz import NpzWriter, npz_member, save_npz
+from lgi.io.stored import ScratchArray, StoredArray
 
 
 def test_an_npz_written_in_blocks_has_the_bytes_of_one_written_whole(tmp_path: Path) -> None:
@@ -44,6 +45,19 @@ def test_a_member_is_read_by_frame_range_without_loading_it(tmp_path: Path) -> N
     assert np.array_equal(npz_member(tmp_path / "m.npz", "frames"), np.arange(20))
     with pytest.raises(InputError, match="no array 'jaw'"):
         npz_member(tmp_path / "m.npz", "jaw")
+
+
+def test_a_scratch_array_gives_back_what_was_written_and_leaves_no_file(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    v = rng.normal(size=(50, 4, 3))
+    v[7] = np.nan
+    s = ScratchArray.of(v, dir=tmp_path)
+    assert s.shape == v.shape and s.dtype == np.float64 and list(tmp_path.iterdir()) == []
+    assert np.array_equal(np.asarray(s), v, equal_nan=True) and np.array_equal(s[10:13, 1], v[10:13, 1])
+    s.write(3, v[:2] * 2)
+    assert np.array_equal(s[3:5], v[:2] * 2) and np.array_equal(s[5], v[5])
+    with pytest.raises(ValueError, match="do not fit"):
+        s.write(49, v[:2])
 
 
 def test_a_cut_or_foreign_archive_is_refused_with_its_name(tmp_path: Path) -> None:

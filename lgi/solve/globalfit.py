@@ -83,6 +83,64 @@ class GlobalFitResult:
     jaw_source: str = ""
 
 
+class FitStore:
+    """Each frame's :class:`GlobalFitResult` of a shot, kept on disk (:class:`~lgi.io.stored.ScratchArray`): an
+    exact shot's fits are made once, when its noise is resolved, and read back a block at a time when its frames
+    are chosen; a long take holds none of them in memory (500 shapes: 7 kB per frame).
+
+    Frames are put in order (:meth:`put`); :meth:`take` gives a block's fits (None where none was put), bit for
+    bit as put.
+    """
+
+    #: Fits held before they are written.
+    BLOCK = 256
+
+    def __init__(self, n_frames: int, n_shapes: int, n_markers: int, jaw: bool) -> None:
+        from lgi.io.stored import ScratchArray
+
+        self.weights = ScratchArray((n_frames, n_shapes), np.float64)
+        self.residual = ScratchArray((n_frames, n_markers), np.float64)
+        self.jaw = ScratchArray((n_frames, N_PARAMS), np.float64) if jaw else None
+        self.rms = np.full(n_frames, np.nan)
+        #: (F,) index into ``sources`` of each frame's ``jaw_source``; -1 where no fit was put
+        self.source = np.full(n_frames, -1, np.int16)
+        self.sources: list[str] = []
+        self._held: list[tuple[int, GlobalFitResult]] = []
+
+    def put(self, f: int, fit: GlobalFitResult) -> None:
+        """Frame f's fit (frames in increasing order)."""
+        if fit.jaw_source not in self.sources:
+            self.sources.append(fit.jaw_source)
+        self.source[f] = self.sources.index(fit.jaw_source)
+        self.rms[f] = fit.rms
+        self._held.append((f, fit))
+        if len(self._held) >= self.BLOCK:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the fits held (each run of consecutive frames at once)."""
+        held, self._held = self._held, []
+        while held:
+            n = 1
+            while n < len(held) and held[n][0] == held[0][0] + n:
+                n += 1
+            run, held = held[:n], held[n:]
+            self.weights.write(run[0][0], np.stack([fit.weights for _, fit in run]))
+            self.residual.write(run[0][0], np.stack([fit.residual for _, fit in run]))
+            if self.jaw is not None:
+                self.jaw.write(run[0][0], np.stack([fit.jaw for _, fit in run]))
+
+    def take(self, rows: np.ndarray) -> list[GlobalFitResult | None]:
+        """The fits of frames ``rows`` (increasing), None where none was put."""
+        self.flush()
+        rows = np.asarray(rows, np.int64)
+        w, r = self.weights[rows], self.residual[rows]
+        j = None if self.jaw is None else self.jaw[rows]
+        return [None if self.source[f] < 0 else
+                GlobalFitResult(w[k], None if j is None else j[k], r[k], float(self.rms[f]),
+                                self.sources[self.source[f]]) for k, f in enumerate(rows)]
+
+
 class GlobalFit:
     """Bounded blendshape fit with an optional jaw solved jointly (see the module docstring).
 

@@ -9,7 +9,8 @@ import warnings
 import numpy as np
 
 from lgi.errors import InputError
-from lgi.solve.globalfit import EXACT_GAIN, join_gain
+from lgi.io.stored import ScratchArray
+from lgi.solve.globalfit import EXACT_GAIN, FitStore, join_gain
 from lgi.solve.temporal import MIN_SMOOTHED_FRAMES, NoiseEstimate, denoise_with_model, estimate_noise
 from lgi.threads import one_blas_thread
 from lgi.units import MM_PER_CM
@@ -69,8 +70,9 @@ class NoiseHandling:
         lev = np.zeros(p.shape[1:])
         count = np.zeros(p.shape[1])
         init = None
-        fits: list = [None] * len(p)
         gf = self.global_fit
+        # Each frame's fit goes to disk as it is made: an exact shot's choice reuses them (:meth:`cached_fits`).
+        fits = FitStore(len(p), gf.n_shapes, p.shape[1], gf.rig is not None)
         with_jaw = gf.rig is not None and gf.jaw_observable
         rot = self.noise_rotations
         stride = max(1, len(p) // LEVERAGE_FRAMES)
@@ -83,13 +85,15 @@ class NoiseHandling:
                 if not seen.any():
                     out[f] = np.nan
                     continue
-                init = fits[f] = gf.solve(p[f], init=init)
+                init = gf.solve(p[f], init=init)
+                fits.put(f, init)
                 out[f] = gf.predict(init.weights, init.jaw)
                 if f % stride == 0:
                     lev[seen] += self._fit_leverage(init, out[f], seen, with_jaw, rot)
                     count[seen] += 1
         finally:
             gf.gain = gain
+        fits.flush()
         self._last_fits = fits
         sampled = count > 0
         if not sampled.any():
@@ -149,7 +153,7 @@ class NoiseHandling:
             # Their trajectories are left as they are: the surface is still held off their bundles by the noise.
             log.warning("%d of %d markers are seen in fewer than %d frames: too few to smooth their noisy "
                         "trajectories, which are fitted frame by frame", short, len(seen), MIN_SMOOTHED_FRAMES)
-        model = self._model
+        model, self._model = self._model, None  # used once: a long take's fitted positions are not held
         # The shot's noise was resolved on these positions before its gaps were bridged (a copy): reuse that fit.
         if model is None or not np.array_equal(model[0], positions, equal_nan=True):
             model = (positions, *self.model_fit(positions))
@@ -162,9 +166,11 @@ class NoiseHandling:
             into = lambda x: np.einsum("mij,fmj->fmi", rot, x)  # noqa: E731
             out, left, windows = denoise_with_model(into(positions), into(model[1]), self.noise_sigma, model[2])
             out = np.einsum("mji,fmj->fmi", rot, out)
-        self.denoise_windows = windows
-        self.noise_left = left
         fit_noise = float(np.sqrt(np.nanmean(left))) * MM_PER_CM
+        # Read a block at a time by the choice and the finish: on disk, as a long take's would not fit in memory.
+        self.denoise_windows = ScratchArray.of(windows)
+        self.noise_left = ScratchArray.of(left)
+        del model, left, windows
         self.global_fit.gain = join_gain(fit_noise)
         log.info("noisy bundles smoothed (the face model's fit and what it leaves): about %.4f mm noise left per "
                  "coordinate", fit_noise)
@@ -306,20 +312,34 @@ class NoiseHandling:
             self._model = (positions, fitted, leverage)
         if self.noise == 0:
             # Exact bundles are chosen from the same fit of the same positions: the choice takes it (see
-            # :meth:`cached_fits`; :meth:`prepare_shot` names the frames) instead of solving every frame twice.
-            self._frame_fits = (None, positions, fits)
+            # :meth:`cached_fits`; :meth:`prepare_shot` names the frames) instead of solving every frame twice. The
+            # positions and fits wait on disk (a long take's would not fit in memory).
+            self._frame_fits = (None, ScratchArray.of(positions), fits)
         return est
 
     def cached_fits(self, positions: np.ndarray, frames: np.ndarray) -> list:
         """Per frame of ``positions`` (F, M, 3) cm, numbered ``frames``, the global fit that resolving an exact
         shot made of the same frame (:meth:`resolve_noise` through ``prepare_shot``); None where there is none
-        or the frame's bundles differ from those fitted (a bridged gap)."""
+        or the frame's bundles differ from those fitted (a bridged gap). Reads only these frames' fits."""
         cache = self._frame_fits
         if cache is None or cache[0] is None or self.noise != 0:
             return [None] * len(positions)
-        row = {int(f): r for r, f in enumerate(cache[0])}
-        out = []
-        for q, f in zip(positions, frames, strict=True):
-            r = row.get(int(f))
-            out.append(None if r is None or not np.array_equal(q, cache[1][r], equal_nan=True) else cache[2][r])
+        shot_frames, fitted, store = cache
+        shot_frames, frames = np.asarray(shot_frames, np.int64), np.asarray(frames, np.int64)
+        if len(shot_frames) > 1 and not np.all(np.diff(shot_frames) > 0):  # numbered out of order: the last row
+            row = {int(f): r for r, f in enumerate(shot_frames)}
+            at = np.array([row.get(int(f), 0) for f in frames], np.int64)
+        else:
+            at = np.minimum(np.searchsorted(shot_frames, frames), len(shot_frames) - 1)
+        known = shot_frames[at] == frames
+        out: list = [None] * len(positions)
+        if not known.any():
+            return out
+        rows = at[known]
+        same = np.flatnonzero(known)
+        fits = store.take(rows)
+        given = fitted[rows]
+        for k, q, fit, g in zip(same, np.asarray(positions)[same], fits, given, strict=True):
+            if np.array_equal(q, g, equal_nan=True):
+                out[k] = fit
         return out

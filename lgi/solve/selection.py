@@ -24,6 +24,9 @@ from lgi.solve.results import FITTED, FrameResult
 from lgi.threads import one_blas_thread
 from lgi.units import MM_PER_CM
 
+#: Frames whose positions and cached fits :meth:`Selection.select_sequence` reads at a time.
+SELECT_BLOCK = 128
+
 # A bundle keeps the global weights where they fit it and its neighbours within this RMS (cm; 1 micrometre).
 LOCAL_MIN_MISFIT = 1e-4
 # How far (in shape weight) a bundle's local weights are expected to stray from the global fit's: with measured
@@ -309,11 +312,18 @@ class Selection:
             left = self.noise_left
         sels = []
         prev = previous
-        fits = self.cached_fits(pos, frames) if jaw is None else [None] * len(pos)
+        lo = hi = 0
         for f in progress(range(len(pos)), "choosing shapes", disable=not show_progress):
+            if f == hi:
+                # A block of frames at a time: ``pos`` and ``left`` may be a long take's arrays on disk
+                # (:class:`~lgi.io.stored.StoredArray`), read by range.
+                lo, hi = f, min(len(pos), f + SELECT_BLOCK)
+                p = np.asarray(pos[lo:hi])
+                lf = None if left is None else np.asarray(left[lo:hi])
+                fits = self.cached_fits(p, frames[lo:hi]) if jaw is None else [None] * len(p)
             try:
-                prev = self.select_frame(pos[f], prev, None if jaw is None else jaw[f],
-                                         None if left is None else left[f], fits[f])
+                prev = self.select_frame(p[f - lo], prev, None if jaw is None else jaw[f],
+                                         None if lf is None else lf[f - lo], fits[f - lo])
             except InputError as exc:
                 raise InputError(exc.message, frame=int(frames[f])) from None
             if keep:

@@ -14,8 +14,10 @@ import numpy as np
 import pandas as pd
 
 from lgi.errors import InputError
+from lgi.io.stored import ScratchArray
 from lgi.jobs.reconstruct.options import ReconstructOptions, read_jaw_file
 from lgi.jobs.reconstruct.rays import RAY_COLUMNS, read_constraints
+from lgi.memory import release_free_memory
 from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
@@ -53,8 +55,11 @@ class Shot:
         self.options = o = options
         self.index = index = LGIIndex.load(index_dir)
         b = read_bundles(bundles, index.marker_names)
-        #: (F, M) the bundles as given (NaN: none), before any filter or bridging
-        self.given = b.positions.copy()
+        #: (F, M, 3) the bundles as given (NaN: none), before any filter or bridging, on disk
+        self.given = ScratchArray.of(b.positions)
+        #: (F, M) bool: the marker has a bundle in the frame
+        self.seen = np.all(np.isfinite(b.positions), axis=2)
+        release_free_memory()  # the reader's tables
         # Bundles that stand for a marker seen by one camera (:func:`constrain_to_rays`): their rays.
         constraints, self.constrained_file = read_constraints(bundles, b.frames, index.marker_names)
         #: (F, M) bool where a ray stands for the marker, or None; (F, M, 3) ray origins and directions, cm
@@ -71,12 +76,21 @@ class Shot:
         self.solver = s = LGISolver(index, temporal_weight=o.temporal_weight, spatial_weight=o.spatial_weight,
                                     jaw="none" if o.jaw == "none" else "auto", method=o.method,
                                     far_field=o.far_field_cm())
-        self.pos, self.frames, self.bridged = s.prepare_shot(b, None, o.max_gap, o.noise)
-        self.fit_pos = s.denoise(self.pos)
+        pos, self.frames, self.bridged = s.prepare_shot(b, None, o.max_gap, o.noise)
+        del b
+        fit_pos = s.denoise(pos)
         if self.rays is not None:
             # A ray's point is where the surface must meet the ray: smoothed with the marker's noisy track, it
             # would leave the ray.
-            self.fit_pos = np.where(self.rays[..., None], self.pos, self.fit_pos)
+            fit_pos = np.where(self.rays[..., None], pos, fit_pos)
+        # The shot's per-frame arrays wait on disk, and its blocks read them by range: a long take's would not fit
+        # in memory (ICT's 108 markers: 2.6 kB per frame each).
+        #: (F, M, 3) cm, the bundles in layout order with gaps bridged (:meth:`LGISolver.prepare_shot`)
+        self.pos = ScratchArray.of(pos)
+        #: (F, M, 3) cm, the positions the frames are fitted to (denoised; ``pos`` itself for exact bundles)
+        self.fit_pos = self.pos if fit_pos is pos else ScratchArray.of(fit_pos)
+        del pos, fit_pos
+        release_free_memory()
         self.contours = None
         if o.contours:
             from lgi.capture.observations import read_contours, read_head_poses, read_rig
@@ -95,8 +109,7 @@ class Shot:
         given), "ray" (a marker seen by one camera, on its ray) or "none" (missing; bridged if the status says
         so)."""
         hi = self.n_frames if hi is None else hi
-        seen = np.all(np.isfinite(self.given[lo:hi]), axis=2)
-        out = np.where(seen, "bundle", "none").astype(object)
+        out = np.where(self.seen[lo:hi], "bundle", "none").astype(object)
         if self.rays is not None:
             out[self.rays[lo:hi]] = "ray"
         return out.ravel()
@@ -235,9 +248,9 @@ def constrain_to_rays(shot: Shot, vertices: np.ndarray, out: str | Path) -> dict
     from lgi.io.atomic import atomic_file
 
     o = shot.options
-    seen = np.all(np.isfinite(shot.given), axis=2)
+    seen = shot.seen
     rays = read_rays(o.observations, shot.index.marker_names, shot.frames, seen, o.calib)
-    pos = shot.given.copy()
+    pos = np.array(shot.given)
     layout = shot.index.layout()
     before = np.zeros(len(rays))
     if len(rays):

@@ -124,7 +124,7 @@ def preflight(index_dir: str | Path, bundles: str | Path, options: ReconstructOp
         from lgi.capture.observations import read_rays
 
         read_rays(options.observations, shot.index.marker_names, shot.frames,
-                  np.all(np.isfinite(shot.given), axis=2), options.calib)
+                  shot.seen, options.calib)
     return shot.n_frames  # contours: read and checked when the shot is prepared
 
 

@@ -71,8 +71,9 @@ class ShotSummary:
         if res.jaw is not None:
             self.jaw_open = [min(self.jaw_open[0], float(res.jaw[:, 0].min())),
                              max(self.jaw_open[1], float(res.jaw[:, 0].max()))]
-            # The fit's RMS repeats on every row of its frame: one value per frame gives the rows' median.
-            self.fit_rms.append(d.fit_rms_mm.to_numpy(np.float64).reshape(-1, self.n_markers)[:, 0])
+            # The fit's RMS repeats on every row of its frame: one value per frame gives the rows' median. A copy:
+            # a view would hold the block's whole table of numbers (9 kB per ICT frame).
+            self.fit_rms.append(d.fit_rms_mm.to_numpy(np.float64).reshape(-1, self.n_markers)[:, 0].copy())
 
     def result(self, shot: Shot, out: str | Path, seconds: dict[str, float]) -> dict[str, Any]:
         """The summary (JSON-friendly) of every block added."""
