@@ -87,8 +87,9 @@ def test_export_command(tmp_path: Path, monkeypatch) -> None:
     (tmp_path / "mine.clips").mkdir()
     (tmp_path / "mine.clips" / "notes.txt").write_text("a user's folder")
     assert main(["export", str(tmp_path / "r"), "--index", str(tmp_path / "idx"), "--usd",
-                 str(tmp_path / "mine.usdc"), "-q"]) == 2
+                 str(tmp_path / "mine.usdc"), "--exr", str(tmp_path / "mine_exr"), "--exr-size", "32", "-q"]) == 2
     assert not (tmp_path / "mine.usdc").exists() and (tmp_path / "mine.clips" / "notes.txt").exists()
+    assert not (tmp_path / "mine_exr").exists()  # refused before any map was written
     assert main(["export", str(tmp_path / "r"), "--index", str(tmp_path / "idx"), "--usd", str(tmp_path / "c.usdc"),
                  "-q"]) == 0
     assert sorted(p.name for p in (tmp_path / "c.clips").iterdir()) == ["clip_00000.usdc", "clip_00001.usdc",

@@ -43,6 +43,7 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
            show_progress: bool = False) -> dict[str, Any]:
     """``lgi export``: write ``recon_dir/meshes.npz`` as USD and/or EXR maps (each output atomic; the USD is
     written last, so none appears if the maps fail)."""
+    from lgi.export import clips
     from lgi.export.formats import displacement_map, write_exr, write_usd
     from lgi.index.build import LGIIndex
     from lgi.io.arrays import nonfinite_frames
@@ -66,6 +67,10 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     if vertices.ndim != 3 or vertices.shape[1:] != (index.n_vertices, 3) or len(frames) != len(vertices):
         raise InputError(f"vertices of shape {vertices.shape} and {len(frames)} frames do not fit the index's "
                          f"{index.n_vertices} vertices", path=src)
+    if o.usd and len(frames) > clips.USD_CLIP_FRAMES:
+        # Checked before any map is written: a long shot's USD also replaces its clip folder.
+        check_output(clips.usd_clip_dir(o.usd), "dir", inputs=[recon_dir, index_dir], owned=clips.USD_CLIP_CONTENTS,
+                     what="lgi USD clip folder")
     bad = nonfinite_frames(vertices)
     if len(bad):
         raise InputError("non-finite vertex positions", path=src, frame=int(frames[bad[0]]))
