@@ -9,9 +9,10 @@ import warnings
 import numpy as np
 
 from lgi.errors import InputError
-from lgi.io.stored import ScratchArray
+from lgi.io.stored import ScratchArray, StoredArray
 from lgi.solve.globalfit import EXACT_GAIN, FitStore, join_gain
-from lgi.solve.temporal import MIN_SMOOTHED_FRAMES, NoiseEstimate, denoise_with_model, estimate_noise
+from lgi.solve.streamed import frame_blocks, row_reader, same_rows, streamed_sum
+from lgi.solve.temporal import MIN_SMOOTHED_FRAMES, NoiseEstimate, estimate_noise, model_denoised_blocks
 from lgi.threads import one_blas_thread
 from lgi.units import MM_PER_CM
 
@@ -53,51 +54,55 @@ class NoiseHandling:
 
     @one_blas_thread
     def model_fit(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Each frame's global fit (:class:`~lgi.solve.globalfit.GlobalFit`, from the previous frame's) as bundle
-        positions (F, M, 3) cm, and its leverage per marker and axis (M, 3): the share of a coordinate's noise
-        variance the fit takes with it (the diagonal of its hat matrix over the free parameters, the weights
-        strictly inside their bounds and the jaw's when estimated), averaged over the frames that see it, along
-        each marker's noise axes when they are set.
+        """Each frame's global fit (:class:`~lgi.solve.globalfit.GlobalFit`, from the previous frame's) of
+        ``positions`` (F, M, 3) cm (an array or a :class:`~lgi.io.stored.StoredArray`, read a block at a time) as
+        bundle positions (F, M, 3) cm (a :class:`~lgi.io.stored.ScratchArray`; NaN in frames without a bundle),
+        and its leverage per marker and axis (M, 3): the share of a coordinate's noise variance the fit takes with
+        it (the diagonal of its hat matrix over the free parameters, the weights strictly inside their bounds and
+        the jaw's when estimated), averaged over the frames that see it, along each marker's noise axes when they
+        are set.
 
         The share is far from uniform: on ICT's rotating jaw it runs from 0.01 to 0.2 (a mean of 0.1), the jaw
         and lip markers holding most. Smoothing every marker's fitted part as if it held the mean left the jaw's
         noise in the fit (0.3 mm, the rigged fit of the smoothed bundles: 0.119 mm against 0.090 per marker)."""
-        p = np.asarray(positions, np.float64)
-        if self.noise_dropped.any():
-            p = p.copy()
-            p[:, self.noise_dropped] = np.nan
-        out = np.empty_like(p)
-        lev = np.zeros(p.shape[1:])
-        count = np.zeros(p.shape[1])
+        n_f, n_m = len(positions), positions.shape[1]
+        # Written a block at a time, read back by range: a long take's fitted positions wait on disk.
+        out = ScratchArray((n_f, n_m, 3), np.float64)
+        lev = np.zeros((n_m, 3))
+        count = np.zeros(n_m)
         init = None
         gf = self.global_fit
         # Each frame's fit goes to disk as it is made: an exact shot's choice reuses them (:meth:`cached_fits`).
-        fits = FitStore(len(p), gf.n_shapes, p.shape[1], gf.rig is not None)
+        fits = FitStore(n_f, gf.n_shapes, n_m, gf.rig is not None)
         with_jaw = gf.rig is not None and gf.jaw_observable
         rot = self.noise_rotations
-        stride = max(1, len(p) // LEVERAGE_FRAMES)
+        stride = max(1, n_f // LEVERAGE_FRAMES)
         # Every shape the frame wants joins: what a coarser fit leaves of the motion would be smoothed as noise (the
         # synthetic actor at 0.3 mm: LGI at 1.071x the smoothed fit with a noise-sized join gain, 1.014x exact).
         gain, gf.gain = gf.gain, EXACT_GAIN
         try:
-            for f in range(len(p)):
-                seen = np.isfinite(p[f]).all(axis=1)
-                if not seen.any():
-                    out[f] = np.nan
-                    continue
-                init = gf.solve(p[f], init=init)
-                fits.put(f, init)
-                out[f] = gf.predict(init.weights, init.jaw)
-                if f % stride == 0:
-                    lev[seen] += self._fit_leverage(init, out[f], seen, with_jaw, rot)
-                    count[seen] += 1
+            for lo, hi in frame_blocks(n_f):
+                p = np.array(positions[lo:hi], np.float64)
+                p[:, self.noise_dropped] = np.nan
+                o = np.full(p.shape, np.nan)
+                for k, f in enumerate(range(lo, hi)):
+                    seen = np.isfinite(p[k]).all(axis=1)
+                    if not seen.any():
+                        continue
+                    init = gf.solve(p[k], init=init)
+                    fits.put(f, init)
+                    o[k] = gf.predict(init.weights, init.jaw)
+                    if f % stride == 0:
+                        lev[seen] += self._fit_leverage(init, o[k], seen, with_jaw, rot)
+                        count[seen] += 1
+                out.write(lo, o)
         finally:
             gf.gain = gain
         fits.flush()
         self._last_fits = fits
         sampled = count > 0
         if not sampled.any():
-            return out, np.zeros(p.shape[1:])
+            return out, np.zeros((n_m, 3))
         lev[sampled] /= count[sampled, None]
         lev[~sampled] = np.mean(lev[sampled], axis=0)
         return out, np.clip(lev, 0.0, 0.9)
@@ -147,7 +152,9 @@ class NoiseHandling:
         self.global_fit.gain = join_gain(self.noise)
         if self.noise <= 0:
             return positions
-        seen = np.all(np.isfinite(positions), axis=2).sum(axis=0)
+        n_f = len(positions)
+        seen = sum((np.all(np.isfinite(positions[lo:hi]), axis=2).sum(axis=0) for lo, hi in frame_blocks(n_f)),
+                   start=np.zeros(positions.shape[1], np.int64))
         short = int((seen < MIN_SMOOTHED_FRAMES).sum())
         if short:
             # Their trajectories are left as they are: the surface is still held off their bundles by the noise.
@@ -155,22 +162,28 @@ class NoiseHandling:
                         "trajectories, which are fitted frame by frame", short, len(seen), MIN_SMOOTHED_FRAMES)
         model, self._model = self._model, None  # used once: a long take's fitted positions are not held
         # The shot's noise was resolved on these positions before its gaps were bridged (a copy): reuse that fit.
-        if model is None or not np.array_equal(model[0], positions, equal_nan=True):
+        if model is None or not same_rows(model[0], positions):
             model = (positions, *self.model_fit(positions))
             self._last_fits = None
         rot = self.noise_rotations
-        if rot is None:
-            out, left, windows = denoise_with_model(positions, model[1], self.noise_sigma, model[2])
-        else:
-            # Each marker's trajectory in its noise's principal axes (its covariance's), where the axes are apart.
-            into = lambda x: np.einsum("mij,fmj->fmi", rot, x)  # noqa: E731
-            out, left, windows = denoise_with_model(into(positions), into(model[1]), self.noise_sigma, model[2])
-            out = np.einsum("mji,fmj->fmi", rot, out)
-        fit_noise = float(np.sqrt(np.nanmean(left))) * MM_PER_CM
-        # Read a block at a time by the choice and the finish: on disk, as a long take's would not fit in memory.
-        self.denoise_windows = ScratchArray.of(windows)
-        self.noise_left = ScratchArray.of(left)
-        del model, left, windows
+        into = None if rot is None else (lambda x: np.einsum("mij,fmj->fmi", rot, x))
+        # Smoothed a block at a time into files read a block at a time by the choice and the finish: a long take's
+        # would not fit in memory. Each marker's trajectory is smoothed in its noise's principal axes (its
+        # covariance's), where the axes are apart.
+        out = ScratchArray((n_f, *positions.shape[1:]), np.float64)
+        self.noise_left = ScratchArray(out.shape, np.float64)
+        self.denoise_windows = ScratchArray(out.shape, np.int64)
+        for lo, _, smoothed, left, windows in model_denoised_blocks(positions, model[1], self.noise_sigma, model[2],
+                                                                    into):
+            out.write(lo, smoothed if rot is None else np.einsum("mji,fmj->fmi", rot, smoothed))
+            self.noise_left.write(lo, left)
+            self.denoise_windows.write(lo, windows)
+        del model
+        # np.nanmean(left), bit for bit: numpy's sum of the left with its NaN as 0, over the count of the others
+        read = row_reader(self.noise_left, lambda x: np.where(np.isnan(x), 0.0, x))
+        given = sum((int(np.count_nonzero(~np.isnan(self.noise_left[lo:hi]))) for lo, hi in frame_blocks(n_f)),
+                    start=0)
+        fit_noise = float(np.sqrt(streamed_sum(read, int(np.prod(out.shape))) / given)) * MM_PER_CM
         self.global_fit.gain = join_gain(fit_noise)
         log.info("noisy bundles smoothed (the face model's fit and what it leaves): about %.4f mm noise left per "
                  "coordinate", fit_noise)
@@ -314,7 +327,8 @@ class NoiseHandling:
             # Exact bundles are chosen from the same fit of the same positions: the choice takes it (see
             # :meth:`cached_fits`; :meth:`prepare_shot` names the frames) instead of solving every frame twice. The
             # positions and fits wait on disk (a long take's would not fit in memory).
-            self._frame_fits = (None, ScratchArray.of(positions), fits)
+            self._frame_fits = (None, positions if isinstance(positions, StoredArray) else ScratchArray.of(positions),
+                                fits)
         return est
 
     def cached_fits(self, positions: np.ndarray, frames: np.ndarray) -> list:

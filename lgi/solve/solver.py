@@ -283,10 +283,21 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         """A shot's positions (F, M, 3) in layout order, frame numbers and bridged mask (F, M), with the
         solver's noise resolved (:meth:`resolve_noise`) on the positions as given. Gaps are bridged (up to
         ``max_gap`` frames) unless the frames are independent poses rather than a performance: interpolating
-        a marker between two unrelated poses would invent a position (a warning says so)."""
-        from lgi.solve.temporal import bridge_gaps
+        a marker between two unrelated poses would invent a position (a warning says so).
 
-        raw, frames, _ = self.prepare(bundles, frames, 0)
+        Bundles read onto disk in the index's marker order (:func:`~lgi.capture.bundles.read_bundles` with
+        ``on_disk``) are prepared a block of frames at a time, and the positions returned are on disk too
+        (:class:`~lgi.io.stored.ScratchArray`): the same values, in memory that does not grow with the shot."""
+        from lgi.io.stored import ScratchArray, StoredArray
+        from lgi.solve.streamed import all_rows
+        from lgi.solve.temporal import bridge_gaps, bridged_blocks
+
+        if isinstance(bundles, Bundles) and isinstance(bundles.positions, StoredArray) \
+                and bundles.markers == list(self.index.marker_names):
+            # Read in the index's marker order onto disk (a long take's): used as it is, a block at a time.
+            raw, frames = bundles.positions, np.asarray(bundles.frames)
+        else:
+            raw, frames, _ = self.prepare(bundles, frames, 0)
         cov = bundles.covariance if isinstance(bundles, Bundles) else None
         if noise == "auto" and cov is not None and np.isfinite(cov).any():
             # The bundles carry their covariances (``lgi track``): the noise is theirs, marker by marker.
@@ -295,7 +306,8 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
             for i, n in enumerate(self.index.marker_names):
                 if n in col:
                     aligned[:, i] = cov[:, col[n]]
-            bare = np.isfinite(raw).all(axis=2).any(axis=0) & ~np.isfinite(aligned).all(axis=(2, 3)).any(axis=0)
+            seen = all_rows(raw, lambda p: np.isfinite(p).all(axis=2))
+            bare = seen.any(axis=0) & ~np.isfinite(aligned).all(axis=(2, 3)).any(axis=0)
             if bare.any():
                 names = [self.index.marker_names[i] for i in np.flatnonzero(bare)]
                 log.warning("%d markers have positions but no covariance in any frame (%s): they take the median "
@@ -309,10 +321,21 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
             self.resolve_noise(raw, noise)
             if self._frame_fits is not None:
                 self._frame_fits = (np.asarray(frames), *self._frame_fits[1:])
-        if max_gap > 0 and self.independent_poses and not np.all(np.isfinite(raw)):
+        if max_gap > 0 and self.independent_poses and not all_rows(raw, lambda p: np.isfinite(p).all(axis=(1, 2))
+                                                                   ).all():
             log.warning("missing markers are not bridged: the frames change like independent poses")
             max_gap = 0
-        pos, bridged = bridge_gaps(raw, max_gap)
+        if not isinstance(raw, StoredArray):
+            pos, bridged = bridge_gaps(raw, max_gap)
+            return pos, frames, bridged
+        if max_gap <= 0:  # nothing to bridge: the positions on disk are read as they are
+            return raw, frames, np.zeros(raw.shape[:2], bool)
+        # A long take's bridged positions go to disk a block at a time.
+        pos = ScratchArray(raw.shape, np.float64)
+        bridged = np.zeros(raw.shape[:2], bool)
+        for lo, hi, filled, was in bridged_blocks(raw, max_gap):
+            pos.write(lo, filled)
+            bridged[lo:hi] = was
         return pos, frames, bridged
 
     def prepare(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,

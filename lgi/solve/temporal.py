@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from lgi.solve.streamed import frame_blocks, streamed_median
 from lgi.units import MM_PER_CM
 
 
@@ -50,6 +52,20 @@ def bridge_gaps(positions: np.ndarray, max_gap: int) -> tuple[np.ndarray, np.nda
             pos[start:end, m] = a + t[:, None] * (b - a)
             bridged[start:end, m] = True
     return pos, bridged
+
+
+def bridged_blocks(positions, max_gap: int, block: int | None = None
+                   ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
+    """:func:`bridge_gaps` a block of frames at a time, ``positions`` (F, M, 3) an array or a
+    :class:`~lgi.io.stored.StoredArray` read by frame range: each block reads ``max_gap + 1`` frames either side,
+    which holds the seen frames around any gap short enough to bridge (a longer one is not bridged, in the block as
+    in the shot). Yields ``lo, hi`` and the block's filled positions and bridged mask."""
+    n_f = len(positions)
+    reach = max(max_gap, 0) + 1
+    for lo, hi in frame_blocks(n_f, block):
+        a, b = (lo, hi) if max_gap <= 0 else (max(0, lo - reach), min(n_f, hi + reach))
+        filled, bridged = bridge_gaps(positions[a:b], max_gap)
+        yield lo, hi, filled[lo - a:hi - a], bridged[lo - a:hi - a]
 
 
 def bilateral_filter(positions: np.ndarray, sigma_t: float = 1.5, sigma_r: float = 0.05,
@@ -216,8 +232,8 @@ class NoiseEstimate:
 NOISE_MAX_COHERENCE = 0.3
 
 
-def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None, fitted: np.ndarray | None = None,
-                   leverage: float | np.ndarray = 0.0) -> NoiseEstimate:
+def estimate_noise(positions, pairs: np.ndarray | None = None, fitted=None,
+                   leverage: float | np.ndarray = 0.0, block: int | None = None) -> NoiseEstimate:
     """Bundle noise of a shot from its trajectories, per axis.
 
     Each coordinate's residual from local polynomials over 7 frames (:func:`noise_filter`) is noise plus what the
@@ -230,46 +246,74 @@ def estimate_noise(positions: np.ndarray, pairs: np.ndarray | None = None, fitte
     noise and little else. The fit takes ``leverage`` of each coordinate's noise variance with it (the
     diagonal of its hat matrix), which the estimate puts back.
 
+    The shot is read ``block`` frames at a time (the arrays may wait on disk); the median is numpy's over the
+    whole shot, bit for bit.
+
     Parameters
     ----------
     positions : (F, M, 3) float, cm
-        Bundle positions; NaN rows (missing) are skipped with the windows that contain them.
+        Bundle positions (an array or a :class:`~lgi.io.stored.StoredArray`); NaN rows (missing) are skipped with
+        the windows that contain them.
     pairs : (P, 2) int, optional
         Neighbouring markers, for the coherence test (without them coherence is 0).
     fitted : (F, M, 3) float, cm, optional
         The face model's bundle positions fitted to each frame.
     leverage : float or (M, 3) float
         Share of a coordinate's noise variance the fit takes, per marker and axis or for all.
+    block : int
+        Frames read at once.
     """
-    p = np.asarray(positions, np.float64)
-    if fitted is not None:
-        p = p - np.asarray(fitted, np.float64)
     nan = NoiseEstimate(float("nan"), 0, float("nan"))
     g = noise_filter()
-    if len(p) < len(g):
+    n_f = len(positions)
+    if n_f < len(g):
         return nan
-    r = np.lib.stride_tricks.sliding_window_view(p, len(g), axis=0) @ g  # (F - 12, M, 3)
-    r = r / np.sqrt(np.maximum(1.0 - np.broadcast_to(leverage, p.shape[1:]), 0.05))
-    ok = np.isfinite(r)
-    if not ok.any():
+    n_r = n_f - len(g) + 1
+    lev_scale = None
+
+    def residuals() -> Iterator[np.ndarray]:
+        """(k, M, 3) the filter's residuals, ``block`` at a time over the shot's ``n_r`` windows."""
+        nonlocal lev_scale
+        for lo, hi in frame_blocks(n_r, block):
+            p = np.asarray(positions[lo:hi + len(g) - 1], np.float64)
+            if fitted is not None:
+                p = p - np.asarray(fitted[lo:hi + len(g) - 1], np.float64)
+            r = np.lib.stride_tricks.sliding_window_view(p, len(g), axis=0) @ g  # (k, M, 3)
+            if lev_scale is None:
+                lev_scale = np.sqrt(np.maximum(1.0 - np.broadcast_to(leverage, p.shape[1:]), 0.05))
+            yield r / lev_scale
+
+    samples = 0
+    dots = np.zeros((len(pairs) if pairs is not None else 0, 3))
+    counts = np.zeros(len(dots), np.int64)
+    for r in residuals():
+        ok = np.isfinite(r)
+        samples += int(ok.sum())
+        if len(dots):
+            # per pair, the sums of a.b, a.a and b.b over the frames that see both markers
+            fin = ok.all(axis=2)
+            for k, (i, j) in enumerate(np.asarray(pairs)):
+                both = fin[:, i] & fin[:, j]
+                if not both.any():
+                    continue
+                a, b = r[both, i].ravel(), r[both, j].ravel()
+                dots[k] += (a @ b, a @ a, b @ b)
+                counts[k] += int(both.sum())
+    if not samples:
         return nan
     scale = MM_PER_CM / 0.6745 / np.sqrt(g @ g)
-    axis = np.array([float(np.median(np.abs(r[..., a][ok[..., a]]))) * scale for a in range(3)])
+
+    def along(a: int):
+        return lambda: (np.abs(r[..., a][np.isfinite(r[..., a])]) for r in residuals())
+
+    axis = np.array([streamed_median(along(a)) * scale for a in range(3)])
     noise = float(np.sqrt(np.mean(axis**2)))
     coherence = 0.0
-    if pairs is not None and len(pairs):
-        corr = []
-        for i, j in np.asarray(pairs):
-            a, b = r[:, i], r[:, j]
-            both = np.isfinite(a).all(1) & np.isfinite(b).all(1)
-            if both.sum() < 3:
-                continue
-            a, b = a[both].ravel(), b[both].ravel()
-            den = np.sqrt((a @ a) * (b @ b))
-            if den > 0:
-                corr.append((a @ b) / den)
-        coherence = float(np.median(corr)) if corr else float("nan")
-    return NoiseEstimate(noise, int(ok.sum()), coherence, axis)
+    if len(dots):
+        used = (counts >= 3) & (dots[:, 1] * dots[:, 2] > 0)
+        corr = dots[used, 0] / np.sqrt(dots[used, 1] * dots[used, 2])
+        coherence = float(np.median(corr)) if len(corr) else float("nan")
+    return NoiseEstimate(noise, samples, coherence, axis)
 
 
 SG_WINDOWS = (1, 5, 7, 9, 11, 15, 21, 31)
@@ -301,15 +345,6 @@ def _sg_all(x: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
-def _running_mean(x: np.ndarray, half: int) -> np.ndarray:
-    """Mean over frames ``f - half .. f + half`` along axis 1 of ``x`` (K, F, M), the ends repeated (as scipy's
-    ``uniform_filter1d(mode="nearest")``, whose import costs every noisy reconstruction 0.37 s)."""
-    size = 2 * half + 1
-    xp = np.concatenate([np.repeat(x[:, :1], half, axis=1), x, np.repeat(x[:, -1:], half, axis=1)], axis=1)
-    c = np.concatenate([np.zeros_like(xp[:, :1]), np.cumsum(xp, axis=1)], axis=1)
-    return (c[:, size:] - c[:, :-size]) / size
-
-
 def sg_centre(window: int | np.ndarray) -> np.ndarray:
     """The share of white noise's variance a centred quadratic Savitzky-Golay window lets through (its middle
     coefficient, which for a least-squares projection is the sum of its squared coefficients); 1 for window 1."""
@@ -319,7 +354,7 @@ def sg_centre(window: int | np.ndarray) -> np.ndarray:
 
 
 def denoise_trajectories(positions: np.ndarray, noise_mm: float | np.ndarray, windows: tuple[int, ...] = SG_WINDOWS,
-                         span: int = 15) -> tuple[np.ndarray, np.ndarray]:
+                         span: int = 15, block: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Smooth each marker's trajectory by local quadratics over the window that minimises Stein's unbiased
     estimate of its error, given the noise, chosen frame by frame and axis by axis.
 
@@ -339,6 +374,8 @@ def denoise_trajectories(positions: np.ndarray, noise_mm: float | np.ndarray, wi
         Odd windows tried (1: no smoothing).
     span : int
         Frames either side over which the per-frame risk is averaged.
+    block : int
+        Frames smoothed at once (:func:`smoothed_blocks`; the result does not depend on it).
 
     Returns
     -------
@@ -348,29 +385,100 @@ def denoise_trajectories(positions: np.ndarray, noise_mm: float | np.ndarray, wi
     """
     p = np.asarray(positions, np.float64)
     s2 = np.broadcast_to((np.asarray(noise_mm, np.float64) / MM_PER_CM) ** 2, p.shape[1:])
-    out = p.copy()
-    chosen = np.ones(p.shape, np.int64)
-    if not (s2 > 0).any():
-        return out, chosen
-    cand = [w for w in windows if w > 1]
-    ok = np.all(np.isfinite(p), axis=2)
-    n_ok = ok.sum(0)
-    ys = [p]
-    risks = [np.zeros(p.shape)]  # no smoothing: the reference (its risk is s^2 per coordinate and frame)
-    for w in cand:
-        y = _sg_all(p, w)
-        smoothed = (np.all(np.isfinite(y), axis=2) & np.any(y != p, axis=2))[..., None]
-        r = np.where(smoothed, np.nan_to_num((y - p) ** 2) - 2 * s2 * (1.0 - sg_centre(w)), 0.0)
-        r[:, w > n_ok] = 1e30  # a window longer than the marker's seen frames is not a candidate
-        ys.append(y)
-        risks.append(r)
-    local = _running_mean(np.stack(risks).reshape(len(risks), len(p), -1), span).reshape(len(risks), *p.shape)
-    best = np.argmin(local, axis=0)  # (F, M, 3)
-    best[:, n_ok < MIN_SMOOTHED_FRAMES] = 0
-    best[:, s2 <= 0] = 0
-    out = np.take_along_axis(np.stack(ys), best[None], axis=0)[0]
-    chosen = np.array([1, *cand])[best]
+    out, chosen = np.empty(p.shape), np.ones(p.shape, np.int64)
+    for lo, hi, y, w in smoothed_blocks(lambda lo, hi: p[lo:hi], len(p), s2, windows, span, block):
+        out[lo:hi], chosen[lo:hi] = y, w
     return out, chosen
+
+
+def smoothed_blocks(read: Callable[[int, int], np.ndarray], n_frames: int, s2: np.ndarray,
+                    windows: tuple[int, ...] = SG_WINDOWS, span: int = 15, block: int | None = None
+                    ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
+    """:func:`denoise_trajectories` a block of frames at a time, reading the trajectories by frame range.
+
+    Each block reads a margin either side, wide enough that every window and every run of seen frames near the
+    block looks as it does in the whole shot, and the risks' running sums are carried from block to block in the
+    order the whole shot's are made: the result equals the whole shot's bit for bit.
+
+    Parameters
+    ----------
+    read : callable
+        ``read(lo, hi)``: (hi - lo, M, 3) float, cm, frames ``lo .. hi`` (NaN rows missing).
+    n_frames : int
+    s2 : (M, 3) float, cm^2
+        Noise variance per marker and axis.
+    windows, span, block
+        As :func:`denoise_trajectories`.
+
+    Yields
+    ------
+    lo, hi : int
+        The block's frames.
+    smoothed : (hi - lo, M, 3) float64, cm
+    window : (hi - lo, M, 3) int64
+    """
+    cand = [w for w in windows if w > 1]
+    smooth = bool((s2 > 0).any() and cand)
+    n_ok = None
+    if smooth:
+        n_ok = sum((np.all(np.isfinite(read(lo, hi)), axis=2).sum(0) for lo, hi in frame_blocks(n_frames, block)),
+                   start=np.zeros(s2.shape[0], np.int64))
+    wins = np.array([1, *cand])
+    size = 2 * span + 1
+    # A frame's window reads ``max(cand) // 2`` frames either side and needs its run's length up to ``max(cand)``.
+    margin = max(cand, default=1) - 1
+    # Running sums of each candidate's risk over the shot padded by ``span`` repeats at each end (c[0] = 0,
+    # c[j + 1] = c[j] + risk of padded frame j), kept from index ``c_lo``: the mean over frames f - span .. f + span
+    # is (c[f + size] - c[f]) / size.
+    c, c_lo = None, 0
+    for lo, hi in frame_blocks(n_frames, block):
+        if not smooth:
+            p = np.asarray(read(lo, hi), np.float64)
+            yield lo, hi, p.copy(), np.ones(p.shape, np.int64)
+            continue
+        c_end = c_lo + (0 if c is None else c.shape[1] - 1)  # the last running sum made
+        need = hi + 2 * span  # the last running sum the block's means need
+        rb = min(n_frames, hi + span)  # frames whose risks are needed: lo .. rb
+        s_lo, s_hi = max(0, lo - margin), min(n_frames, rb + margin)
+        p = np.asarray(read(s_lo, s_hi), np.float64)
+        ys = [p]
+        risks = [np.zeros(p.shape)]  # no smoothing: the reference (its risk is s^2 per coordinate and frame)
+        for w in cand:
+            y = _sg_all(p, w)
+            smoothed = (np.all(np.isfinite(y), axis=2) & np.any(y != p, axis=2))[..., None]
+            r = np.where(smoothed, np.nan_to_num((y - p) ** 2) - 2 * s2 * (1.0 - sg_centre(w)), 0.0)
+            r[:, w > n_ok] = 1e30  # a window longer than the marker's seen frames is not a candidate
+            ys.append(y)
+            risks.append(r)
+        risk = np.stack(risks).reshape(len(risks), len(p), -1)
+        del risks
+        padded = np.clip(np.arange(c_end, need) - span, 0, n_frames - 1) - s_lo
+        # The running sums carried on from the last one made (one add after another, as numpy's cumsum over the
+        # whole shot), in one buffer with those the block still reads.
+        keep = 0 if c is None else c.shape[1] - 1
+        buf = np.empty((len(ys), keep + 1 + len(padded), risk.shape[2]))
+        if c is None:
+            buf[:, 0] = 0.0
+        else:
+            buf[:, :keep + 1] = c
+        np.take(risk, padded, axis=1, out=buf[:, keep + 1:])
+        del risk
+        if c is None:
+            np.cumsum(buf[:, 1:], axis=1, out=buf[:, 1:])
+        else:
+            np.cumsum(buf[:, keep:], axis=1, out=buf[:, keep:])
+        c = buf
+        local = ((c[:, lo + size - c_lo:hi + size - c_lo] - c[:, lo - c_lo:hi - c_lo]) / size
+                 ).reshape(len(ys), hi - lo, *p.shape[1:])
+        c, c_lo = c[:, hi - c_lo:].copy(), hi
+        del buf
+        best = np.argmin(local, axis=0)  # (k, M, 3)
+        del local
+        best[:, n_ok < MIN_SMOOTHED_FRAMES] = 0
+        best[:, s2 <= 0] = 0
+        out = np.take_along_axis(np.stack([y[lo - s_lo:hi - s_lo] for y in ys]), best[None], axis=0)[0]
+        del ys, p  # not held while the caller works on the block
+        yield lo, hi, out, wins[best]
 
 
 # The fitted part of the trajectories carries ``leverage`` of the noise's variance, the rest the other share;
@@ -409,11 +517,36 @@ def denoise_with_model(positions: np.ndarray, fitted: np.ndarray, noise_mm: np.n
     windows : (F, M, 3) int
         The window of the residual part (the longer of the two).
     """
+    smoothed = np.empty(np.shape(positions))
+    left, windows = np.empty(smoothed.shape), np.empty(smoothed.shape, np.int64)
+    for lo, hi, y, var, w in model_denoised_blocks(positions, fitted, noise_mm, leverage):
+        smoothed[lo:hi], left[lo:hi], windows[lo:hi] = y, var, w
+    return smoothed, left, windows
+
+
+def model_denoised_blocks(positions, fitted, noise_mm: np.ndarray, leverage: float | np.ndarray,
+                          into: Callable[[np.ndarray], np.ndarray] | None = None, block: int | None = None
+                          ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`denoise_with_model` a block of frames at a time (:func:`smoothed_blocks`: equal to the whole shot's,
+    bit for bit), ``positions`` and ``fitted`` arrays or :class:`~lgi.io.stored.StoredArray` read by frame range.
+    ``into``: a map of (k, M, 3) positions into the frame they are smoothed in (each marker's noise axes), applied
+    to both as read. Yields ``lo, hi`` and the block's smoothed positions, noise left and windows."""
     s = np.broadcast_to(np.asarray(noise_mm, np.float64), np.shape(positions)[1:])
     lev = np.clip(np.broadcast_to(np.asarray(leverage, np.float64), s.shape), 0.0, 1.0)
-    fit_s, fit_w = denoise_trajectories(fitted, s * np.sqrt(lev))
-    res_s, res_w = denoise_trajectories(np.asarray(positions, np.float64) - fitted,
-                                        s * np.sqrt(1.0 - lev) * RESIDUAL_NOISE_MARGIN)
+    prep = (lambda x: x) if into is None else into
+
+    def fit_rows(lo: int, hi: int) -> np.ndarray:
+        return prep(np.asarray(fitted[lo:hi], np.float64))
+
+    def rest_rows(lo: int, hi: int) -> np.ndarray:
+        return prep(np.asarray(positions[lo:hi], np.float64)) - fit_rows(lo, hi)
+
+    n_f = len(positions)
+    fit_s2 = ((s * np.sqrt(lev)) / MM_PER_CM) ** 2
+    res_s2 = ((s * np.sqrt(1.0 - lev) * RESIDUAL_NOISE_MARGIN) / MM_PER_CM) ** 2
     var = (s / MM_PER_CM) ** 2
-    left = var * (lev * sg_centre(fit_w) + (1.0 - lev) * sg_centre(res_w))
-    return fit_s + res_s, left, res_w
+    for (lo, hi, fit_s, fit_w), (_, _, res_s, res_w) in zip(
+            smoothed_blocks(fit_rows, n_f, fit_s2, block=block), smoothed_blocks(rest_rows, n_f, res_s2, block=block),
+            strict=True):
+        left = var * (lev * sg_centre(fit_w) + (1.0 - lev) * sg_centre(res_w))
+        yield lo, hi, fit_s + res_s, left, res_w

@@ -14,10 +14,11 @@ import numpy as np
 import pandas as pd
 
 from lgi.errors import InputError
-from lgi.io.stored import ScratchArray
+from lgi.io.stored import ScratchArray, StoredArray
 from lgi.jobs.reconstruct.options import ReconstructOptions, read_jaw_file
 from lgi.jobs.reconstruct.rays import RAY_COLUMNS, read_constraints
 from lgi.memory import release_free_memory
+from lgi.solve.streamed import all_rows, frame_blocks
 from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
@@ -55,10 +56,12 @@ class Shot:
         self.options = o = options
         self.index = index = LGIIndex.load(index_dir)
         b = read_bundles(bundles, index.marker_names)
+        if not isinstance(b.positions, StoredArray):
+            b.positions = ScratchArray.of(b.positions)
         #: (F, M, 3) the bundles as given (NaN: none), before any filter or bridging, on disk
-        self.given = ScratchArray.of(b.positions)
+        self.given = b.positions
         #: (F, M) bool: the marker has a bundle in the frame
-        self.seen = np.all(np.isfinite(b.positions), axis=2)
+        self.seen = all_rows(self.given, lambda p: np.all(np.isfinite(p), axis=2))
         release_free_memory()  # the reader's tables
         # Bundles that stand for a marker seen by one camera (:func:`constrain_to_rays`): their rays.
         constraints, self.constrained_file = read_constraints(bundles, b.frames, index.marker_names)
@@ -72,23 +75,28 @@ class Shot:
             from lgi.solve.temporal import bilateral_filter
 
             rest = index.layout().evaluate(index.arrays["neutral"])
-            b.positions = bilateral_filter(b.positions, sig[0], sig[1], rest, sig[2])
+            b.positions = bilateral_filter(np.asarray(b.positions), sig[0], sig[1], rest, sig[2])
         self.solver = s = LGISolver(index, temporal_weight=o.temporal_weight, spatial_weight=o.spatial_weight,
                                     jaw="none" if o.jaw == "none" else "auto", method=o.method,
                                     far_field=o.far_field_cm())
+        # The shot's per-frame arrays wait on disk, and its blocks read them by range: a long take's would not fit
+        # in memory (ICT's 108 markers: 2.6 kB per frame each).
         pos, self.frames, self.bridged = s.prepare_shot(b, None, o.max_gap, o.noise)
         del b
         fit_pos = s.denoise(pos)
+        if not isinstance(pos, StoredArray):
+            pos = ScratchArray.of(pos)
+            fit_pos = pos if fit_pos is pos else fit_pos
+        #: (F, M, 3) cm, the bundles in layout order with gaps bridged (:meth:`LGISolver.prepare_shot`)
+        self.pos = pos
+        if not isinstance(fit_pos, StoredArray):
+            fit_pos = ScratchArray.of(fit_pos)
         if self.rays is not None:
             # A ray's point is where the surface must meet the ray: smoothed with the marker's noisy track, it
             # would leave the ray.
-            fit_pos = np.where(self.rays[..., None], pos, fit_pos)
-        # The shot's per-frame arrays wait on disk, and its blocks read them by range: a long take's would not fit
-        # in memory (ICT's 108 markers: 2.6 kB per frame each).
-        #: (F, M, 3) cm, the bundles in layout order with gaps bridged (:meth:`LGISolver.prepare_shot`)
-        self.pos = ScratchArray.of(pos)
+            fit_pos = self._rays_unsmoothed(fit_pos)
         #: (F, M, 3) cm, the positions the frames are fitted to (denoised; ``pos`` itself for exact bundles)
-        self.fit_pos = self.pos if fit_pos is pos else ScratchArray.of(fit_pos)
+        self.fit_pos = fit_pos
         del pos, fit_pos
         release_free_memory()
         self.contours = None
@@ -103,6 +111,15 @@ class Shot:
             a = index.arrays
             self.contours = LipContours(a["neutral"], triangulate(a["face_vertices"], a["face_offsets"])[0],
                                         a["marker_vertices"], a["marker_weights"])
+
+    def _rays_unsmoothed(self, fit_pos: StoredArray) -> StoredArray:
+        """``fit_pos`` with each ray's bundle as given (``pos``), a block at a time."""
+        if fit_pos is self.pos:
+            return fit_pos
+        out = ScratchArray(fit_pos.shape, np.float64)
+        for lo, hi in frame_blocks(self.n_frames):
+            out.write(lo, np.where(self.rays[lo:hi, :, None], self.pos[lo:hi], fit_pos[lo:hi]))
+        return out
 
     def constraints(self, lo: int = 0, hi: int | None = None) -> np.ndarray:
         """(F * M,) the ``constraint`` column of the diagnostics for frames lo:hi: "bundle" (a bundle was
