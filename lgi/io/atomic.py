@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import fnmatch
+import json
 import os
 import shutil
 import tempfile
@@ -276,9 +277,37 @@ def check_contents(out: str | os.PathLike[str], contents: dict[str, tuple[str, .
         check_output(Path(out) / name, "dir", owned=patterns, what=f"lgi {name}/ folder")
 
 
+#: A staging folder holding this file (a JSON object with the job's ``"key"``) is a stopped run's, to be resumed
+#: by the next run of the same job (:func:`job_outputs`' ``resume``) instead of removed.
+RESUME_FILE = ".resume.json"
+
+
+def staged_key(path: Path) -> str | None:
+    """The job key a staging folder's :data:`RESUME_FILE` names, or None (none, or not readable)."""
+    try:
+        return str(json.loads((path / RESUME_FILE).read_text())["key"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _adopt_stopped(out: Path, key: str) -> Path | None:
+    """The staging folder of a stopped run of the job ``key`` in ``out`` (its process gone), renamed out of the
+    way of the sweep, or None. Of several, the one that got farthest (the newest resume file)."""
+    found = []
+    for entry in [*out.glob(".lgi-staging-*"), *out.glob(".lgi-resuming-*")]:
+        pid = entry.name.split("-")[2]
+        if pid.isdigit() and not _alive(int(pid)) and entry.is_dir() and staged_key(entry) == key:
+            found.append(((entry / RESUME_FILE).stat().st_mtime_ns, entry))
+    if not found:
+        return None
+    taken = out / f".lgi-resuming-{os.getpid()}"
+    os.replace(max(found)[1], taken)
+    return taken
+
+
 @contextlib.contextmanager
 def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
-                contents: dict[str, tuple[str, ...]] | None = None) -> Iterator[Path]:
+                contents: dict[str, tuple[str, ...]] | None = None, resume: str | None = None) -> Iterator[Path]:
     """Yield a staging directory for a job whose outputs are the entries ``owned`` of directory ``out``.
 
     The one output-directory policy of every job that writes a directory of outputs: on success each staged
@@ -288,18 +317,27 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
     a killed run's staging directory is removed by the next run. ``contents``: for the owned directories, the
     fnmatch patterns of what they hold; an existing one holding anything else is refused before the work (see
     :func:`check_output`), as it would be replaced whole.
+
+    ``resume``: the job's key (its inputs and options). A stopped run of the same job (killed, or interrupted by a
+    signal after writing a :data:`RESUME_FILE` with this key into its staging folder) is taken over: its staging
+    folder is this run's, for the job to go on from what it wrote. An interrupt then keeps the staging folder
+    when it holds such a file; an error removes it as ever.
     """
     out = Path(out)
     check_output(out, "dir")
     check_contents(out, contents)
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
-    for prefix in (".lgi-staging-", *(f".{name}.old-" for name in owned)):
+    adopted = _adopt_stopped(out, resume) if resume else None
+    for prefix in (".lgi-staging-", ".lgi-resuming-", *(f".{name}.old-" for name in owned)):
         sweep(out, prefix)
     stage = None
     try:
         try:
             stage = make_temp_dir(out, ".lgi-staging-")
+            if adopted is not None:
+                stage.rmdir()
+                os.replace(adopted, stage)
         except OSError as exc:
             raise (storage_error(exc, out) or exc) from exc
         yield stage
@@ -331,7 +369,8 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
                 shutil.rmtree(left, ignore_errors=True)
         else:
             full = storage_error(exc, _written(exc, stage, out)) if isinstance(exc, Exception) else None
-            shutil.rmtree(stage, ignore_errors=True)
+            if not (resume and isinstance(exc, KeyboardInterrupt | SystemExit) and staged_key(stage) == resume):
+                shutil.rmtree(stage, ignore_errors=True)
         if created:  # a failed first run leaves no empty folder behind either
             with contextlib.suppress(OSError):
                 out.rmdir()

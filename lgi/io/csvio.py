@@ -23,12 +23,25 @@ def write_csv(table: pd.DataFrame, path: str | os.PathLike[str]) -> None:
 
 class CsvAppender:
     """A CSV written table by table (no index): the header from the first, every later table's rows after it in
-    the first's columns; the bytes :func:`write_csv` writes for the tables joined."""
+    the first's columns; the bytes :func:`write_csv` writes for the tables joined.
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    ``resume``: ``(size, schema)`` of a file :meth:`flush` reported (its bytes, and the columns' types as
+    :meth:`schema_bytes` gave them): the file is cut back to that size and the tables go on after it."""
+
+    def __init__(self, path: str | os.PathLike[str], resume: tuple[int, bytes] | None = None) -> None:
+        import pyarrow as pa
+        import pyarrow.csv as pacsv
+
         self.path = path
         self._writer = None
         self._schema = None
+        self._sink = None
+        if resume is not None:
+            os.truncate(path, resume[0])
+            self._schema = pa.ipc.read_schema(pa.py_buffer(resume[1]))
+            self._sink = pa.OSFile(os.fspath(path), "ab")
+            self._writer = pacsv.CSVWriter(self._sink, self._schema, write_options=pacsv.WriteOptions(
+                quoting_style="needed", include_header=False))
 
     def append(self, table: pd.DataFrame) -> None:
         import pyarrow as pa
@@ -37,16 +50,32 @@ class CsvAppender:
         arrow = pa.Table.from_pandas(table, preserve_index=False).replace_schema_metadata(None)
         if self._writer is None:
             self._schema = arrow.schema
-            self._writer = pacsv.CSVWriter(os.fspath(self.path), self._schema,
+            self._sink = pa.OSFile(os.fspath(self.path), "wb")
+            self._writer = pacsv.CSVWriter(self._sink, self._schema,
                                            write_options=pacsv.WriteOptions(quoting_style="needed"))
         elif not arrow.schema.equals(self._schema):
             arrow = arrow.cast(self._schema)
         self._writer.write_table(arrow)
 
+    def flush(self) -> tuple[int, bytes]:
+        """Put the rows written so far on disk; returns the file's size and its columns' types (for ``resume``)."""
+        if self._sink is None:
+            return 0, b""
+        self._sink.flush()
+        fd = os.open(self.path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        return self._sink.tell(), self._schema.serialize().to_pybytes()
+
     def close(self) -> None:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+        if self._sink is not None:
+            self._sink.close()
+            self._sink = None
 
 
 def read_table(path: str | os.PathLike[str], what: str, columns: tuple[str, ...], numeric: tuple[str, ...] = (),

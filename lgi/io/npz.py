@@ -104,6 +104,8 @@ class NpzWriter:
         dest.write(head.getvalue())
         self._open = (dest, name, dtype, tuple(shape), rows)
         self._rows = 0
+        #: Where the entry's rows start in the file (a stored entry's bytes are the array's own).
+        self.rows_offset = self._zf.fp.tell()
 
     def write(self, rows: np.ndarray) -> None:
         """Append rows (along the first axis) to the entry begun."""
@@ -116,6 +118,15 @@ class NpzWriter:
                              f"{self._rows} rows")
         dest.write(memoryview(rows.reshape(-1)).cast("B"))
         self._rows += len(rows)
+
+    def flush(self) -> int:
+        """Put the rows written so far on disk (flushed and synced); returns how many rows of the entry begun
+        there are: they are at :attr:`rows_offset`, each ``prod(shape[1:])`` items, as a later run that goes on
+        from them reads them (:class:`~lgi.io.stored.StoredArray`)."""
+        fp = self._zf.fp
+        fp.flush()
+        os.fsync(fp.fileno())
+        return self._rows
 
     def end(self) -> None:
         """Close the entry begun, which must have all its rows."""

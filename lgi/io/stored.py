@@ -138,6 +138,17 @@ class StoredArray:
         return np.asarray(self).astype(dtype)
 
 
+def rows_from(a, start: int):
+    """Rows ``start:`` of ``a``, an array (a view) or a :class:`StoredArray` (one on the same file; nothing read)."""
+    if not isinstance(a, StoredArray):
+        return a[start:]
+    start = min(max(int(start), 0), a.shape[0])
+    tail = StoredArray(a.path, a.offset + start * a._row_bytes, (a.shape[0] - start, *a.shape[1:]), a.dtype)
+    tail._fd = a._fd
+    tail._owner = a  # a scratch file stays open while its tail is read
+    return tail
+
+
 class ScratchArray(StoredArray):
     """A (N, ...) array in an unnamed temporary file (in ``dir``, default the system's, ``TMPDIR``): written by
     row range (:meth:`write`), read as a :class:`StoredArray`. Its pages are the page cache's, not the process's

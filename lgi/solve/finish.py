@@ -8,6 +8,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pandas as pd
 
+from lgi.io.stored import rows_from
 from lgi.progress import progress
 from lgi.solve.jaw import PARAM_NAMES, smooth_parameters
 from lgi.solve.results import STATUS, FrameResult, SequenceResult
@@ -25,14 +26,19 @@ class Finishing:
     """
 
     def _stream_unsmoothed(self, fit_pos: np.ndarray, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
-                           jaw: np.ndarray | None, show_progress: bool, block: int
-                           ) -> Iterator[tuple[int, int, SequenceResult]]:
+                           jaw: np.ndarray | None, show_progress: bool, block: int, start: int = 0,
+                           carried: tuple[int, list] | None = None
+                           ) -> Iterator[tuple[int, int, SequenceResult, tuple[int, list]]]:
         """:meth:`select_sequence` then :meth:`finish_sequence` without temporal smoothing, on two threads, in
         blocks of ``block`` frames: yields ``(lo, hi, result of frames lo:hi)`` in order, holding one block's
         surfaces and choices at a time. The choice of frame f + 1 (its kernels compiled without the GIL) runs
         while frame f is blended, and goes on while a block is written. Each frame's choice still follows the
         previous one's in order, and the one-thread kernels give the parallel ones' bits, so the result is the one
-        the two calls in turn give (tested); only the wall time changes."""
+        the two calls in turn give (tested); only the wall time changes.
+
+        From frame ``start`` (a multiple of ``block``) on, with ``carried`` what the block before it yielded last
+        (``(first, choices)``: the choices from frame ``first`` the next block reads), a run resumes where one
+        stopped, with the same bits."""
         import queue
         import threading
 
@@ -54,7 +60,10 @@ class Finishing:
 
         def produce() -> None:
             try:
-                self.select_sequence(fit_pos, frames, jaw, False, lambda f, sel: put((f, sel)), keep=False)
+                self.select_sequence(rows_from(fit_pos, start), frames[start:], None if jaw is None else jaw[start:],
+                                     False, lambda f, sel: put((f + start, sel)),
+                                     previous=carried[1][-1] if carried else None,
+                                     left=None if left is None else rows_from(left, start), keep=False)
             except _Stopped:
                 return
             except BaseException as exc:  # handed to the consumer, which raises it
@@ -69,8 +78,8 @@ class Finishing:
         self._serial = True
         worker.start()
         try:
-            bar = iter(progress(range(n), "reconstructing", disable=not show_progress))
-            for lo in range(0, n, block):
+            bar = iter(progress(range(start, n), "reconstructing", disable=not show_progress))
+            for lo in range(start, n, block):
                 hi = min(n, lo + block)
                 fin = _Finisher(self, pos[lo:hi], fit_pos[lo:hi], None if left is None else left[lo:hi])
                 sels: list[FrameResult] = []
@@ -84,7 +93,7 @@ class Finishing:
                 thetas = None if self.rig is None else np.stack([s.jaw for s in sels]).astype(np.float64)
                 diag = self._diagnostics(sels, frames[lo:hi], bridged[lo:hi], fin.before, fin.r_final, thetas)
                 yield lo, hi, SequenceResult(np.asarray(frames[lo:hi]), fin.out, diag, thetas, self.noise, 1,
-                                             fin.before, fin.r_final)
+                                             fin.before, fin.r_final), (hi - 1, sels[-1:])
             next(bar, None)
         except BaseException:
             # Interrupted, failed or closed: the chooser stops at its next frame, but it may be deep in a first
@@ -100,7 +109,8 @@ class Finishing:
 
     def _stream_smoothed(self, fit_pos: np.ndarray, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
                          smooth: int, jaw_smooth: int | None, jaw: np.ndarray | None, show_progress: bool,
-                         block: int) -> Iterator[tuple[int, int, SequenceResult]]:
+                         block: int, start: int = 0, carried: tuple[int, list] | None = None
+                         ) -> Iterator[tuple[int, int, SequenceResult, tuple[int, list]]]:
         """The same with temporal smoothing: each block is chosen (continuing from the last choice), then
         finished from the choices its smoothing windows reach (:func:`smoothing_reach`), which are all that is
         kept. A frame's result depends only on the frames in its windows, so the blocks give the bits of the
@@ -108,9 +118,10 @@ class Finishing:
         n = len(pos)
         left = self.noise_left if self.noise_left is not None and len(self.noise_left) == n else None
         reach = smoothing_reach(smooth, jaw_smooth)
-        sels: list[FrameResult] = []
-        first = chosen = 0
-        for lo in progress(range(0, n, block), "reconstructing", disable=not show_progress):
+        first, sels = carried if carried else (0, [])
+        sels = list(sels)
+        chosen = first + len(sels)
+        for lo in progress(range(start, n, block), "reconstructing", disable=not show_progress):
             hi = min(n, lo + block)
             a, b = max(0, lo - reach), min(n, hi + reach)
             if chosen < b:
@@ -122,9 +133,10 @@ class Finishing:
             del sels[:a - first]
             first = a
             k = slice(first, chosen)
-            yield lo, hi, self.finish_sequence(sels, pos[k], frames[k], bridged[k], smooth, jaw_smooth, False,
-                                               fit_pos[k], lo - first, hi - first,
-                                               None if left is None else left[k])
+            res = self.finish_sequence(sels, pos[k], frames[k], bridged[k], smooth, jaw_smooth, False, fit_pos[k],
+                                       lo - first, hi - first, None if left is None else left[k])
+            keep_from = max(first, hi - reach)  # the next block's first frame reads back this far
+            yield lo, hi, res, (keep_from, sels[keep_from - first:])
 
     @one_blas_thread
     def finish_sequence(self, sels: list[FrameResult], pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,

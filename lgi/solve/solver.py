@@ -266,16 +266,31 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         """:meth:`solve_prepared` in blocks of ``block`` frames: yields ``(lo, hi, result of frames lo:hi)`` in
         order, the same bits as the whole shot, while holding one block's surfaces (and the choices its smoothing
         reaches) at a time: a long take's memory does not grow with its length."""
+        for lo, hi, res, _ in self.stream_from(pos, frames, bridged, fit_pos, smooth, jaw_smooth, jaw, show_progress,
+                                               block):
+            yield lo, hi, res
+
+    def stream_from(self, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray, fit_pos: np.ndarray,
+                    smooth: int = 1, jaw_smooth: int | None = None, jaw: np.ndarray | None = None,
+                    show_progress: bool = False, block: int = 256, start: int = 0,
+                    carried: tuple[int, list] | None = None
+                    ) -> Iterator[tuple[int, int, SequenceResult, tuple[int, list]]]:
+        """:meth:`stream_prepared` from frame ``start`` (a multiple of ``block``), each block with what the next
+        one reads of it: ``(first, choices)``, the choices (:class:`FrameResult`) of frames ``first`` on. Given back
+        as ``carried`` with the next block's ``start``, a run stopped after any block goes on with the same bits."""
         if jaw is not None and len(jaw) != len(pos):
             raise InputError(f"{len(jaw)} jaw parameter rows for {len(pos)} frames")
+        if start % block or (start and carried is None):
+            raise ValueError(f"a stream resumes at a block's first frame with the choices carried, not at {start}")
         with threadpool_limits(limits=1, user_api="blas"):
             if smooth <= 1 and (jaw_smooth is None or jaw_smooth <= 1 or self.rig is None):
                 # Without smoothing each frame can be blended as soon as it is chosen: the choice of the next
                 # frame runs beside it, each thread with the one-thread kernels.
-                yield from self._stream_unsmoothed(fit_pos, pos, frames, bridged, jaw, show_progress, block)
+                yield from self._stream_unsmoothed(fit_pos, pos, frames, bridged, jaw, show_progress, block, start,
+                                                   carried)
             else:
                 yield from self._stream_smoothed(fit_pos, pos, frames, bridged, smooth, jaw_smooth, jaw,
-                                                 show_progress, block)
+                                                 show_progress, block, start, carried)
 
     @one_blas_thread
     def prepare_shot(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None, max_gap: int = 0,

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
+import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,6 +21,8 @@ from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.jobs.reconstruct.rays import CONSTRAINED
 
 #: Every entry a reconstruction writes into its output directory (see :func:`lgi.io.atomic.job_outputs`).
+log = logging.getLogger(__name__)
+
 OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json", "per_frame.png", "shot.usdc", "shot.clips",
            "obj", "bundles_constrained.parquet")
 #: What the output folders hold (anything else there is someone else's: the run refuses to replace it).
@@ -109,17 +113,55 @@ def write_reconstruction(out: str | Path, res, arrays: dict[str, np.ndarray], op
         writer.close(getattr(res, "noise", None), noise_estimate)
 
 
+def _durable(path: Path, write) -> None:
+    """``write(tmp)`` then ``tmp`` synced and renamed to ``path``: the file is whole or the old one."""
+    tmp = path.with_name(path.name + ".tmp")
+    write(tmp)
+    with open(tmp, "rb+") as fh:
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def resume_key(index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> str:
+    """What a run's outputs depend on, as a key a stopped run's checkpoint is matched by: lgi's version, the
+    options (not the scheduling), the bundles' and the given files' content, the index's files by size and time."""
+    import hashlib
+
+    from lgi import __version__
+
+    h = hashlib.sha256(json.dumps([__version__, {k: v for k, v in options.to_json().items() if k != "chunk_size"}],
+                                  sort_keys=True, default=str).encode())
+    given = [bundles, *(p for p in (options.jaw, options.observations, options.calib, options.contours)
+                        if p not in (None, "auto", "none"))]
+    for p in given:
+        path = Path(p)
+        if path.is_file():
+            with open(path, "rb") as fh:
+                for chunk in iter(lambda fh=fh: fh.read(1 << 20), b""):
+                    h.update(chunk)
+        h.update(str(path.resolve()).encode())
+    for f in sorted(Path(index_dir).iterdir()):
+        if f.is_file():
+            st = f.stat()
+            h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()
+
+
 @contextlib.contextmanager
 def reconstruction_outputs(out: str | Path, frames: np.ndarray, arrays: dict[str, np.ndarray],
-                           options: ReconstructOptions, with_jaw: bool, constrained: Path | None = None
-                           ) -> Iterator[ReconstructionWriter]:
+                           options: ReconstructOptions, with_jaw: bool, constrained: Path | None = None,
+                           resume: str | None = None) -> Iterator[ReconstructionWriter]:
     """A :class:`ReconstructionWriter` staging a reconstruction of ``frames`` for ``out``, through
     :func:`lgi.io.atomic.job_outputs`: the outputs replace an earlier run's only once it is closed, and an
-    error or interrupt leaves ``out`` as it was (an earlier run's outputs not written now are removed)."""
+    error or interrupt leaves ``out`` as it was (an earlier run's outputs not written now are removed).
+
+    ``resume``: the job's key (:func:`resume_key`). A run of the same job stopped after a checkpoint
+    (:meth:`ReconstructionWriter.checkpoint`) is taken over: the writer starts where it stopped
+    (:attr:`ReconstructionWriter.resumed`)."""
     from lgi.io.atomic import job_outputs
 
-    with job_outputs(out, OUTPUTS, OUTPUT_CONTENTS) as stage:
-        writer = ReconstructionWriter(stage, frames, arrays, options, with_jaw, constrained)
+    with job_outputs(out, OUTPUTS, OUTPUT_CONTENTS, resume) as stage:
+        writer = ReconstructionWriter(stage, frames, arrays, options, with_jaw, constrained, resume)
         try:
             yield writer
         except BaseException:
@@ -154,7 +196,8 @@ class ReconstructionWriter:
     """
 
     def __init__(self, stage: Path, frames: np.ndarray, arrays: dict[str, np.ndarray],
-                 options: ReconstructOptions, with_jaw: bool, constrained: Path | None = None) -> None:
+                 options: ReconstructOptions, with_jaw: bool, constrained: Path | None = None,
+                 resume: str | None = None) -> None:
         from lgi.io.csvio import CsvAppender
         from lgi.io.npz import NpzWriter
 
@@ -162,13 +205,91 @@ class ReconstructionWriter:
         self.constrained = constrained
         self.done = 0
         self.closed = False
+        self._key = resume
+        #: A stopped run's state this writer goes on from (None: a new run): ``done`` frames written, the
+        #: ``summary`` counts (:meth:`ShotSummary.state`) and the ``carried`` choices the next block reads.
+        self.resumed: dict[str, Any] | None = None
+        saved = self._saved_state() if resume else None
+        partial = stage / ".meshes.partial"
+        if saved is not None:
+            os.replace(stage / "meshes.npz", partial)
         self._npz = NpzWriter(stage / "meshes.npz")
         self._npz.begin("vertices", (len(self.frames), len(arrays["neutral"]), 3), np.float32)
         self._jaw: list[np.ndarray] | None = [] if with_jaw else None
-        self._csv = CsvAppender(stage / "diagnostics.csv")
         self._per_frame: list[pd.DataFrame] = []
-        if options.obj:
-            (stage / "obj").mkdir()
+        if saved is None:
+            self._csv = CsvAppender(stage / "diagnostics.csv")
+            if options.obj:
+                (stage / "obj").mkdir()
+            return
+        info, a = saved
+        done = int(info["done"])
+        # The frames written before the stop, copied from where they are into a new archive (its entry's size
+        # is in its header, and the rows follow on).
+        from lgi.io.stored import StoredArray
+
+        old = StoredArray(partial, int(info["rows_offset"]), (done, len(arrays["neutral"]), 3), np.float32)
+        for lo in range(0, done, 64):
+            self._npz.write(old[lo:lo + 64])
+        partial.unlink()
+        self._csv = CsvAppender(stage / "diagnostics.csv", (int(info["csv_bytes"]), a["csv_schema"].tobytes()))
+        self._per_frame = [pd.DataFrame({c: a[f"per_frame_{c}"] for c in info["per_frame_columns"]})]
+        if self._jaw is not None:
+            self._jaw = [a["jaw"]]
+        from lgi.jobs.reconstruct.stages import load_choices
+
+        self.done = done
+        summary = {k[len("summary_"):]: a[k] for k in a if k.startswith("summary_")}
+        self.resumed = {"done": done, "summary": (info["summary"], summary),
+                        "carried": (int(info["carried_first"]), load_choices(stage / info["choices"]))}
+        log.info("resuming %s from frame %d of %d (a stopped run's)", stage.parent, done, len(self.frames))
+
+    def _saved_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
+        """The checkpoint a stopped run of this job left in the staging folder, or None."""
+        from lgi.io.atomic import RESUME_FILE, staged_key
+        from lgi.io.npz import load_npz
+
+        if staged_key(self.stage) != self._key:
+            return None
+        info = json.loads((self.stage / RESUME_FILE).read_text())
+        if int(info.get("frames", -1)) != len(self.frames) or not (self.stage / "meshes.npz").is_file():
+            return None
+        return info, load_npz(self.stage / info["state"])
+
+    def checkpoint(self, summary: tuple[dict[str, Any], dict[str, np.ndarray]], carried: tuple[int, list]) -> None:
+        """Make the frames written so far durable and note how to go on from them, so that a run stopped after
+        this (killed, or interrupted) is resumed by the same command (``resume`` key): the meshes' rows and the
+        diagnostics flushed and synced, and beside them the per-frame rows, jaw, ``summary``
+        (:meth:`ShotSummary.state`) and the ``carried`` choices (``(first, choices)``, what the next block reads).
+        The note (:data:`~lgi.io.atomic.RESUME_FILE`) is written last and replaced whole: a stop at any moment
+        leaves the last complete checkpoint."""
+        from lgi.io.atomic import RESUME_FILE
+        from lgi.io.npz import save_npz
+        from lgi.jobs.reconstruct.stages import save_choices
+
+        if self._key is None or not self.done:
+            return
+        rows = self._npz.flush()
+        csv_bytes, schema = self._csv.flush()
+        per_frame = pd.concat(self._per_frame, ignore_index=True)
+        self._per_frame = [per_frame]
+        tag = f".resume-{self.done:09d}"
+        arrays = {f"per_frame_{c}": per_frame[c].to_numpy() for c in per_frame.columns}
+        arrays["csv_schema"] = np.frombuffer(schema, np.uint8)
+        if self._jaw is not None:
+            self._jaw = [np.concatenate(self._jaw)]
+            arrays["jaw"] = self._jaw[0]
+        arrays.update({f"summary_{k}": v for k, v in summary[1].items()})
+        _durable(self.stage / f"{tag}.npz", lambda p: save_npz(p, **arrays))
+        _durable(self.stage / f"{tag}-choices.npz", lambda p: save_choices(p, carried[1], durable=False))
+        info = {"key": self._key, "frames": len(self.frames), "done": self.done, "rows_offset": self._npz.rows_offset,
+                "rows": rows, "csv_bytes": csv_bytes, "per_frame_columns": list(per_frame.columns),
+                "summary": summary[0], "carried_first": int(carried[0]), "state": f"{tag}.npz",
+                "choices": f"{tag}-choices.npz"}
+        _durable(self.stage / RESUME_FILE, lambda p: p.write_text(json.dumps(info)))
+        for old in self.stage.glob(".resume-*"):
+            if not old.name.startswith(tag):
+                old.unlink(missing_ok=True)
 
     def append(self, res) -> None:
         """Write the next block of frames (a :class:`~lgi.solve.results.SequenceResult` of frames following the
@@ -199,6 +320,8 @@ class ReconstructionWriter:
         plot), ``run.json``, and the asked USD and constrained bundles."""
         if self.done != len(self.frames):
             raise RuntimeError(f"{self.done} of the shot's {len(self.frames)} frames written")
+        for note in self.stage.glob(".resume*"):  # every frame is written: nothing to go on from
+            note.unlink()
         self._npz.end()
         self._npz.add("frames", self.frames)
         if self._jaw is not None:

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from lgi.jobs.reconstruct.options import ReconstructOptions
-from lgi.jobs.reconstruct.outputs import check_output, reconstruction_outputs
+from lgi.jobs.reconstruct.outputs import check_output, reconstruction_outputs, resume_key
 from lgi.jobs.reconstruct.rays import CONSTRAINED
 from lgi.jobs.reconstruct.shot import Shot, constrain_to_rays
 from lgi.jobs.reconstruct.stages import replace_outputs
@@ -18,6 +18,9 @@ from lgi.jobs.reconstruct.summary import ShotSummary
 #: Frames solved and written at a time by the job in this process: a long take's memory is bounded by a block of
 #: surfaces (ICT, 26,719 vertices: 38 MB), whatever its length.
 BLOCK_FRAMES = 120
+#: A take's progress is made durable after a block at most this often (seconds): the same command run again after
+#: a stop (killed, or interrupted) goes on from there (:meth:`ReconstructionWriter.checkpoint`).
+CHECKPOINT_SECONDS = 10.0
 
 
 def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
@@ -41,7 +44,8 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
     t1 = time.perf_counter()
     stage("solve")
     if not options.observations:
-        tally, solve, write = write_shot(shot, out, options, show_progress=show_progress)
+        tally, solve, write = write_shot(shot, out, options, show_progress=show_progress,
+                                         resume=resume_key(index_dir, bundles, options))
         return tally.result(shot, out, {"load": t1 - t0, "solve": solve, "write": write})
     from lgi.io.atomic import make_temp_dir, sweep
     from lgi.io.npz import npz_member
@@ -65,19 +69,30 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
 
 
 def write_shot(shot: Shot, out: str | Path, options: ReconstructOptions, constrained: Path | None = None,
-               show_progress: bool = False) -> tuple[ShotSummary, float, float]:
+               show_progress: bool = False, resume: str | None = None) -> tuple[ShotSummary, float, float]:
     """Solve ``shot`` in blocks of :data:`BLOCK_FRAMES` frames and write each as it comes
     (:func:`reconstruction_outputs`); returns the summary gathered on the way and the seconds spent solving and
-    writing."""
+    writing. With ``resume`` (the job's key, :func:`~lgi.jobs.reconstruct.outputs.resume_key`), a checkpoint
+    every :data:`CHECKPOINT_SECONDS`, and a stopped run of the same job goes on from its last one: the outputs
+    are those of a run never stopped, bit for bit."""
     writing = 0.0
     tally = ShotSummary(shot.index.n_markers)
     start = time.perf_counter()
     with reconstruction_outputs(out, shot.frames, shot.index.arrays, options, shot.index.jaw_rig() is not None,
-                                constrained) as writer:
-        for res in shot.stream(BLOCK_FRAMES, show_progress):
+                                constrained, resume) as writer:
+        first, carried = 0, None
+        if writer.resumed is not None:
+            tally.restore(*writer.resumed["summary"])
+            first, carried = writer.resumed["done"], writer.resumed["carried"]
+            tally.resumed_from = first
+        saved = time.monotonic()
+        for res, carry in shot.stream_from(BLOCK_FRAMES, show_progress, first, carried):
             t = time.perf_counter()
             writer.append(res)
             tally.add(res)
+            if resume and writer.done < shot.n_frames and time.monotonic() - saved >= CHECKPOINT_SECONDS:
+                writer.checkpoint(tally.state(), carry)
+                saved = time.monotonic()
             writing += time.perf_counter() - t
         t = time.perf_counter()
         writer.close(shot.solver.noise, shot.solver.noise_estimate)

@@ -181,11 +181,19 @@ class Shot:
         :class:`~lgi.solve.results.SequenceResult` of its frames, the bits of the shot solved at once
         (:meth:`lgi.solve.solver.LGISolver.stream_prepared`, the solver's fastest schedule), with the rays and
         contours met. Only a block's surfaces are held."""
-        o = self.options
-        for lo, hi, res in self.solver.stream_prepared(self.pos, self.frames, self.bridged, self.fit_pos, o.smooth,
-                                                       o.jaw_smooth, self.given_jaw, show_progress, block):
-            self.meet_rays(res, lo, hi)
+        for res, _ in self.stream_from(block, show_progress):
             yield res
+
+    def stream_from(self, block: int, show_progress: bool = False, start: int = 0,
+                    carried: tuple[int, list] | None = None) -> Iterator[tuple[Any, tuple[int, list]]]:
+        """:meth:`stream` from frame ``start`` on, each block with what the next one reads of it
+        (:meth:`lgi.solve.solver.LGISolver.stream_from`): a stopped run resumes from its last written block."""
+        o = self.options
+        for lo, hi, res, carry in self.solver.stream_from(self.pos, self.frames, self.bridged, self.fit_pos, o.smooth,
+                                                          o.jaw_smooth, self.given_jaw, show_progress, block, start,
+                                                          carried):
+            self.meet_rays(res, lo, hi)
+            yield res, carry
 
     def meet_rays(self, res, lo: int = 0, hi: int | None = None) -> None:
         """Correct the surfaces of frames lo:hi (``res``, in place) so that each marker that stands for a ray

@@ -44,6 +44,8 @@ class ShotSummary:
         self.jaw_open = [np.inf, -np.inf]
         self.fit_rms: list[np.ndarray] = []
         self.noise = 0.0
+        #: The frames a stopped run had written, gone on from (0: a run from the start)
+        self.resumed_from = 0
 
     def add(self, res) -> None:
         """Count a block (a :class:`~lgi.solve.results.SequenceResult`)."""
@@ -75,6 +77,29 @@ class ShotSummary:
             # a view would hold the block's whole table of numbers (9 kB per ICT frame).
             self.fit_rms.append(d.fit_rms_mm.to_numpy(np.float64).reshape(-1, self.n_markers)[:, 0].copy())
 
+    def state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """What :meth:`restore` needs to go on counting (a run resumed after a stop): numbers, and arrays."""
+        numbers = {"frames": self.frames, "rows": self.rows, "status": self.status,
+                   "max_residual": None if not np.isfinite(self.max_residual) else self.max_residual,
+                   "local_fits": self.local_fits, "far_rows": self.far_rows, "far_given": self.far_given,
+                   "jaw_open": [None if not np.isfinite(v) else v for v in self.jaw_open], "noise": self.noise}
+        join = lambda parts: np.concatenate(parts) if parts else np.zeros(0)  # noqa: E731
+        return numbers, {"projections": join(self.projections), "rays": join(self.rays), "fit_rms": join(self.fit_rms)}
+
+    def restore(self, numbers: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        """Counts as :meth:`state` gave them."""
+        self.frames, self.rows = int(numbers["frames"]), int(numbers["rows"])
+        self.status = {str(k): int(v) for k, v in numbers["status"].items()}
+        self.max_residual = -np.inf if numbers["max_residual"] is None else float(numbers["max_residual"])
+        self.local_fits, self.far_rows = int(numbers["local_fits"]), int(numbers["far_rows"])
+        self.far_given = int(numbers["far_given"])
+        lo, hi = numbers["jaw_open"]
+        self.jaw_open = [np.inf if lo is None else float(lo), -np.inf if hi is None else float(hi)]
+        self.noise = float(numbers["noise"])
+        # An empty part adds nothing but its type to what is joined: left out, as the values' own type is kept.
+        kept = lambda a: [np.asarray(a)] if np.size(a) else []  # noqa: E731
+        self.projections, self.rays, self.fit_rms = (kept(arrays[k]) for k in ("projections", "rays", "fit_rms"))
+
     def result(self, shot: Shot, out: str | Path, seconds: dict[str, float]) -> dict[str, Any]:
         """The summary (JSON-friendly) of every block added."""
         n = max(self.rows, 1)
@@ -98,6 +123,7 @@ class ShotSummary:
             "noise_estimate_axes_mm": None if est is None else [float(v) for v in est.axis_mm],
             "noise_coherence": None if est is None else float(est.coherence),
             "seconds": seconds, "outputs": [n for n in OUTPUTS if (Path(out) / n).exists()],
+            "resumed_from_frame": self.resumed_from,
         }
         if self.far_given:
             # Bundle-frames whose weights gave way, far from the markers, to the frame's global fit (share over a
@@ -118,8 +144,11 @@ def report_lines(s: dict[str, Any]) -> list[str]:
     """The summary as the lines ``lgi reconstruct`` prints (and the flow logs)."""
     sec = s["seconds"]
     lines = []
+    if s.get("resumed_from_frame"):
+        lines.append(f"resumed a stopped run of the same command: its {s['resumed_from_frame']} frames written are "
+                     "kept, the rest solved now")
     if "solve" in sec:
-        n = s["frames"]
+        n = s["frames"] - s.get("resumed_from_frame", 0)
         lines.append(f"reconstructed {n} frames x {s['vertices']} vertices in {sec['solve']:.2f} s "
                      f"({n / max(sec['solve'], 1e-9):.0f} frames/s; index loaded in {sec['load']:.2f} s)")
     else:

@@ -1,0 +1,103 @@
+"""A take stopped at any moment resumes from its last checkpoint when the same command is run again, and the
+outputs are those of a run never stopped, bit for bit."""
+
+from __future__ import annotations
+
+import filecmp
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lgi.cli import main
+
+FILES = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json")
+# The command line with a checkpoint after every block of 8 frames: a small shot stops between checkpoints.
+RUNNER = """
+import sys
+import lgi.jobs.reconstruct.run as run
+run.CHECKPOINT_SECONDS = 0.0
+run.BLOCK_FRAMES = 8
+from lgi.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.fixture(scope="module")
+def shot(tmp_path_factory) -> Path:
+    t = tmp_path_factory.mktemp("resume")
+    assert main(["synth", "--out", str(t / "s"), "--vertices", "2500", "--frames", "60", "-q"]) == 0
+    assert main(["build", str(t / "s" / "dataset"), "--markers", str(t / "s" / "markers.csv"), "--out",
+                 str(t / "idx"), "-q", "--jaw-rig", str(t / "s" / "jaw_rig.npz")]) == 0
+    d = pd.read_csv(t / "s" / "bundles.csv")
+    rng = np.random.default_rng(5)
+    for c in ("x", "y", "z"):
+        d[c] += rng.normal(0.0, 0.003, len(d))
+    d.drop(index=rng.choice(len(d), len(d) // 30, replace=False)).to_csv(t / "noisy.csv", index=False)
+    (t / "runner.py").write_text(RUNNER)
+    return t
+
+
+def _run(shot: Path, out: Path, extra: list[str], quiet: bool = True) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(shot / "runner.py"), "reconstruct", str(shot / "idx"), "--bundles",
+                             str(shot / "noisy.csv"), "--out", str(out), *(["-q"] if quiet else []), *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _stop_after_checkpoints(proc: subprocess.Popen, out: Path, checkpoints: int, how: int) -> int:
+    """Stop ``proc`` with signal ``how`` once its staging folder has seen ``checkpoints`` checkpoints; returns
+    the frames its last one holds."""
+    import json
+
+    seen: set[int] = set()
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and proc.poll() is None:
+        for note in out.glob(".lgi-staging-*/.resume.json"):
+            try:
+                seen.add(json.loads(note.read_text())["done"])
+            except (OSError, ValueError):
+                pass
+        if len(seen) >= checkpoints:
+            proc.send_signal(how)
+            proc.wait(60)
+            return max(seen)
+        time.sleep(0.02)
+    raise AssertionError(f"the run ended before {checkpoints} checkpoints: {proc.stderr.read()}")
+
+
+@pytest.mark.parametrize("extra", [["--max-gap", "3"], ["--smooth", "3", "--obj"]], ids=["plain", "smoothed"])
+def test_a_killed_run_resumes_to_the_same_bits(shot: Path, extra: list[str]) -> None:
+    whole = shot / f"whole{len(extra)}"
+    p = _run(shot, whole, extra)
+    assert p.wait(240) == 0, p.stderr.read()
+    out = shot / f"stopped{len(extra)}"
+    done = _stop_after_checkpoints(_run(shot, out, extra), out, 3, signal.SIGKILL)
+    assert 0 < done < 60
+    assert not (out / "meshes.npz").exists()  # nothing published by the stopped run
+    p = _run(shot, out, extra, quiet=False)
+    said, err = p.communicate(timeout=240)
+    assert p.returncode == 0, err
+    assert f"its {done} frames written are kept" in said
+    for name in FILES:
+        assert filecmp.cmp(whole / name, out / name, shallow=False), name
+    if "--obj" in extra:
+        assert sorted(p.name for p in (out / "obj").iterdir()) == sorted(p.name for p in (whole / "obj").iterdir())
+        assert all(filecmp.cmp(whole / "obj" / f.name, f, shallow=False) for f in (out / "obj").iterdir())
+    assert not list(out.glob(".lgi-*"))  # the stopped run's staging folder was taken over, then published
+
+
+def test_an_interrupted_run_resumes_and_another_job_does_not(shot: Path) -> None:
+    out = shot / "interrupted"
+    _stop_after_checkpoints(_run(shot, out, ["--max-gap", "3"]), out, 2, signal.SIGINT)
+    assert list(out.glob(".lgi-staging-*/.resume.json"))  # kept for the same command
+    # Another job into the same folder (other options) does not take it over, and sweeps it.
+    p = _run(shot, out, ["--max-gap", "2"], quiet=False)
+    said, err = p.communicate(timeout=240)
+    assert p.returncode == 0, err
+    assert "resumed" not in said
+    assert not list(out.glob(".lgi-*"))
