@@ -101,3 +101,34 @@ def test_an_interrupted_run_resumes_and_another_job_does_not(shot: Path) -> None
     assert p.returncode == 0, err
     assert "resumed" not in said
     assert not list(out.glob(".lgi-*"))
+
+
+def test_a_killed_flow_resumes_from_its_chunks(shot: Path, prefect_api: str, tmp_path: Path) -> None:
+    """``--flow``: the chunks a killed run chose and finished are taken over by the same command, and the
+    outputs are the plain run's."""
+    import os
+
+    env = dict(os.environ, PREFECT_API_URL=prefect_api, PREFECT_HOME=str(tmp_path / "home"),
+               PREFECT_LOGGING_LEVEL="INFO", PREFECT_SERVER_ANALYTICS_ENABLED="false")
+    cmd = [sys.executable, str(shot / "runner.py"), "reconstruct", str(shot / "idx"), "--bundles",
+           str(shot / "noisy.csv"), "--flow", "--chunk-size", "6", "--max-gap", "3"]
+    plain = shot / "whole-flow"
+    p = _run(shot, plain, ["--max-gap", "3"])
+    assert p.wait(240) == 0, p.stderr.read()
+    out = shot / "flow"
+    proc = subprocess.Popen([*cmd, "--out", str(out)], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        if len(list(out.parent.glob(f".{out.name}.chunks-*/choice_*.npz"))) >= 4:
+            os.killpg(proc.pid, signal.SIGKILL)
+            break
+        time.sleep(0.02)
+    proc.wait(60)
+    assert proc.returncode == -signal.SIGKILL, "the flow ended before it could be killed"
+    again = subprocess.run([*cmd, "--out", str(out)], env=env, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "resuming a stopped run of this shot" in again.stdout + again.stderr
+    for name in FILES:
+        assert filecmp.cmp(plain / name, out / name, shallow=False), name
+    assert not list(out.parent.glob(f".{out.name}.chunks-*"))

@@ -88,17 +88,19 @@ def check_writable(folder: str | os.PathLike[str], what: str, remedy: str) -> No
         raise StorageError(folder, f"{what} cannot be written here ({reason})", f": {remedy}") from exc
 
 
+def stopped(name: str, prefix: str) -> bool:
+    """Whether the entry ``name``, ``<prefix><pid>-...``, is a process's that is gone."""
+    pid = name[len(prefix):].split("-", 1)[0]
+    return name.startswith(prefix) and pid.isdigit() and not _alive(int(pid))
+
+
 def sweep(parent: Path, prefix: str) -> int:
     """Remove the entries of ``parent`` named ``<prefix><pid>-...`` whose process is gone; returns how many."""
     removed = 0
     if not parent.is_dir():
         return 0
     for entry in parent.iterdir():
-        name = entry.name
-        if not name.startswith(prefix):
-            continue
-        pid = name[len(prefix):].split("-", 1)[0]
-        if not pid.isdigit() or _alive(int(pid)):
+        if not stopped(entry.name, prefix):
             continue
         if entry.is_dir() and not entry.is_symlink():
             shutil.rmtree(entry, ignore_errors=True)
@@ -295,8 +297,8 @@ def _adopt_stopped(out: Path, key: str) -> Path | None:
     way of the sweep, or None. Of several, the one that got farthest (the newest resume file)."""
     found = []
     for entry in [*out.glob(".lgi-staging-*"), *out.glob(".lgi-resuming-*")]:
-        pid = entry.name.split("-")[2]
-        if pid.isdigit() and not _alive(int(pid)) and entry.is_dir() and staged_key(entry) == key:
+        prefix = entry.name[:entry.name.index("-", 5) + 1]
+        if stopped(entry.name, prefix) and entry.is_dir() and staged_key(entry) == key:
             found.append(((entry / RESUME_FILE).stat().st_mtime_ns, entry))
     if not found:
         return None

@@ -9,6 +9,7 @@ task_runner=DaskTaskRunner(...))``) give the files ``lgi reconstruct`` writes, b
 
 from __future__ import annotations
 
+import os
 import shutil
 from dataclasses import fields
 from pathlib import Path
@@ -217,14 +218,10 @@ def reconstruct_shot(
         check_scan_frames(scan_pairs, job.prepared_shot(index_dir, bundles, opts).frames, scan_opts)
     runner = task_runner(dask_address)
     bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
-    # One working folder per run: two runs into the same OUT never touch each other's chunk files, and a killed
-    # run's folder (its process gone) is removed by the next.
-    from lgi.io.atomic import make_temp_dir, sweep
-
-    parent, prefix = Path(out).absolute().parent, f".{Path(out).name}.chunks-"
-    parent.mkdir(parents=True, exist_ok=True)
-    sweep(parent, prefix)
-    work = make_temp_dir(parent, prefix)
+    # One working folder per run: two runs into the same OUT never touch each other's chunk files. A stopped run's
+    # folder (its process gone) is this run's when it was the same job in the same chunks: the chunks it finished
+    # are not done again; any other is removed.
+    work = _chunk_folder(Path(out), f"{job.resume_key(index_dir, bundles, opts)}:{chunk_size}")
     # One progress artifact per shot (keyed by OUT, so `prefect artifact ls` lists it), updated by both passes.
     progress_key = artifact_key("shot-progress", out)
 
@@ -249,9 +246,15 @@ def reconstruct_shot(
             summary = {**chunks(constrained, opts.to_json(), out, work / "pass2"), **counts}
         else:
             summary = chunks(bundles, opts.to_json(), out, work)
-    finally:
+    except (KeyboardInterrupt, SystemExit):
+        job.forget_parts(work)  # stopped: the chunks written wait for the same run again
+        raise
+    except BaseException:
         job.forget_parts(work)
         shutil.rmtree(work, ignore_errors=True)
+        raise
+    job.forget_parts(work)
+    shutil.rmtree(work, ignore_errors=True)
     page_warnings = []
     if scan_opts is not None:
         summary["compare"] = _compare_scans(out, scan_opts, scan_pairs)
@@ -276,6 +279,30 @@ def reconstruct_shot(
     if tracking:
         summary["tracking"] = tracking
     return summary
+
+
+def _chunk_folder(out: Path, key: str) -> Path:
+    """The flow's working folder for its chunk files beside ``out``: a stopped run's of the same job ``key`` (its
+    process gone) taken over, else a new one; the other stopped runs' are removed."""
+    import json
+
+    from lgi.io.atomic import RESUME_FILE, make_temp_dir, staged_key, stopped, sweep
+
+    parent, prefix = out.absolute().parent, f".{out.name}.chunks-"
+    parent.mkdir(parents=True, exist_ok=True)
+    left = [d for d in parent.glob(f"{prefix}*") if stopped(d.name, prefix) and d.is_dir() and staged_key(d) == key]
+    work = make_temp_dir(parent, prefix)
+    if left:
+        newest = max(left, key=lambda d: max((f.stat().st_mtime_ns for f in d.iterdir()), default=0))
+        work.rmdir()
+        os.replace(newest, work)
+        done = len(list(work.glob("choice_*.npz")))
+        if done:
+            get_run_logger().info("resuming a stopped run of this shot: %d chunks already chosen", done)
+    else:
+        (work / RESUME_FILE).write_text(json.dumps({"key": key}))
+    sweep(parent, prefix)
+    return work
 
 
 def _compare_scans(out: str, options: CompareOptions, pairs: list[tuple[int, Path]]) -> dict:
@@ -328,8 +355,10 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
                                             description=f"{bounds[-1][1]} frames chosen, in {len(bounds)} chunks")
         prev = None
         for lo, hi in bounds:
-            prev = choose_chunk.submit(index_dir, bundles, options, lo, hi, str(work_dir / f"choice_{lo:06d}.npz"),
-                                       prev)
+            chosen = work_dir / f"choice_{lo:06d}.npz"
+            # A chunk a stopped run of this job chose (its file is whole or absent) is not chosen again.
+            prev = str(chosen) if chosen.is_file() else choose_chunk.submit(index_dir, bundles, options, lo, hi,
+                                                                            str(chosen), prev)
             futures.append(prev)
         # Each chunk is finished as soon as the choices its windows read are made (Shot.needs), while the chain
         # goes on choosing: the two overlap as in lgi reconstruct's two-thread schedule.
@@ -337,17 +366,19 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
         for lo, hi in bounds:
             a, b = job.chunk_needs(opts, bounds[-1][1], lo, hi)
             needed = [k for k, (c0, c1) in enumerate(bounds) if c1 > a and c0 < b]
-            parts.append(finish_chunk.submit(index_dir, bundles, options, [futures[k] for k in needed], lo, hi,
-                                             str(work_dir / f"part_{lo:06d}.npz"), bounds[needed[0]][0], keep))
+            part = work_dir / f"part_{lo:06d}.npz"
+            parts.append(str(part) if part.is_file() else finish_chunk.submit(
+                index_dir, bundles, options, [futures[k] for k in needed], lo, hi, str(part), bounds[needed[0]][0],
+                keep))
         for k, fut in enumerate(futures):
-            fut.result()
+            _result(fut)
             update_progress_artifact(progress, progress=100.0 * (k + 1) / len(futures))
-        return write_shot(index_dir, bundles, options, [p.result() for p in parts], out)
+        return write_shot(index_dir, bundles, options, [_result(p) for p in parts], out)
     except BaseException:
         # Interrupted (or a chunk failed): the tasks already submitted keep running on the task runner, so stop
         # them at their next start and let the running ones end before their folder goes.
         (work_dir / _STOP).touch()
-        for fut in [*futures, *parts]:
+        for fut in [f for f in (*futures, *parts) if not isinstance(f, str)]:
             try:
                 fut.wait(timeout=120)
             except BaseException:  # noqa: BLE001 - a second Ctrl-C or a failed task: stop waiting, clean up
@@ -355,6 +386,11 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
         raise
     finally:
         blas.restore_original_limits()
+
+
+def _result(fut):
+    """A task's result, or the file a stopped run left for it."""
+    return fut if isinstance(fut, str) else fut.result()
 
 
 #: Heat maps carried inside the report (each about a hundred kB); the others are linked.

@@ -26,6 +26,7 @@ from lgi.jobs.reconstruct.outputs import (
                                           check_output,
                                           per_frame_table,
                                           plot_per_frame,
+                                          resume_key,
                                           write_reconstruction,
 )
 from lgi.jobs.reconstruct.rays import CONSTRAINED, RAY_COLUMNS, read_constraints
@@ -51,4 +52,4 @@ __all__ = ["CONSTRAINED", "OUTPUTS", "OUTPUT_CONTENTS", "RAY_COLUMNS", "Reconstr
            "check_output", "choose_chunk", "chunk_needs", "constrain_to_rays", "finish_chunk", "forget_parts",
            "forget_shots", "load_choices", "load_part", "parse_far_field", "per_frame_table", "plot_per_frame",
            "preflight", "prepared_shot", "read_constraints", "read_jaw_file", "reconstruct", "replace_outputs",
-           "report_lines", "save_choices", "save_part", "summarise", "write_reconstruction"]
+           "report_lines", "resume_key", "save_choices", "save_part", "summarise", "write_reconstruction"]
