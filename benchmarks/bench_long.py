@@ -3,7 +3,7 @@ processes.
 
     python benchmarks/bench_long.py [--work DIR] [--shapes 500] [--frames 1000,9000,36000] [--kinds clean,noisy]
                                     [--paths plain,flow,dask] [--readers export,review,compare,rig-solve]
-                                    [--doc docs/benchmarks.md]
+                                    [--doc docs/benchmarks.md] [--keep]
 
 1. Test material, built in ``--work`` through the ``lgi`` command line as ``bench_speed.py`` builds it (and
    reused): ICT with ``--shapes`` shapes and the jaw rig, its index with the rig, a continuous 1,000-frame shot
@@ -118,6 +118,7 @@ def main() -> int:
     ap.add_argument("--paths", default="plain,flow,dask")
     ap.add_argument("--readers", default="export,review,compare,rig-solve")
     ap.add_argument("--doc", type=Path, action="append", default=[])
+    ap.add_argument("--keep", action="store_true", help="keep the plain path's outputs in --work")
     args = ap.parse_args()
     if not has_ict(ICT_DIR):
         print(f"ICT FaceKit not found in {ICT_DIR}: nothing to measure")
@@ -158,6 +159,8 @@ def main() -> int:
                     scratch.mkdir()
                     rows += readers(recon, index, rig_dir, n, kind, which, scratch)
                     shutil.rmtree(scratch, ignore_errors=True)
+                if not args.keep:  # a 36,000-frame ICT take's outputs are 12 GB
+                    shutil.rmtree(recon, ignore_errors=True)
         text = table(rows, args.shapes)
         print(text)
         for doc in args.doc:

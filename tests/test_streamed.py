@@ -105,3 +105,28 @@ def test_a_shot_on_disk_is_prepared_as_in_memory(monkeypatch) -> None:
     assert isinstance(p, StoredArray) and isinstance(fit, StoredArray)
     assert results[0][0] > 0 and results[0][2].any()  # noisy, with gaps bridged: every stage ran
     assert _equal(results[0], results[1])
+
+
+def test_marker_covariance_medians_a_few_markers_at_a_time(monkeypatch) -> None:
+    import warnings
+
+    from lgi.solve import solver
+
+    rng = np.random.default_rng(6)
+    a = rng.normal(size=(300, 7, 3, 3))
+    cov = np.einsum("fmij,fmkj->fmik", a, a) * 1e-6
+    cov[rng.random((300, 7)) < 0.3] = np.nan
+    cov[:, 4] = np.nan  # a marker without any
+    columns = [2, None, 0, 4, 1, 6, 5, 3]  # the index's markers in the file's columns
+    monkeypatch.setattr(solver, "MEDIAN_MARKERS", 3)
+    monkeypatch.setattr(streamed, "BLOCK_FRAMES", 64)
+    med, given = solver._marker_medians(ScratchArray.of(cov), columns)
+    aligned = np.full((300, 8, 3, 3), np.nan)
+    for m, c in enumerate(columns):
+        if c is not None:
+            aligned[:, m] = cov[:, c]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        assert np.array_equal(med, np.nanmedian(aligned, axis=0), equal_nan=True)
+    assert np.array_equal(given, np.isfinite(aligned).all(axis=(2, 3)).any(axis=0))
+    assert not given[1] and not given[3]

@@ -314,20 +314,17 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         else:
             raw, frames, _ = self.prepare(bundles, frames, 0)
         cov = bundles.covariance if isinstance(bundles, Bundles) else None
-        if noise == "auto" and cov is not None and np.isfinite(cov).any():
+        if noise == "auto" and cov is not None and all_rows(cov, lambda c: np.isfinite(c).any(axis=(1, 2, 3))).any():
             # The bundles carry their covariances (``lgi track``): the noise is theirs, marker by marker.
             col = {n: i for i, n in enumerate(bundles.markers)}
-            aligned = np.full((len(raw), self.index.n_markers, 3, 3), np.nan)
-            for i, n in enumerate(self.index.marker_names):
-                if n in col:
-                    aligned[:, i] = cov[:, col[n]]
+            per_marker, given = _marker_medians(cov, [col.get(n) for n in self.index.marker_names])
             seen = all_rows(raw, lambda p: np.isfinite(p).all(axis=2))
-            bare = seen.any(axis=0) & ~np.isfinite(aligned).all(axis=(2, 3)).any(axis=0)
+            bare = seen.any(axis=0) & ~given
             if bare.any():
                 names = [self.index.marker_names[i] for i in np.flatnonzero(bare)]
                 log.warning("%d markers have positions but no covariance in any frame (%s): they take the median "
                             "marker's noise", len(names), ", ".join(names[:5]) + (" ..." if len(names) > 5 else ""))
-            self.set_noise_covariance(aligned)
+            self.set_noise_covariance(per_marker)
             log.info("bundle noise from the bundles' covariances: x %.4f, y %.4f, z %.4f mm (median marker)",
                      *self.noise_axes)
             self.noise_estimate = None
@@ -378,3 +375,37 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
             if n in col:
                 pos[:, i] = bundles.positions[:, col[n]]
         return pos
+
+
+#: Markers whose covariances are gathered over the shot at a time (:func:`_marker_medians`): 2.6 MB each per
+#: 36,000 frames.
+MEDIAN_MARKERS = 16
+
+
+def _marker_medians(cov, columns: list[int | None]) -> tuple[np.ndarray, np.ndarray]:
+    """Each marker's median covariance over the frames (NaN ignored; numpy's ``nanmedian``), and whether any frame
+    gives it whole, from ``cov`` (F, K, 3, 3) cm^2 (an array or a :class:`~lgi.io.stored.StoredArray`) whose
+    column ``columns[m]`` is marker m (None: not in the file). A few markers' columns at a time: a long take's
+    covariances are not held whole.
+
+    Returns
+    -------
+    (M, 3, 3) float64, cm^2
+    (M,) bool
+    """
+    import warnings
+
+    from lgi.solve.streamed import frame_blocks
+
+    out = np.full((len(columns), 3, 3), np.nan)
+    given = np.zeros(len(columns), bool)
+    have = [m for m, c in enumerate(columns) if c is not None]
+    for g in range(0, len(have), MEDIAN_MARKERS):
+        ms = have[g:g + MEDIAN_MARKERS]
+        src = [columns[m] for m in ms]
+        part = np.concatenate([np.asarray(cov[lo:hi], np.float64)[:, src] for lo, hi in frame_blocks(len(cov))])
+        with warnings.catch_warnings():  # a marker never given: all NaN, filled by the median marker's
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out[ms] = np.nanmedian(part, axis=0)
+        given[ms] = np.isfinite(part).all(axis=(2, 3)).any(axis=0)
+    return out, given
