@@ -55,7 +55,7 @@ class Shot:
 
         self.options = o = options
         self.index = index = LGIIndex.load(index_dir)
-        b = read_bundles(bundles, index.marker_names)
+        b = read_bundles(bundles, index.marker_names, on_disk=True)
         if not isinstance(b.positions, StoredArray):
             b.positions = ScratchArray.of(b.positions)
         #: (F, M, 3) the bundles as given (NaN: none), before any filter or bridging, on disk
