@@ -1047,7 +1047,9 @@ def build_parser() -> argparse.ArgumentParser:
                  "docs/review.md.",
                  ("lgi review lgi-demo --index lgi-demo/index --truth lgi-demo/truth.npz --out lgi-demo/review",
                   "lgi review recon --index index --scans recon/compare --out recon/review"),
-                 outputs="REVIEW_DIR/index.html, viewer.js, review_meta.js, review_frames.js (replaced as a whole).")
+                 outputs="REVIEW_DIR/index.html, viewer.js, review_meta.js, review_frames.js and frames/ "
+                         "(overview.html, every Nth frame; block_NNNNN.html, the frames, which the page loads as they "
+                         "are shown) (replaced as a whole).")
     g = s.add_argument_group("inputs")
     g.add_argument("recon_dir", metavar="RECON_DIR", help="a reconstruction (lgi reconstruct's OUT_DIR)")
     g.add_argument("--index", required=True, metavar="INDEX_DIR",

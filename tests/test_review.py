@@ -134,8 +134,9 @@ def test_method_blendshape_refuses_lgi_only_options(shot, tmp_path, capsys):
 
 def test_review_writes_a_self_contained_page(shot):
     page = shot / "page"
-    assert sorted(p.name for p in page.iterdir()) == ["index.html", "review_frames.js", "review_meta.js",
+    assert sorted(p.name for p in page.iterdir()) == ["frames", "index.html", "review_frames.js", "review_meta.js",
                                                       "viewer.js"]
+    assert sorted(p.name for p in (page / "frames").iterdir()) == ["block_00000.html", "overview.html"]  # 1 block
     html = (page / "index.html").read_text()
     js = (page / "viewer.js").read_text()
     for text in (html, js):  # nothing fetched at view time
@@ -175,6 +176,145 @@ def test_review_refuses_a_folder_of_other_files(shot, tmp_path, capsys):
     (out / "notes.txt").write_text("mine")
     assert main(["review", str(shot / "rec"), "--index", str(shot / "idx"), "--out", str(out)]) == 2
     assert "notes.txt" in capsys.readouterr().err and (out / "notes.txt").read_text() == "mine"
+
+
+# ------------------------------------------------------------------------------------------------ long takes
+def test_colour_top_by_blocks_is_the_percentile():
+    """The colour bar's top seen block by block is the same whatever the blocks, and the 99.9th percentile to
+    within a bin (2**-12 relative)."""
+    from lgi.review.pack import ColourTop, colour_top
+
+    x = np.random.default_rng(3).gamma(2.0, 0.4, (60, 500)).astype(np.float32)
+    x[5, 7] = np.nan
+    want = np.nanpercentile(x, 99.9)
+    tops = set()
+    for step in (1, 7, 60):
+        t = ColourTop()
+        for lo in range(0, 60, step):
+            t.add(x[lo:lo + step])
+        tops.add(t.top())
+    assert len(tops) == 1 and want <= tops.pop() <= want * (1 + 2**-12)
+    assert colour_top(np.zeros(4)) == 1e-3 and colour_top(np.array([np.nan])) == 1e-3
+
+
+def _page_blocks(page: Path) -> tuple[dict, list[dict]]:
+    header = _payload(page / "review_frames.js")
+    return header, [_payload(page / name) for name in header["files"]]
+
+
+def _decoded(page: Path) -> dict[str, np.ndarray]:
+    """A page's frames decoded as the page does (codes, maps, diagnostics presence), blocks joined."""
+    header, blocks = _page_blocks(page)
+    n_k = unblob(header["moving"]).size
+    out = {"codes": np.concatenate([decode_codes(unblob(b["codes"]), (b["n"], n_k, 3)) for b in blocks])}
+    for m in header["maps"]:
+        if "values" not in m:
+            out[m["key"]] = np.concatenate([unblob(b["maps"][m["key"]]) for b in blocks])
+    out["present"] = np.concatenate([unblob(b["present"]) for b in blocks])
+    return out
+
+
+@pytest.fixture(scope="module")
+def small_blocks(shot, tmp_path_factory) -> Path:
+    """The shot's page in blocks of 8 frames (3 blocks for its 20 frames), its diagnostics read 150 rows at a time
+    from a copy whose rows are shuffled (not in frame order)."""
+    import lgi.jobs.review as job
+
+    t = tmp_path_factory.mktemp("small_blocks")
+    rec = t / "rec"
+    shutil.copytree(shot / "rec", rec)
+    d = pd.read_csv(rec / "diagnostics.csv", keep_default_na=False, na_values=[""])
+    d.sample(frac=1.0, random_state=0).to_csv(rec / "diagnostics.csv", index=False)
+    mp = pytest.MonkeyPatch()
+    mp.setattr(job, "BLOCK", 8)
+    mp.setattr(job, "DIAG_CHUNK_ROWS", 150)
+    try:
+        job.review(rec, shot / "idx", t / "page", job.ReviewOptions(truth=str(shot / "s" / "truth.npz")))
+    finally:
+        mp.undo()
+    return t / "page"
+
+
+def test_blocks_decode_to_the_shot_quantised_whole(shot, small_blocks):
+    """Blocks of 8 frames hold the codes of the whole shot quantised at once (one scale for the shot: the same
+    values as the page of one block), within half a step of the meshes; the colour maps and the overview are the
+    same whatever the block size."""
+    from lgi.index.build import LGIIndex
+
+    meta = _payload(small_blocks / "review_meta.js")
+    header, blocks = _page_blocks(small_blocks)
+    assert [b["lo"] for b in blocks] == [0, 8, 16] and [b["n"] for b in blocks] == [8, 8, 4]
+    got = _decoded(small_blocks)
+    one = _decoded(shot / "page")
+    verts = np.load(shot / "rec" / "meshes.npz")["vertices"]
+    q = quantise_frames(verts, LGIIndex.load(shot / "idx").arrays["neutral"], meta["quantisation"]["scale_cm"])
+    assert np.array_equal(unblob(header["moving"]), q.moving) and header["scale"] == q.scale
+    assert np.array_equal(got["codes"], q.codes) and np.array_equal(got["codes"], one["codes"])
+    assert np.abs(dequantise_frames(q) - verts).max() <= q.error_bound_cm + 4e-6
+    for key in ("truth", "correction"):
+        assert np.array_equal(got[key], one[key]), key
+    tops = {m["key"]: m["vmax_mm"] for m in _payload(shot / "page" / "review_frames.js")["maps"]}
+    assert {m["key"]: m["vmax_mm"] for m in header["maps"]} == tops
+    # The overview: every 16th frame (at least 16 apart), the same codes as the blocks'.
+    ov = _payload(small_blocks / header["overview"])
+    assert ov["frames"] == [0, 16]
+    n_k = q.moving.size
+    assert np.array_equal(decode_codes(unblob(ov["codes"]), (2, n_k, 3)), q.codes[[0, 16]])
+    assert np.array_equal(unblob(ov["maps"]["truth"]), got["truth"][[0, 16]])
+
+
+def test_block_diagnostics_are_the_csv_rows(shot, small_blocks):
+    """Each block carries its frames' diagnostics rows in (frame, marker) order, whatever the order of the CSV's
+    rows and its chunks; the markers' statuses of every frame are in the page's header."""
+    from lgi.review.pack import unjson_blob
+
+    meta = _payload(small_blocks / "review_meta.js")
+    _, blocks = _page_blocks(small_blocks)
+    d = pd.read_csv(shot / "rec" / "diagnostics.csv", keep_default_na=False, na_values=[""])
+    markers, frames = meta["markers"], meta["frames"]
+    status = unblob(meta["status"]).reshape(len(frames), len(markers))
+    assert np.array_equal(status, unblob(_payload(shot / "page" / "review_meta.js")["status"]).reshape(status.shape))
+    for b in blocks:
+        cols = {c["name"]: c for c in b["diagnostics"]}
+        present = unblob(b["present"]).reshape(b["n"], len(markers)).astype(bool)
+        rows = d[d.frame.isin(frames[b["lo"]:b["lo"] + b["n"]])]
+        assert present.sum() == len(rows)
+        fi = rows.frame.map({f: i for i, f in enumerate(frames)}).to_numpy() - b["lo"]
+        mi = rows.marker.map({m: i for i, m in enumerate(markers)}).to_numpy()
+        slot = np.cumsum(present.ravel()) - 1  # a present (frame, marker)'s row in the block's columns
+        at = slot[fi * len(markers) + mi]
+        got = unblob(cols["residual_mm"]["data"])[at]
+        assert np.allclose(got, rows.residual_mm.to_numpy(np.float32), equal_nan=True)
+        values = np.array(unjson_blob(cols["status"]["values"]))
+        assert (values[unblob(cols["status"]["data"])[at]] == rows.status.to_numpy()).all()
+        assert (status[b["lo"] + fi, mi] == [meta["statuses"].index(s) for s in rows.status]).all()
+
+
+def test_review_reads_the_meshes_by_frame_range(shot, tmp_path, monkeypatch):
+    """lgi review reads meshes.npz (and the truth) a block of frames at a time, never the whole array: its memory
+    does not grow with the take."""
+    import lgi.jobs.review as job
+    from lgi.io.stored import StoredArray
+
+    reads: list[tuple[str, int]] = []
+    rows, array = StoredArray.rows, StoredArray.__array__
+
+    def counted(self, lo, hi):
+        if self.ndim == 3:  # meshes; frames and jaw (F,) and (F, 4) are read whole
+            reads.append((Path(self.path).name, min(hi, self.shape[0]) - lo))
+        return rows(self, lo, hi)
+
+    def whole(self, dtype=None, copy=None):
+        assert self.ndim < 3, f"{self.path} read whole"
+        return array(self, dtype, copy)
+
+    monkeypatch.setattr(StoredArray, "rows", counted)
+    monkeypatch.setattr(StoredArray, "__array__", whole)
+    monkeypatch.setattr(job, "BLOCK", 6)
+    job.review(shot / "rec", shot / "idx", tmp_path / "page", job.ReviewOptions(truth=str(shot / "s" / "truth.npz")))
+    sizes = {name: [n for f, n in reads if f == name] for name in ("meshes.npz", "truth.npz")}
+    # Two passes of 4 blocks (6, 6, 6, 2 frames) over each; a scan's single frames are the only other reads.
+    assert sizes["meshes.npz"] == [6, 6, 6, 2] * 2 and sizes["truth.npz"] == [6, 6, 6, 2] * 2
 
 
 # ------------------------------------------------------------------------------------------------ scans
@@ -217,10 +357,14 @@ def scanned(shot) -> Path:
 
 
 def _payload(path: Path) -> dict:
+    """The JSON a data script assigns (``window.NAME = {...};``) or a block page holds."""
     import json
 
     text = path.read_text()
-    return json.loads(text[text.index("=") + 1:].rstrip().rstrip(";"))
+    if path.suffix == ".html":
+        start = text.index('id="lgi-block">') + len('id="lgi-block">')
+        return json.loads(text[start:text.index("</script>", start)])
+    return json.loads(text[text.index("= {") + 2:].rstrip().rstrip(";"))
 
 
 def _shifted_scan(t: Path, folder: Path) -> Path:
@@ -277,7 +421,7 @@ def test_scan_map_packs_the_scanned_frames_only(scanned):
     m = next(mp for mp in data["maps"] if mp["key"] == "scan")
     slots = np.array(m["slots"])
     assert np.flatnonzero(slots >= 0).tolist() == list(SCANNED) and slots[list(SCANNED)].tolist() == [0, 1]
-    codes = np.concatenate([unblob(b) for b in m["blocks"]])
+    codes = unblob(m["values"])
     assert codes.shape == (2, meta["n_vertices"]) and codes.dtype == np.uint8
     table = pd.read_parquet(t / "compare" / "vertex_distances.parquet")
     frames = meta["frames"]
@@ -300,11 +444,10 @@ def test_scan_map_packs_the_scanned_frames_only(scanned):
         assert hole.size and np.isin(hole, unc).all()
         outside = np.setdiff1d(np.arange(c.size), rows.vertex.to_numpy())
         assert outside.size > 0 and (c[outside] == NOT_MEASURED).all()
-    curve = next(cv for cv in meta["curves"] if cv["key"] == "scan_rms")
+    curve = unblob(next(cv for cv in meta["curves"] if cv["key"] == "scan_rms")["values"])
     summary = pd.read_csv(t / "compare" / "summary.csv")
-    have = [i for i, v in enumerate(curve["values"]) if v is not None]
-    assert have == list(SCANNED)
-    assert np.allclose([curve["values"][i] for i in have], summary.rms_mm)
+    assert np.flatnonzero(np.isfinite(curve)).tolist() == list(SCANNED)
+    assert np.allclose(curve[list(SCANNED)], summary.rms_mm)
     assert meta["marks"] == [{"label": "scan", "frames": list(SCANNED)}]
 
 
@@ -438,7 +581,7 @@ def page(browser, shot):
     pg.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     pg.on("pageerror", lambda e: errors.append(str(e)))
     pg.goto((shot / "page" / "index.html").resolve().as_uri())
-    pg.wait_for_function("window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)", timeout=60_000)
+    pg.wait_for_function("window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)", timeout=60_000)
     pg.errors = errors
     yield pg
     pg.close()
@@ -524,7 +667,7 @@ def test_clicking_a_curve_jumps_to_its_frame(page):
 
 
 def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_path):
-    """A shot longer than a block is inflated block by block; frame 19 from blocks of 8 frames is the same
+    """A shot longer than a block is loaded block by block; frame 19 from blocks of 8 frames is the same
     picture as from one block."""
     import lgi.jobs.review as job
 
@@ -534,13 +677,67 @@ def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_
     for folder in (shot / "page", tmp_path / "blocks"):
         pg = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1)
         pg.goto((folder / "index.html").resolve().as_uri())
-        pg.wait_for_function("window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)",
+        pg.wait_for_function("window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)",
                              timeout=60_000)
         assert pg.evaluate("window.lgiReview.error") is None
-        pg.evaluate("window.lgiReview.setFrame(19); window.lgiReview.setMap('truth')")
+        pg.evaluate("window.lgiReview.setFrame(19).then(() => window.lgiReview.setMap('truth'))")
         shots.append(_pixels(pg.locator("#gl").screenshot()))
         pg.close()
     assert np.abs(shots[0] - shots[1]).max() <= 2
+
+
+def _open(browser, folder: Path):
+    pg = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1)
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    pg.goto((folder / "index.html").resolve().as_uri())
+    pg.wait_for_function("window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)", timeout=60_000)
+    pg.errors = errors
+    return pg
+
+
+def test_a_block_file_loads_on_its_own(browser, small_blocks):
+    """A block file is a page of its own: opened alone, it puts its block in window.LGI_REVIEW_BLOCKS (framed by
+    the review page, it hands the block over instead); its data is JSON the browser does not run."""
+    pg = browser.new_page()
+    pg.goto((small_blocks / "frames" / "block_00001.html").resolve().as_uri())
+    got = pg.evaluate("[Object.keys(window.LGI_REVIEW_BLOCKS), window.LGI_REVIEW_BLOCKS[1].lo, "
+                      "window.LGI_REVIEW_BLOCKS[1].n, Object.keys(window.LGI_REVIEW_BLOCKS[1].maps)]")
+    assert got == [["1"], 8, 8, ["truth", "correction"]]
+    pg.close()
+
+
+def test_a_far_frame_shows_the_overview_then_the_full_frame(browser, shot, monkeypatch, tmp_path):
+    """The page loads the blocks around the cursor only. A jump to a frame whose block is not loaded draws the
+    overview's nearest frame at once, then the full frame when its block arrives (the same picture as a page that
+    had it from the start); far blocks are dropped, so the page holds a bounded number however long the shot."""
+    import lgi.jobs.review as job
+
+    monkeypatch.setattr(job, "BLOCK", 2)  # 10 blocks of 2 frames
+    job.review(shot / "rec", shot / "idx", tmp_path / "page", job.ReviewOptions())
+    pg = _open(browser, tmp_path / "page")
+    assert pg.evaluate("window.lgiReview.error") is None and pg.errors == []
+    assert pg.evaluate("window.lgiReview.blocksHeld()") == [0, 1, 2]  # the cursor's and two ahead
+    pg.uncheck("#showMarkers")
+    first = pg.evaluate("""async () => { const p = window.lgiReview.setFrame(15); const at = window.lgiReview.shown();
+        const rough = window.lgiReview.positions(); await p;
+        return [at, window.lgiReview.shown(), rough]; }""")
+    assert first[0] == {"frame": 15, "at": 16, "exact": False} and first[1] == {"frame": 15, "at": 15, "exact": True}
+    assert "~" not in pg.inner_text("#frameLabel")
+    full = _pixels(pg.locator("#gl").screenshot())
+    pg.evaluate("window.lgiReview.setFrame(16)")
+    assert np.allclose(first[2], pg.evaluate("window.lgiReview.positions()"))  # the rough mesh was frame 16's
+    # Step through the whole shot: never more than 6 blocks held.
+    held = [len(pg.evaluate(f"window.lgiReview.setFrame({f}).then(() => window.lgiReview.blocksHeld())"))
+            for f in range(20)]
+    assert max(held) <= 6 and pg.evaluate("window.lgiReview.blocksHeld()")[0] > 0
+    pg.close()
+    other = _open(browser, shot / "page")  # one block: frame 15 there from the start
+    other.uncheck("#showMarkers")
+    other.evaluate("window.lgiReview.setFrame(15)")
+    assert np.abs(_pixels(other.locator("#gl").screenshot()).astype(int) - full).max() <= 2
+    other.close()
 
 
 def test_scan_map_in_the_browser(browser, scanned, tmp_path):
@@ -555,7 +752,7 @@ def test_scan_map_in_the_browser(browser, scanned, tmp_path):
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
     pg.goto((t / "page_scans" / "index.html").resolve().as_uri())
-    pg.wait_for_function("window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)",
+    pg.wait_for_function("window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)",
                          timeout=60_000)
     assert pg.evaluate("window.lgiReview.error") is None and errors == []
     pg.uncheck("#showMarkers")
@@ -571,7 +768,7 @@ def test_scan_map_in_the_browser(browser, scanned, tmp_path):
     frame = _payload(t / "page_scans" / "review_meta.js")["frames"][pos]
     rows = pd.read_parquet(t / "compare" / "vertex_distances.parquet").query("frame == @frame")
     m = next(mp for mp in _payload(t / "page_scans" / "review_frames.js")["maps"] if mp["key"] == "scan")
-    codes = np.concatenate([unblob(b) for b in m["blocks"]])[0]
+    codes = unblob(m["values"])[0]
     shade = [0.78, 0.74, 0.70]
     gap = pg.evaluate(f"window.lgiReview.gapColour({NOT_COVERED})")
     cov = rows[rows.covered].vertex.to_numpy()[::97]

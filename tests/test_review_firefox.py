@@ -16,7 +16,7 @@ from _firefox import FIREFOX, BiDiError, Firefox
 from _review_checks import check_marker_colours
 from test_review import SCANNED, _pixels, scanned, shot  # noqa: F401 - fixtures shared with the Chromium tests
 
-READY = "window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)"
+READY = "window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)"
 
 
 @pytest.fixture(scope="module")
@@ -141,3 +141,22 @@ def test_scan_map(firefox, scanned, tmp_path):  # noqa: F811
     assert np.any(np.abs(coloured - shaded) > 20, axis=2).mean() > 0.05
     ff.evaluate("window.lgiReview.setFrame(0)")
     assert "no scan for frame" in ff.evaluate("window.lgiReview.mapNote()")
+
+
+def test_a_far_frame_loads_its_block(firefox, shot, tmp_path, monkeypatch):  # noqa: F811
+    """Firefox too loads a block file from the frames folder on demand (file://): a jump to a frame whose block is
+    not loaded draws the overview's nearest frame, then the frame itself when its block arrives."""
+    import lgi.jobs.review as job
+
+    monkeypatch.setattr(job, "BLOCK", 2)  # 10 blocks of 2 frames
+    job.review(shot / "rec", shot / "idx", tmp_path / "page", job.ReviewOptions())
+    ff = firefox
+    ff.errors.clear()
+    ff.goto((tmp_path / "page" / "index.html").resolve().as_uri())
+    ff.wait_for(READY)
+    assert ff.evaluate("window.lgiReview.error") is None and ff.errors == []
+    assert ff.evaluate("window.lgiReview.blocksHeld()") == [0, 1, 2]
+    got = ff.evaluate("(async () => { const p = window.lgiReview.setFrame(15); const at = window.lgiReview.shown(); "
+                      "await p; return [at, window.lgiReview.shown()]; })()")
+    assert got == [{"frame": 15, "at": 16, "exact": False}, {"frame": 15, "at": 15, "exact": True}]
+    assert 7 in ff.evaluate("window.lgiReview.blocksHeld()")

@@ -38,7 +38,8 @@ def solved(tmp_path_factory):
 
 def _rig_map(t) -> tuple[dict, np.ndarray]:
     m = next(mp for mp in _payload(t / "page" / "review_frames.js")["maps"] if mp["key"] == "rig")
-    return m, np.concatenate([unblob(b) for b in m["blocks"]])
+    blocks = sorted((t / "page" / "frames").glob("block_*.html"))
+    return m, np.concatenate([unblob(_payload(b)["maps"]["rig"]) for b in blocks])
 
 
 def test_rig_map_is_the_solve_residual(solved):
@@ -59,8 +60,8 @@ def test_rig_map_is_the_solve_residual(solved):
     capped = res.max_mm.to_numpy() >= m["vmax_mm"]
     assert np.all(np.abs(top - np.minimum(res.max_mm.to_numpy(), m["vmax_mm"]))[~capped] <= step / 2 + 1e-4)
     meta = _payload(t / "page" / "review_meta.js")
-    curve = next(c for c in meta["curves"] if c["key"] == "rig_rms")
-    assert np.allclose(curve["values"], res.rms_mm.to_numpy(), atol=2e-5)
+    curve = unblob(next(c for c in meta["curves"] if c["key"] == "rig_rms")["values"])
+    assert np.allclose(curve, res.rms_mm.to_numpy(), atol=2e-5)
     rows = dict((label, text) for label, text in meta["summary"] if label != "report")
     assert "RMS" in rows["rig playback"] and str(t / "rig") in rows["rig solve"]
 
@@ -91,7 +92,7 @@ def test_rig_map_in_the_browser(browser, solved, tmp_path):  # noqa: F811
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
     pg.goto((solved / "page" / "index.html").resolve().as_uri())
-    pg.wait_for_function("window.lgiReview && (window.lgiReview.allLoaded || window.lgiReview.error)",
+    pg.wait_for_function("window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)",
                          timeout=60_000)
     assert pg.evaluate("window.lgiReview.error") is None and errors == []
     pg.uncheck("#showMarkers")

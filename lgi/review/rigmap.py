@@ -26,33 +26,48 @@ CHUNK = 64
 
 @dataclass
 class RigMap:
-    """The rig's shortfall over a shot.
+    """The rig's shortfall over a shot, computed a block of frames at a time (:meth:`distance`): a long take's
+    (F, V) distances are never held whole.
 
     Attributes
     ----------
-    distance_mm : (F, V) float32, mm
-        Per frame of the reconstruction (in its order) and vertex, the distance from the rig's playback to the
-        reconstructed mesh; NaN outside ``region``.
+    model : Rig
+        The loaded rig (:func:`lgi.retarget.solve.load_rig`).
+    curves : (F, C) float64
+        Per frame of the reconstruction (in its order), the rig's controls (and jaw curves) ``lgi rig-solve``
+        solved.
     region : (V,) bool
         The rig's face region (the vertices its shapes move).
-    rms_mm : (F,) float64, mm
-        Per frame, the RMS over the region (what ``residuals.csv`` holds).
     rig : str
         The rig dataset's folder.
     summary : dict
         ``lgi rig-solve``'s ``solve.json``.
     """
 
-    distance_mm: np.ndarray
+    model: Any
+    curves: np.ndarray
     region: np.ndarray
-    rms_mm: np.ndarray
     rig: str
     summary: dict[str, Any]
 
+    def distance(self, lo: int, vertices: np.ndarray) -> np.ndarray:
+        """(B, V) float32 mm: per frame ``lo .. lo + B`` of the shot and vertex, the distance from the rig's
+        playback to ``vertices`` (B, V, 3) cm, those frames' reconstructed meshes; NaN outside ``region``."""
+        from lgi.retarget.solve import playback
 
-def read_rig_map(solve_dir: str | Path, rig_dir: str | Path | None, frames: np.ndarray,
-                 vertices: np.ndarray) -> RigMap:
-    """The rig map of ``lgi rig-solve``'s folder ``solve_dir`` for a reconstruction.
+        idx = np.flatnonzero(self.region)
+        n_b = len(vertices)
+        dist = np.full((n_b, len(self.region)), np.nan, np.float32)
+        for a in range(0, n_b, CHUNK):
+            play = playback(self.model, self.curves[lo + a:lo + a + CHUNK], idx)
+            dist[a:a + CHUNK, idx] = np.linalg.norm(play - vertices[a:a + CHUNK, idx].astype(np.float32),
+                                                    axis=2) * MM_PER_CM
+        return dist
+
+
+def read_rig_map(solve_dir: str | Path, rig_dir: str | Path | None, frames: np.ndarray, n_vertices: int) -> RigMap:
+    """The rig map of ``lgi rig-solve``'s folder ``solve_dir`` for a reconstruction (checked and loaded; the
+    distances are computed per block of frames by :meth:`RigMap.distance`).
 
     Parameters
     ----------
@@ -62,8 +77,8 @@ def read_rig_map(solve_dir: str | Path, rig_dir: str | Path | None, frames: np.n
         The rig dataset (``lgi rig-generate``'s); None: the one ``solve.json`` names.
     frames : (F,) int
         The reconstruction's frame numbers.
-    vertices : (F, V, 3) float32, cm
-        The reconstruction's meshes.
+    n_vertices : int
+        The reconstruction's vertex count.
 
     Raises
     ------
@@ -71,7 +86,7 @@ def read_rig_map(solve_dir: str | Path, rig_dir: str | Path | None, frames: np.n
         A folder that is not rig-solve's, a rig that is gone or on another mesh, curves that lack a frame of the
         reconstruction or a control of the rig.
     """
-    from lgi.retarget.solve import JAW_CURVES, load_rig, playback
+    from lgi.retarget.solve import JAW_CURVES, load_rig
 
     solve_dir = Path(solve_dir)
     path = solve_dir / "solve.json"
@@ -89,7 +104,7 @@ def read_rig_map(solve_dir: str | Path, rig_dir: str | Path | None, frames: np.n
         if not Path(rig_dir).is_dir():
             raise InputError(f"names the rig {rig_dir}, which is not there: give the rig with --rig", path=path)
     rig, _ = load_rig(rig_dir)
-    n_f, n_v = vertices.shape[:2]
+    n_v = int(n_vertices)
     if len(rig.neutral) != n_v:
         raise InputError(f"the rig has {len(rig.neutral)} vertices and the reconstruction {n_v}: another mesh",
                          path=rig_dir)
@@ -107,15 +122,7 @@ def read_rig_map(solve_dir: str | Path, rig_dir: str | Path | None, frames: np.n
         raise InputError(f"lacks {len(absent)} of the reconstruction's frames: solved from another shot",
                          path=_curves_path(solve_dir), frame=absent[0])
     curves = table.loc[[int(f) for f in frames], names].to_numpy(np.float64)
-    region = rig.face_region()
-    idx = np.flatnonzero(region)
-    dist = np.full((n_f, n_v), np.nan, np.float32)
-    for lo in range(0, n_f, CHUNK):
-        play = playback(rig, curves[lo:lo + CHUNK], idx)
-        dist[lo:lo + CHUNK, idx] = np.linalg.norm(play - vertices[lo:lo + CHUNK, idx].astype(np.float32),
-                                                  axis=2) * MM_PER_CM
-    rms = np.sqrt(np.nanmean(dist[:, idx].astype(np.float64) ** 2, axis=1)) if idx.size else np.zeros(n_f)
-    return RigMap(dist, region, rms, str(Path(rig_dir).resolve()), summary)
+    return RigMap(rig, curves, rig.face_region(), str(Path(rig_dir).resolve()), summary)
 
 
 def _curves_path(solve_dir: Path) -> Path:
@@ -135,24 +142,6 @@ def _curves_table(solve_dir: Path):
         raise InputError("no curves.csv or curves.parquet: not a folder lgi rig-solve wrote", path=solve_dir) from None
     except (KeyError, ValueError, OSError, pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise InputError(f"not lgi rig-solve's curves table ({exc})", path=path) from None
-
-
-def page_map(m: RigMap, folder: str | Path, block: int) -> dict[str, Any]:
-    """The map as the page's ``maps`` entry: codes per frame in blocks of ``block`` frames, the vertices outside
-    the rig's region as "not measured"."""
-    from lgi.review.pack import NOT_MEASURED, TOP_WITH_GAPS, blob, colour_top, quantise_gaps
-
-    inside = m.distance_mm[:, m.region]
-    finite = inside[np.isfinite(inside)]
-    vmax = colour_top(finite)
-    measured = np.broadcast_to(m.region, m.distance_mm.shape)
-    values = np.nan_to_num(m.distance_mm, nan=0.0)
-    blocks = [blob(quantise_gaps(values[lo:lo + block], measured[lo:lo + block], measured[lo:lo + block], vmax))
-              for lo in range(0, len(values), block)]
-    return {"key": "rig", "label": "rig playback - reconstruction",
-            "note": f"the rig {m.rig} played with lgi rig-solve's curves ({folder})", "vmax_mm": vmax,
-            "max_mm": float(finite.max()) if finite.size else 0.0, "top": TOP_WITH_GAPS,
-            "gaps": [{"code": NOT_MEASURED, "label": "outside the rig's face region"}], "blocks": blocks}
 
 
 def summary_rows(m: RigMap, folder: str | Path) -> list[list[str]]:

@@ -154,22 +154,16 @@ def read_scan_map(folder: str | Path, frames: np.ndarray, vertices: np.ndarray) 
                    float(known.max()) if known.size else 0.0, pairs, rms, warnings)
 
 
-def page_map(m: ScanMap, folder: str | Path, block: int) -> dict[str, Any]:
-    """The map as the page's ``maps`` entry: codes in blocks of ``block`` frames of the shot, each block holding
-    only the frames with a scan in it (an empty block for a stretch without scans)."""
+def page_map(m: ScanMap, folder: str | Path) -> dict[str, Any]:
+    """The map as the page's ``maps`` entry, whole: a scan exists for a few frames of a shot, so their codes go
+    with the page's header (shown on any frame at once) rather than in the blocks of frames."""
     from lgi.review.pack import NOT_COVERED, NOT_MEASURED, TOP_WITH_GAPS, blob
 
-    n_f = len(m.slots)
-    blocks = []
-    for lo in range(0, n_f, block):
-        s = m.slots[lo:lo + block]
-        s = s[s >= 0]
-        blocks.append(blob(m.codes[s.min():s.max() + 1] if s.size else m.codes[:0]))
     return {"key": "scan", "label": "distance to the scan", "note": f"lgi compare's per-vertex distances in {folder}",
             "vmax_mm": m.vmax_mm, "max_mm": m.max_mm, "top": TOP_WITH_GAPS, "slots": m.slots.tolist(),
             "gaps": [{"code": NOT_COVERED, "label": "not covered by the scan"},
                      {"code": NOT_MEASURED, "label": "outside the compared region"}],
-            "pairs": m.pairs, "blocks": blocks}
+            "pairs": m.pairs, "values": blob(m.codes)}
 
 
 def summary_rows(m: ScanMap, folder: str | Path) -> list[list[str]]:

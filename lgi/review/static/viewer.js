@@ -1,6 +1,9 @@
 // lgi shot review viewer: one shaded mesh with per-vertex colours, markers as points, an orbit camera, per-frame
-// curves. Plain WebGL 1 and 2D canvas, written for lgi; it reads the data scripts beside it (review_meta.js,
-// review_frames.js) and fetches nothing, so the page works from file:// with no server and no network.
+// curves. Plain WebGL 1 and 2D canvas, written for lgi. It reads the data scripts beside it, review_meta.js and
+// review_frames.js, then frames/overview.html (every Nth frame) and the frames themselves from
+// frames/block_NNNNN.html, which it frames when the cursor comes near them and drops far from it. It fetches nothing (Chromium refuses
+// fetch on file://, not scripts or frames), so the page works from file:// with no server and no network, and a
+// long take costs the browser the blocks around the cursor, not the take.
 "use strict";
 (function () {
   const META = window.LGI_REVIEW_META, DATA = window.LGI_REVIEW_FRAMES;
@@ -26,14 +29,29 @@
                   f4: Float32Array };
   async function decode(b) {
     let bytes = b64bytes(b.b64);
-    if (b.gzip) {
-      // The browser's own gzip: a Response over a stream, not a fetch, so file:// does not matter.
-      const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("gzip"));
-      bytes = new Uint8Array(await new Response(stream).arrayBuffer());
-    }
     const T = TYPES[b.dtype];
+    if (b.gzip) {
+      // The browser's own gzip, over a stream (not a fetch, so file:// does not matter), read into an array of the
+      // size the shape gives: a third faster than collecting the stream through a Response.
+      const n = b.shape.reduce((x, y) => x * y, 1) * T.BYTES_PER_ELEMENT, out = new Uint8Array(n);
+      const ds = new DecompressionStream("gzip"), w = ds.writable.getWriter();
+      w.write(bytes); w.close();
+      const rd = ds.readable.getReader();
+      let off = 0;
+      for (;;) {
+        const { value, done } = await rd.read();
+        if (done) break;
+        if (off + value.length > n) throw new Error("a data blob inflates past its shape");
+        out.set(value, off); off += value.length;
+      }
+      if (off !== n) throw new Error("a data blob inflates short of its shape");
+      bytes = out;
+    }
     return new T(bytes.buffer, bytes.byteOffset, bytes.byteLength / T.BYTES_PER_ELEMENT);
   }
+
+  // Text that repeats (a block's diagnostics' shape lists) comes as gzip-compressed JSON.
+  async function decodeJSON(b) { return JSON.parse(new TextDecoder().decode(await decode(b))); }
 
   // The frames are stored as frame-to-frame differences, low bytes then high bytes (they compress better):
   // Int16Array stores wrap as numpy's int16 arithmetic does, so the running sum restores the codes exactly.
@@ -82,36 +100,44 @@
   }
 
   // ---------------------------------------------------------------- state
-  const S = { frame: 0, loaded: 1, playing: false, speed: 1, map: "none", showMarkers: true, yaw: 0, pitch: 0, dist: 1,
-              target: [0, 0, 0], radius: 1, hover: -1, pinned: -1, acc: 0, last: 0 };
-  let nF, nV, nM, tris, rest, moving, codes, scale, maps = {}, mv, mw, status, present, diag = [];
+  // Blocks kept decoded: the cursor's, BEHIND before it and AHEAD after it in the direction of play (loaded in that
+  // order, PARALLEL at a time), and up to KEEP in all (the nearest stay, so scrubbing back and forth does not
+  // reload them). KEEP bounds the page's memory however long the shot: 6 blocks of 64 ICT frames with a colour map
+  // are about 55 MB decoded.
+  const AHEAD = 2, BEHIND = 1, KEEP = 6, PARALLEL = 2;
+  const S = { frame: 0, dir: 1, playing: false, speed: 1, map: "none", showMarkers: true, yaw: 0, pitch: 0, dist: 1,
+              target: [0, 0, 0], radius: 1, hover: -1, pinned: -1, acc: 0, last: 0, shown: null };
+  let nF, nV, nM, nK, tris, rest, moving, scale, status, maps = {}, mv, mw, OV, curveData = [];
   let pos, nrm, col, mpos, mcol, gl, prog, pprog, buf = {}, curves;
+  const blocks = new Map();  // block index -> {k, lo, codes, maps, present, diag, bytes, ready, started, promise}
+  let inflight = 0;
 
   async function load() {
     const t0 = performance.now();
     nF = DATA.n_frames; nV = META.n_vertices; nM = META.markers.length;
-    [tris, rest, moving, mv, mw, status, present] = await Promise.all([
+    const ovFile = loadFile("overview", DATA.overview);
+    [tris, rest, moving, mv, mw, status] = await Promise.all([
       decode(META.triangles), decode(DATA.rest), decode(DATA.moving),
-      decode(META.marker_vertices), decode(META.marker_weights), decode(META.status), decode(META.diag_present)]);
-    scale = DATA.scale;
-    codes = new Int16Array(nF * moving.length * 3);
+      decode(META.marker_vertices), decode(META.marker_weights), decode(META.status)]);
+    const ov = await ovFile;
+    nK = moving.length; scale = DATA.scale;
+    // The overview: every Nth frame, whole, for the rough mesh while a frame's block loads.
+    const ovMaps = {};
+    const [ovCodes, ...ovMapBytes] = await Promise.all([decode(ov.codes), ...DATA.maps.map((m) => (ov.maps[m.key] ? decode(ov.maps[m.key]) : null))]);
+    DATA.maps.forEach((m, i) => { if (ovMapBytes[i]) ovMaps[m.key] = ovMapBytes[i]; });
+    OV = { frames: ov.frames, codes: deltaPlanes(ovCodes, nK * 3), maps: ovMaps };
     for (const m of DATA.maps) {
       const mm = { ...m, top: m.top || 255 };
       mm.lut = lut(mm.top);
-      if (m.slots) {
-        // A sparse map (frames with a scan only): slot k of the values is the k-th such frame; a block's codes go
-        // at its first slot.
-        mm.blockStart = [];
-        let n = 0;
-        for (let f = 0; f < nF; f++) { if (f % DATA.block === 0) mm.blockStart.push(n); if (m.slots[f] >= 0) n++; }
-        mm.values = new Uint8Array(n * nV);
-      } else mm.values = new Uint8Array(nF * nV);
+      // A map with slots (the scan map: a few frames) comes whole with the header; the others come by block.
+      if (m.slots) mm.values = await decode(m.values);
       maps[m.key] = mm;
     }
-    await loadBlock(0);
-    S.loaded = Math.min(nF, DATA.block);
-    const diagCodes = await Promise.all(META.diagnostics.map((c) => decode(c.data)));
-    META.diagnostics.forEach((c, i) => diag.push({ name: c.name, kind: c.kind, values: c.values, codes: diagCodes[i] }));
+    curveData = await Promise.all(META.curves.map(async (c) => ({ ...c, values: await decode(c.values) })));
+    // The header's blobs are decoded: let their base64 text go.
+    for (const k of ["rest", "moving"]) delete DATA[k];
+    for (const m of DATA.maps) delete m.values;
+    delete META.triangles; delete META.status;
     api.timing.scripts_ms = T_SCRIPTS - (window.LGI_T0 || 0);
     api.timing.decode_ms = performance.now() - t0;
     pos = new Float32Array(nV * 3); nrm = new Float32Array(nV * 3); col = new Float32Array(nV * 3);
@@ -126,36 +152,123 @@
     S.dist = S.radius * 2.6;
   }
 
-  // The frames come in blocks, each compressed on its own: the first is shown while the others inflate.
-  async function loadBlock(k) {
-    const per = moving.length * 3, lo = k * DATA.block;
-    const [c, ...mapped] = await Promise.all([decode(DATA.blocks[k]), ...DATA.maps.map((m) => decode(m.blocks[k]))]);
-    codes.set(deltaPlanes(c, per), lo * per);
-    DATA.maps.forEach((m, i) => {
-      const mm = maps[m.key];
-      mm.values.set(mapped[i], (mm.slots ? mm.blockStart[k] : lo) * nV);
+  // ---------------------------------------------------------------- blocks
+  const blockOf = (f) => Math.floor(f / DATA.block);
+  const nBlocks = () => DATA.files.length;
+  // A block file is a small HTML page holding its block as JSON (not a script: Chromium's compilation cache keeps
+  // the source of every script a page has run, so a long take scrubbed through in block scripts would stay in
+  // memory whole). The page frames it in a hidden iframe, which posts the text back; the frame is then removed and
+  // the block's page freed. A frame that loads without handing over a block (a missing file shows the browser's
+  // error page) fails after a grace period.
+  const framing = new Map();  // iframe -> { k, resolve, reject }
+  window.addEventListener("message", (e) => {
+    const text = e.data && e.data.lgiReviewBlock;
+    if (typeof text !== "string") return;
+    for (const [f, p] of framing) {
+      if (f.contentWindow !== e.source) continue;
+      framing.delete(f); f.remove();
+      let data;
+      try { data = JSON.parse(text); } catch (err) { p.reject(err); return; }
+      if (data.block !== p.k) p.reject(new Error(`${p.url} holds block ${data.block}, not ${p.k}`));
+      else p.resolve(data);
+      return;
+    }
+  });
+  // Block k (or "overview") from the page at url.
+  function loadFile(k, url) {
+    return new Promise((resolve, reject) => {
+      const f = document.createElement("iframe");
+      f.style.display = "none"; f.setAttribute("aria-hidden", "true"); f.src = url;
+      framing.set(f, { k, url, resolve, reject });
+      f.onload = () => setTimeout(() => {
+        if (!framing.has(f)) return;
+        framing.delete(f); f.remove();
+        reject(new Error(`cannot load ${url} (is the frames folder beside the page?)`));
+      }, 2000);
+      document.body.appendChild(f);
     });
   }
-  async function loadRest() {
-    // A few blocks at a time: the browser inflates them side by side.
-    for (let k = 1; k < DATA.blocks.length; k += 4) {
-      const group = [k, k + 1, k + 2, k + 3].filter((j) => j < DATA.blocks.length);
-      await Promise.all(group.map(loadBlock));
-      S.loaded = Math.min(nF, (group[group.length - 1] + 1) * DATA.block);
-      $("status").textContent = S.loaded < nF ? `${META.title} (frames decoded: ${S.loaded}/${nF})` : META.title;
-      drawCurves();
+  async function decodeBlock(b, data) {
+    const keys = Object.keys(data.maps);
+    const [c, present, ...rest_] = await Promise.all([decode(data.codes), decode(data.present),
+      ...keys.map((k) => decode(data.maps[k])), ...data.diagnostics.map((d) => decode(d.data)),
+      ...data.diagnostics.map((d) => (d.kind === "text" ? decodeJSON(d.values) : null))]);
+    const nd = data.diagnostics.length, mapVals = rest_.slice(0, keys.length);
+    const dcodes = rest_.slice(keys.length, keys.length + nd), dvals = rest_.slice(keys.length + nd);
+    b.codes = deltaPlanes(c, nK * 3); b.present = present; b.maps = {};
+    keys.forEach((k, i) => { b.maps[k] = mapVals[i]; });
+    b.diag = data.diagnostics.map((d, i) => ({ name: d.name, kind: d.kind, values: dvals[i], codes: dcodes[i] }));
+    b.bytes = b.codes.byteLength + present.byteLength + mapVals.reduce((s, a) => s + a.byteLength, 0) +
+      dcodes.reduce((s, a) => s + a.byteLength, 0);
+    b.ready = true;
+  }
+  // The blocks the cursor wants, most urgent first.
+  function wanted() {
+    const c = blockOf(S.frame), out = [c];
+    for (let i = 1; i <= AHEAD; i++) out.push(c + i * S.dir);
+    for (let i = 1; i <= BEHIND; i++) out.push(c - i * S.dir);
+    return out.filter((k) => k >= 0 && k < nBlocks());
+  }
+  function request(k) {
+    let b = blocks.get(k);
+    if (b) return b;
+    b = { k, lo: k * DATA.block, ready: false, started: false };
+    b.promise = new Promise((resolve, reject) => { b.start = () => {
+      b.started = true; inflight++;
+      // After the current task: the frame asked for is drawn (from the overview) before a frame is added.
+      setTimeout(() => loadFile(k, DATA.files[k]).then((data) => decodeBlock(b, data)).then(() => {
+        inflight--; resolve(b); arrived(b);
+      }, (err) => { inflight--; blocks.delete(k); reject(err); fail(err); }), 0);
+    }; });
+    b.promise.catch(() => {});
+    blocks.set(k, b);
+    return b;
+  }
+  // Start what the cursor wants (PARALLEL at a time), and drop what it no longer does beyond KEEP blocks, the
+  // farthest first: a block not yet started is dropped at once.
+  function schedule() {
+    const want = wanted();
+    if (!want.length) return;  // a shot without frames
+    for (const k of want) request(k);
+    for (const [k, b] of blocks) if (!b.started && !want.includes(k)) blocks.delete(k);
+    // While the cursor's own block is missing it loads alone: on two cores a second load would halve its speed.
+    const own = blocks.get(want[0]);
+    for (const k of own.ready ? want : want.slice(0, 1)) {
+      const b = blocks.get(k); if (inflight < PARALLEL && !b.started) b.start();
     }
-    api.timing.all_frames_ms = performance.now() - (window.LGI_T0 || 0);
-    api.allLoaded = true;
-    $("loadTime").textContent += `, all frames ${fmt(api.timing.all_frames_ms)} ms`;
+    const c = blockOf(S.frame), held = [...blocks.values()].filter((b) => b.ready);
+    if (held.length > KEEP) {
+      held.sort((a, b) => Math.abs(b.k - c) - Math.abs(a.k - c));
+      for (const b of held.slice(0, held.length - KEEP)) if (!want.includes(b.k)) blocks.delete(b.k);
+    }
+  }
+  function arrived(b) {
+    api.timing.blocks_loaded = (api.timing.blocks_loaded || 0) + 1;
+    if (blockOf(S.frame) === b.k) { dirty.geom = true; dirty.colour = true; showFrame(); }
+    schedule();
+    drawCurves();
+  }
+  function fail(err) {
+    api.error = String(err && err.message || err);
+    $("status").textContent = `cannot show the shot: ${api.error}`;
+    console.error(err);
+  }
+  // Where frame f's data is now: its block when loaded, else the overview's nearest frame (positions and maps of
+  // that frame; the markers' statuses are always the frame's own).
+  function source(f) {
+    const b = blocks.get(blockOf(f));
+    if (b && b.ready) return { exact: true, shown: f, row: f - b.lo, codes: b.codes, maps: b.maps, block: b };
+    const ovStride = OV.frames.length > 1 ? OV.frames[1] : 1;
+    const j = Math.min(OV.frames.length - 1, Math.round(f / ovStride));
+    return { exact: OV.frames[j] === f, shown: OV.frames[j], row: j, codes: OV.codes, maps: OV.maps, block: null };
   }
 
   // ---------------------------------------------------------------- per frame
-  function framePositions(f) {
+  function framePositions(src) {
     pos.set(rest);
-    const n = moving.length, base = f * n * 3;
+    const n = nK, c0 = src.row * n * 3, codes = src.codes;
     for (let i = 0; i < n; i++) {
-      const v = 3 * moving[i], c = base + 3 * i;
+      const v = 3 * moving[i], c = c0 + 3 * i;
       pos[v] += codes[c] * scale; pos[v + 1] += codes[c + 1] * scale; pos[v + 2] += codes[c + 2] * scale;
     }
     nrm.fill(0);
@@ -172,13 +285,18 @@
       mpos[3 * m + k] = s;
     }
   }
-  // The frame's row of a map's values, or -1 where the map has none (a frame without a scan).
-  function slotOf(m, f) { return m ? (m.slots ? m.slots[f] : f) : -1; }
-  function frameColours(f) {
-    const m = maps[S.map], slot = slotOf(m, f);
-    if (slot < 0) { for (let i = 0; i < nV * 3; i += 3) col.set(SHADED, i); }
+  // A map's codes at frame f from src, with their row, or null where it has none (a frame without a scan).
+  function mapRow(m, f, src) {
+    if (!m) return null;
+    if (m.slots) return m.slots[f] >= 0 ? { vals: m.values, base: m.slots[f] * nV } : null;
+    const vals = src.maps[m.key];
+    return vals ? { vals, base: src.row * nV } : null;
+  }
+  function frameColours(f, src) {
+    const m = maps[S.map], r = mapRow(m, f, src);
+    if (!r) { for (let i = 0; i < nV * 3; i += 3) col.set(SHADED, i); }
     else {
-      const vals = m.values, base = slot * nV, L = m.lut;
+      const vals = r.vals, base = r.base, L = m.lut;
       for (let v = 0; v < nV; v++) { const k = 3 * vals[base + v]; col[3 * v] = L[k]; col[3 * v + 1] = L[k + 1]; col[3 * v + 2] = L[k + 2]; }
     }
     for (let i = 0; i < nM; i++) {
@@ -245,8 +363,12 @@
     const canvas = gl.canvas, dpr = window.devicePixelRatio || 1;
     const w = Math.round(canvas.clientWidth * dpr), h = Math.round(canvas.clientHeight * dpr);
     if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
-    if (dirty.geom) { framePositions(S.frame); upload("pos", pos); upload("nrm", nrm); upload("mpos", mpos); }
-    if (dirty.geom || dirty.colour) { frameColours(S.frame); upload("col", col); upload("mcol", mcol); }
+    if (dirty.geom || dirty.colour) {
+      const src = source(S.frame);
+      S.shown = { frame: S.frame, at: src.shown, exact: src.exact };
+      if (dirty.geom) { framePositions(src); upload("pos", pos); upload("nrm", nrm); upload("mpos", mpos); }
+      frameColours(S.frame, src); upload("col", col); upload("mcol", mcol);
+    }
     dirty = { geom: false, colour: false };
     gl.viewport(0, 0, w, h); gl.clearColor(0.11, 0.115, 0.13, 1); gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
     const { view, mvp } = matrices(); S.mvp = mvp;
@@ -283,10 +405,12 @@
     return v.toExponential(3);
   }
   function diagnostics(f, m) {
-    const slot = f * nM + m, row = { marker: META.markers[m], frame: META.frames[f],
-                                     status: META.statuses[status[slot]] };
-    if (!present[slot]) return row;
-    for (const c of diag) row[c.name] = c.kind === "text" ? c.values[c.codes[slot]] : c.codes[slot];
+    const row = { marker: META.markers[m], frame: META.frames[f], status: META.statuses[status[f * nM + m]] };
+    const b = blocks.get(blockOf(f));
+    if (!b || !b.ready) { row.diagnostics = "loading with the frame's block"; return row; }
+    const slot = (f - b.lo) * nM + m;
+    if (!b.present[slot]) return row;
+    for (const c of b.diag) row[c.name] = c.kind === "text" ? c.values[c.codes[slot]] : c.codes[slot];
     return row;
   }
   function showMarker() {
@@ -332,7 +456,8 @@
       (p.rms_mm != null ? `, RMS ${p.rms_mm.toFixed(3)} mm` : "") + "<br>" + gaps;
   }
   function legend() {
-    const used = new Set(status);
+    const used = new Set();
+    for (let i = 0; i < status.length; i++) used.add(status[i]);
     $("legend").innerHTML = META.statuses.filter((s, i) => used.has(i)).map((s) => {
       const c = STATUS_RGB[s].map((v) => Math.round(v * 255));
       return `<span><i style="background:rgb(${c})"></i>${s}</span>`;
@@ -348,56 +473,114 @@
   }
 
   // ---------------------------------------------------------------- curves
+  // The curves are drawn once per size into a canvas of their own (a long take's 36,000 frames decimated to each
+  // pixel column's lowest and highest value, which is the picture the whole line gives); a frame change only
+  // copies it and draws the cursor, the values and the blocks held.
   const CURVE_RGB = ["#7cf", "#fa6", "#f77", "#c9f", "#8e8", "#ee7"];
-  function drawCurves() {
-    const c = $("curves"), dpr = window.devicePixelRatio || 1, g = c.getContext("2d");
-    const w = c.clientWidth, h = c.clientHeight;
-    if (c.width !== Math.round(w * dpr)) { c.width = Math.round(w * dpr); c.height = Math.round(h * dpr); }
-    g.setTransform(dpr, 0, 0, dpr, 0, 0); g.clearRect(0, 0, w, h);
-    const list = META.curves, n = Math.max(list.length, 1), rowH = h / n, left = 8, right = w - 8;
+  let curveBg = null;
+  function curveLayout() {
+    const c = $("curves"), w = c.clientWidth, h = c.clientHeight, left = 8, right = w - 8;
     const xOf = (f) => left + (right - left) * (nF > 1 ? f / (nF - 1) : 0.5);
-    curves = { xOf, left, right };
-    g.font = "11px system-ui, sans-serif";
-    list.forEach((cv, i) => {
-      const y0 = i * rowH, vals = cv.values.map((v) => (v === null ? NaN : v));
-      const fin = vals.filter(Number.isFinite), lo = Math.min(0, ...fin), hi = Math.max(...fin, lo + 1e-9);
-      g.strokeStyle = "#333"; g.beginPath(); g.moveTo(0, y0 + rowH - 0.5); g.lineTo(w, y0 + rowH - 0.5); g.stroke();
-      const rgb = CURVE_RGB[i % CURVE_RGB.length], yOf = (v) => y0 + rowH - 3 - (rowH - 6) * (v - lo) / (hi - lo);
+    return { w, h, left, right, xOf, rowH: h / Math.max(curveData.length, 1) };
+  }
+  function renderCurves(L, dpr) {
+    const bg = document.createElement("canvas");
+    bg.width = Math.round(L.w * dpr); bg.height = Math.round(L.h * dpr);
+    const g = bg.getContext("2d");
+    g.setTransform(dpr, 0, 0, dpr, 0, 0);
+    const cols = Math.max(1, Math.round(L.right - L.left));
+    curveData.forEach((cv, i) => {
+      const y0 = i * L.rowH, vals = cv.values;
+      let lo = 0, hi = -Infinity;
+      for (let f = 0; f < vals.length; f++) { const v = vals[f]; if (v === v) { if (v < lo) lo = v; if (v > hi) hi = v; } }
+      cv.max = hi; if (!(hi > lo)) hi = lo + 1e-9;
+      g.strokeStyle = "#333"; g.beginPath(); g.moveTo(0, y0 + L.rowH - 0.5); g.lineTo(L.w, y0 + L.rowH - 0.5); g.stroke();
+      const rgb = CURVE_RGB[i % CURVE_RGB.length], yOf = (v) => y0 + L.rowH - 3 - (L.rowH - 6) * (v - lo) / (hi - lo);
       if (cv.points) {
         // A few frames far apart (the frames with a scan): dots, as a line between them would invent values.
         g.fillStyle = rgb;
-        vals.forEach((v, f) => { if (Number.isFinite(v)) { g.beginPath(); g.arc(xOf(f), yOf(v), 3, 0, 2 * Math.PI); g.fill(); } });
-      } else {
-        g.strokeStyle = rgb; g.lineWidth = 1.5; g.beginPath();
-        let on = false;
-        vals.forEach((v, f) => {
-          if (!Number.isFinite(v)) { on = false; return; }
-          if (on) g.lineTo(xOf(f), yOf(v)); else g.moveTo(xOf(f), yOf(v)); on = true;
-        });
-        g.stroke();
+        for (let f = 0; f < vals.length; f++) if (vals[f] === vals[f]) { g.beginPath(); g.arc(L.xOf(f), yOf(vals[f]), 3, 0, 2 * Math.PI); g.fill(); }
+        return;
       }
-      const now = vals[S.frame], nowText = Number.isFinite(now) ? fmt(now) : (cv.missing || "");
-      const text = `${cv.label} (${cv.unit}): ${nowText}   [max ${fmt(Math.max(...fin))}]`;
-      g.fillStyle = "rgba(23, 25, 28, 0.8)"; g.fillRect(left + 1, y0 + 1, g.measureText(text).width + 6, 14);
-      g.fillStyle = "#ccc"; g.fillText(text, left + 4, y0 + 12);
+      g.strokeStyle = rgb; g.lineWidth = 1.5; g.beginPath();
+      let on = false;
+      if (vals.length <= 2 * cols) {
+        for (let f = 0; f < vals.length; f++) {
+          const v = vals[f];
+          if (v !== v) { on = false; continue; }
+          if (on) g.lineTo(L.xOf(f), yOf(v)); else g.moveTo(L.xOf(f), yOf(v)); on = true;
+        }
+      } else {
+        // Per pixel column: from its lowest to its highest value, joined to the next column.
+        let col_ = -1, cmin = Infinity, cmax = -Infinity;
+        const flush = () => {
+          if (col_ < 0) return;
+          if (cmin === Infinity) { on = false; return; }
+          const x = L.left + col_ + 0.5;
+          if (on) g.lineTo(x, yOf(cmin)); else g.moveTo(x, yOf(cmin));
+          g.lineTo(x, yOf(cmax)); on = true;
+        };
+        for (let f = 0; f < vals.length; f++) {
+          const c = Math.min(cols - 1, Math.floor((L.xOf(f) - L.left)));
+          if (c !== col_) { flush(); col_ = c; cmin = Infinity; cmax = -Infinity; }
+          const v = vals[f]; if (v === v) { if (v < cmin) cmin = v; if (v > cmax) cmax = v; }
+        }
+        flush();
+      }
+      g.stroke();
     });
     // Marked frames (those compared with a scan): a faint line across the curves and a tick at the bottom.
     for (const mk of META.marks || []) for (const f of mk.frames) {
-      g.strokeStyle = "rgba(255, 170, 80, 0.35)"; g.lineWidth = 1; g.beginPath(); g.moveTo(xOf(f), 0); g.lineTo(xOf(f), h); g.stroke();
-      g.fillStyle = "#fa5"; g.beginPath(); g.moveTo(xOf(f), h - 7); g.lineTo(xOf(f) - 4, h); g.lineTo(xOf(f) + 4, h); g.fill();
+      const x = L.xOf(f);
+      g.strokeStyle = "rgba(255, 170, 80, 0.35)"; g.lineWidth = 1; g.beginPath(); g.moveTo(x, 0); g.lineTo(x, L.h); g.stroke();
+      g.fillStyle = "#fa5"; g.beginPath(); g.moveTo(x, L.h - 7); g.lineTo(x - 4, L.h); g.lineTo(x + 4, L.h); g.fill();
     }
-    if (S.loaded < nF) { g.fillStyle = "rgba(0, 0, 0, 0.45)"; g.fillRect(xOf(S.loaded), 0, w - xOf(S.loaded), h); }
-    g.strokeStyle = "#fff"; g.lineWidth = 1; g.beginPath(); g.moveTo(xOf(S.frame), 0); g.lineTo(xOf(S.frame), h); g.stroke();
+    return bg;
+  }
+  function drawCurves() {
+    const c = $("curves"), dpr = window.devicePixelRatio || 1, g = c.getContext("2d"), L = curveLayout();
+    if (c.width !== Math.round(L.w * dpr) || c.height !== Math.round(L.h * dpr) || !curveBg) {
+      c.width = Math.round(L.w * dpr); c.height = Math.round(L.h * dpr);
+      curveBg = renderCurves(L, dpr);
+    }
+    curves = L;
+    g.setTransform(1, 0, 0, 1, 0, 0); g.clearRect(0, 0, c.width, c.height); g.drawImage(curveBg, 0, 0);
+    g.setTransform(dpr, 0, 0, dpr, 0, 0);
+    g.font = "11px system-ui, sans-serif";
+    curveData.forEach((cv, i) => {
+      const now = cv.values[S.frame], nowText = now === now ? fmt(now) : (cv.missing || "");
+      const text = `${cv.label} (${cv.unit}): ${nowText}   [max ${fmt(cv.max)}]`;
+      g.fillStyle = "rgba(23, 25, 28, 0.8)"; g.fillRect(L.left + 1, i * L.rowH + 1, g.measureText(text).width + 6, 14);
+      g.fillStyle = "#ccc"; g.fillText(text, L.left + 4, i * L.rowH + 12);
+    });
+    // The blocks held decoded, as a strip at the bottom.
+    g.fillStyle = "rgba(120, 200, 255, 0.5)";
+    for (const b of blocks.values()) if (b.ready) {
+      const x0 = L.xOf(b.lo), x1 = L.xOf(Math.min(nF - 1, b.lo + DATA.block - 1));
+      g.fillRect(x0, L.h - 3, Math.max(1, x1 - x0), 3);
+    }
+    g.strokeStyle = "#fff"; g.lineWidth = 1; g.beginPath(); g.moveTo(L.xOf(S.frame), 0); g.lineTo(L.xOf(S.frame), L.h); g.stroke();
   }
 
   // ---------------------------------------------------------------- interaction
+  // Show the cursor's frame: the full frame when its block is there, else the overview's nearest frame at once.
+  function showFrame() {
+    draw();
+    const sh = S.shown, f = S.frame;
+    $("frameLabel").textContent = `frame ${META.frames[f]} (${f + 1}/${nF})` + (sh && !sh.exact ? " ~" : "");
+    $("status").textContent = sh && !sh.exact ? `${META.title}: frame ${META.frames[f]} loading, the overview's ` +
+      `frame ${META.frames[sh.at]} meanwhile` : META.title;
+    showMarker();
+  }
+  // Resolves when the cursor's frame is drawn in full (at once when its block is there).
   function setFrame(f) {
-    // Frames still inflating are not there yet: the slider stops at the last one decoded.
-    f = Math.max(0, Math.min(S.loaded - 1, Math.round(f)));
-    S.frame = f; $("slider").value = f; dirty.geom = true;
-    $("frameLabel").textContent = `frame ${META.frames[f]} (${f + 1}/${nF})`;
-    if (maps[S.map] && maps[S.map].slots) dirty.colour = true;
-    drawCurves(); showMarker(); mapNote(); draw();
+    f = Math.max(0, Math.min(nF - 1, Math.round(f)));
+    if (f !== S.frame) S.dir = f < S.frame && f > S.frame - DATA.block ? -1 : 1;
+    S.frame = f; $("slider").value = f; dirty.geom = true; dirty.colour = true;
+    schedule();
+    showFrame(); mapNote(); drawCurves();
+    const b = blocks.get(blockOf(f));
+    return b ? b.promise.then(() => undefined) : Promise.resolve();
   }
   function setMap(key) { S.map = maps[key] ? key : "none"; $("map").value = S.map; dirty.colour = true; colourBar(); draw(); }
   function pick(ev) {
@@ -456,13 +639,13 @@
       const r = cv.getBoundingClientRect(), x = e.clientX - r.left;
       setFrame((x - curves.left) / (curves.right - curves.left) * (nF - 1));
     });
-    window.addEventListener("resize", () => { drawCurves(); draw(); });
+    window.addEventListener("resize", () => { curveBg = null; drawCurves(); draw(); });
   }
   function tick(now) {
     if (S.playing) {
       S.acc += (now - S.last) / 1000 * META.fps * S.speed; S.last = now;
       // Frames are dropped, not slowed, when drawing takes longer than the shot's frame time.
-      if (S.acc >= 1) { const step = Math.floor(S.acc); S.acc -= step; setFrame((S.frame + step) % S.loaded); }
+      if (S.acc >= 1) { const step = Math.floor(S.acc); S.acc -= step; S.dir = 1; setFrame((S.frame + step) % nF); }
     }
     requestAnimationFrame(tick);
   }
@@ -470,15 +653,16 @@
   async function main() {
     try {
       if (!META || !DATA) throw new Error("the data scripts review_meta.js / review_frames.js did not load");
+      if (!DATA.files) throw new Error("review_frames.js is of an older lgi review: write the page again");
       await load();
       initGL(); bind(); legend(); summary(); colourBar();
       document.title = `lgi review: ${META.title}`;
-      setFrame(0);
+      const first = setFrame(0);
       api.timing.first_frame_ms = performance.now() - (window.LGI_T0 || 0);
       $("loadTime").textContent = `data scripts ${fmt(api.timing.scripts_ms)} ms, decode ${fmt(api.timing.decode_ms)} ms, first frame ${fmt(api.timing.first_frame_ms)} ms`;
-      $("status").textContent = META.title;
       Object.assign(api, {
-        ready: true, setFrame, setMap, maps: Object.keys(maps), nFrames: nF,
+        ready: true, setFrame, setMap, maps: Object.keys(maps), nFrames: nF, block: DATA.block,
+        overviewFrames: OV.frames.slice(),
         frame: () => S.frame, markerScreen: (m) => { draw(); return markerScreen(m); },
         statusColour: (s) => STATUS_RGB[s], markerStatus: (f, m) => META.statuses[status[f * nM + m]],
         diagnostics, pinMarker: (m) => { S.pinned = m; showMarker(); },
@@ -486,13 +670,21 @@
         vertexColour: (v) => Array.from(col.subarray(3 * v, 3 * v + 3)), gapColour: (code) => GAP_RGB[code],
         rampColour: (t) => ramp(t), mapNote: () => $("cbarNote").innerText,
         marked: () => (META.marks || []).map((mk) => mk.frames),
+        // What is drawn: the frame, the frame whose data it is (the overview's while the block loads), exact.
+        shown: () => ({ ...S.shown }), positions: () => Array.from(pos),
+        blocksHeld: () => [...blocks.values()].filter((b) => b.ready).map((b) => b.k).sort((a, b) => a - b),
+        bytesHeld: () => [...blocks.values()].reduce((s, b) => s + (b.bytes || 0), 0),
+        // Draw and wait for the GPU (for timing a step).
+        finish: () => { draw(); gl.finish(); },
       });
+      // Idle: the cursor's frame is drawn in full and no block is loading.
+      Object.defineProperty(api, "idle", { get: () => api.ready && !!S.shown && S.shown.exact && inflight === 0 });
       S.last = performance.now(); requestAnimationFrame(tick);
-      await loadRest();
+      await first;
+      api.timing.first_block_ms = performance.now() - (window.LGI_T0 || 0);
+      $("loadTime").textContent += `, first block ${fmt(api.timing.first_block_ms)} ms`;
     } catch (err) {
-      api.error = String(err && err.message || err);
-      $("status").textContent = `cannot show the shot: ${api.error}`;
-      console.error(err);
+      fail(err);
     }
   }
   main();
