@@ -78,10 +78,11 @@ FAULTS = [
           (f"{BAD}::test_bad_input[bundles-inf]",)),
     # --- outputs on disk --------------------------------------------------------------------------------------
     Fault("staging-kept-on-error", "an interrupted or failed run leaves its staging folder in OUT",
-          "lgi/io/atomic.py", "        shutil.rmtree(stage, ignore_errors=True)\n", "",
+          "lgi/io/atomic.py", "                shutil.rmtree(stage, ignore_errors=True)\n", "                pass\n",
           (f"{BAD}::test_signal_at_a_stage_leaves_nothing[sigint-write]",)),
     Fault("killed-run-temporaries-kept", "a killed run's temporaries are never swept by the next run",
-          "lgi/io/atomic.py", "        if not pid.isdigit() or _alive(int(pid)):\n", "        if True:\n",
+          "lgi/io/atomic.py",
+          "    return name.startswith(prefix) and pid.isdigit() and not _alive(int(pid))\n", "    return False\n",
           (f"{BAD}::test_sigkill_then_rerun_cleans_up",)),
     Fault("stage-cache-unlocked", "concurrent rebuilds compute the same stage without taking turns",
           "lgi/pipeline/cache.py", "        with locked(self.root / stage / f\".{key}.lock\"):\n",
