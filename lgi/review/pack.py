@@ -33,29 +33,23 @@ QUANTISE_CHUNK = 50
 
 @dataclass(frozen=True)
 class QuantisedFrames:
-    """A shot's vertices as int16 displacements from a rest mesh, only for the vertices that move.
+    """A shot's vertices as int16 displacements from a rest mesh, only for the vertices that move: codes in a
+    :class:`FrameLayout` (its ``rest``, ``moving`` vertices and ``scale`` are the shot's).
 
     Attributes
     ----------
-    rest : (V, 3) float32, cm
-        The mesh the displacements are from (the index's neutral).
-    moving : (K,) int32
-        Vertices whose quantised displacement is non-zero in some frame (the others stay at ``rest``).
+    layout : FrameLayout
     codes : (F, K, 3) int16
-        Displacement of each moving vertex, in units of ``scale``.
-    scale : float, cm
-        Size of one code step; the round trip error is at most ``scale / 2`` per coordinate.
+        Displacement of each moving vertex, in units of ``layout.scale``.
     """
 
-    rest: np.ndarray
-    moving: np.ndarray
+    layout: FrameLayout
     codes: np.ndarray
-    scale: float
 
-    @property
-    def error_bound_cm(self) -> float:
-        """Largest per-coordinate error of :func:`dequantise_frames` against the input (cm)."""
-        return self.scale / 2
+    rest = property(lambda self: self.layout.rest)
+    moving = property(lambda self: self.layout.moving)
+    scale = property(lambda self: self.layout.scale)
+    error_bound_cm = property(lambda self: self.layout.error_bound_cm)
 
 
 class DisplacementRange:
@@ -115,6 +109,7 @@ class FrameLayout:
 
     @property
     def error_bound_cm(self) -> float:
+        """Largest per-coordinate error of a position coded and decoded (cm)."""
         return self.scale / 2
 
     def codes(self, vertices: np.ndarray) -> np.ndarray:
@@ -146,7 +141,7 @@ def quantise_frames(vertices: np.ndarray, rest: np.ndarray, step: float = 0.0) -
     codes = np.empty((len(v), len(layout.moving), 3), np.int16)
     for lo in range(0, len(v), QUANTISE_CHUNK):
         codes[lo:lo + QUANTISE_CHUNK] = layout.codes(v[lo:lo + QUANTISE_CHUNK])
-    return QuantisedFrames(r, layout.moving, codes, layout.scale)
+    return QuantisedFrames(layout, codes)
 
 
 def dequantise_frames(q: QuantisedFrames) -> np.ndarray:
