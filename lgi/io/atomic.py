@@ -11,6 +11,7 @@ import contextlib
 import errno
 import fnmatch
 import json
+import logging
 import os
 import shutil
 import tempfile
@@ -373,6 +374,10 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
             full = storage_error(exc, _written(exc, stage, out)) if isinstance(exc, Exception) else None
             if not (resume and isinstance(exc, KeyboardInterrupt | SystemExit) and staged_key(stage) == resume):
                 shutil.rmtree(stage, ignore_errors=True)
+            else:
+                logging.getLogger(__name__).warning(
+                    "stopped: what was written waits in %s for the same command to go on from (the next run of "
+                    "another job into %s removes it)", stage, out)
         if created:  # a failed first run leaves no empty folder behind either
             with contextlib.suppress(OSError):
                 out.rmdir()
