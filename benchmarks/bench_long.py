@@ -18,13 +18,17 @@ processes.
    ``lgi review``, ``lgi compare`` of one scan (the reconstruction's middle frame written as OBJ), and
    ``lgi rig-solve`` onto a rig made once by ``lgi rig-generate``: wall time, peak memory and output size.
 
-Every figure is printed; nothing is asserted. ``--doc FILE`` rewrites the table between
+Every figure is printed; nothing is asserted. With ``--work`` each measured row is kept in
+``long-rows.json`` there and not measured again (``--again`` re-measures), so the table can be filled by several
+runs of subsets; the table holds every kept row, and a second table gives, per row, the ratio of peak memory and
+of frames per second to the 1,000-frame row. ``--doc FILE`` rewrites the tables between
 ``<!-- table:long -->`` and ``<!-- /table -->`` in FILE.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import tempfile
@@ -66,20 +70,21 @@ def row(what: str, frames: int, kind: str, run, out: Path) -> dict:
 
 
 def readers(recon: Path, index: Path, rig_dir: Path, frames: int, kind: str, which: list[str],
-            scratch: Path) -> list[dict]:
+            scratch: Path, rows: Rows) -> None:
     from lgi.io.npz import load_meshes
     from lgi.io.obj import write_obj
 
-    out = []
-    if "export" in which:
+    if "export" in which and not rows.has("export --usd", frames, kind):
         usd = scratch / "shot.usdc"
-        out.append(row("export --usd", frames, kind, lgi_timed("export", str(recon), "--index", str(index), "--usd",
-                                                               str(usd), "-q"), usd))
-    if "review" in which:
+        rows.add(row("export --usd", frames, kind, lgi_timed("export", str(recon), "--index", str(index), "--usd",
+                                                             str(usd), "-q"), usd))
+        usd.unlink()
+    if "review" in which and not rows.has("review", frames, kind):
         page = scratch / "review"
-        out.append(row("review", frames, kind, lgi_timed("review", str(recon), "--index", str(index), "--out",
-                                                         str(page)), page))
-    if "compare" in which:
+        rows.add(row("review", frames, kind, lgi_timed("review", str(recon), "--index", str(index), "--out",
+                                                       str(page)), page))
+        shutil.rmtree(page)
+    if "compare" in which and not rows.has("compare (one scan)", frames, kind):
         m = load_meshes(recon / "meshes.npz", ("vertices", "frames"))
         mid = len(m["frames"]) // 2
         from lgi.index.build import LGIIndex
@@ -88,14 +93,55 @@ def readers(recon: Path, index: Path, rig_dir: Path, frames: int, kind: str, whi
         scan = scratch / "scan.obj"
         write_obj(scan, np.asarray(m["vertices"][mid]) * 10.0, a["face_vertices"], a["face_offsets"])
         cmp_out = scratch / "compare"
-        out.append(row("compare (one scan)", frames, kind,
-                       lgi_timed("compare", str(recon), "--index", str(index), "--frame", str(int(m["frames"][mid])),
-                                 "--scan", str(scan), "--units", "mm", "--out", str(cmp_out)), cmp_out))
-    if "rig-solve" in which:
+        rows.add(row("compare (one scan)", frames, kind,
+                     lgi_timed("compare", str(recon), "--index", str(index), "--frame", str(int(m["frames"][mid])),
+                               "--scan", str(scan), "--units", "mm", "--out", str(cmp_out)), cmp_out))
+    if "rig-solve" in which and not rows.has("rig-solve", frames, kind):
         solved = scratch / "solved"
-        out.append(row("rig-solve", frames, kind, lgi_timed("rig-solve", str(recon), "--rig", str(rig_dir), "--out",
-                                                            str(solved), "-q"), solved))
-    return out
+        rows.add(row("rig-solve", frames, kind, lgi_timed("rig-solve", str(recon), "--rig", str(rig_dir), "--out",
+                                                          str(solved), "-q"), solved))
+
+
+class Rows:
+    """Measured rows, kept in ``path`` (when given) as they come so that an interrupted run loses none."""
+
+    def __init__(self, path: Path | None, again: bool):
+        self.path = path
+        self.rows: list[dict] = json.loads(path.read_text()) if path is not None and path.is_file() else []
+        self.again = again
+
+    def has(self, what: str, frames: int, kind: str) -> bool:
+        return not self.again and any(r["what"] == what and r["frames"] == frames and r["kind"] == kind
+                                      for r in self.rows)
+
+    def add(self, r: dict) -> None:
+        self.rows = [o for o in self.rows if (o["what"], o["frames"], o["kind"]) != (r["what"], r["frames"], r["kind"])]
+        self.rows.append(r)
+        if self.path is not None:
+            self.path.write_text(json.dumps(self.rows, indent=1))
+
+
+ORDER = ["reconstruct (plain)", "reconstruct (flow)", "reconstruct (dask)", "export --usd", "review",
+         "compare (one scan)", "rig-solve"]
+
+
+def ordered(rows: list[dict]) -> list[dict]:
+    return sorted(rows, key=lambda r: (ORDER.index(r["what"]) if r["what"] in ORDER else len(ORDER), r["kind"],
+                                       r["frames"]))
+
+
+def ratios(rows: list[dict]) -> str:
+    """Peak memory and frames per second of every row against the same command's 1,000-frame row."""
+    base = {(r["what"], r["kind"]): r for r in rows if r["frames"] == BASE_FRAMES}
+    lines = [f"Against the same command at {BASE_FRAMES:,} frames (targets: peak at most 1.1x, frames/s at least "
+             "0.9x):", "", "| what | bundles | frames | peak ratio | frames/s ratio |", "|---|---|---|---|---|"]
+    for r in ordered(rows):
+        b = base.get((r["what"], r["kind"]))
+        if r["frames"] == BASE_FRAMES or b is None:
+            continue
+        lines.append(f"| {r['what']} | {r['kind']} | {r['frames']} | {r['peak_mib'] / b['peak_mib']:.2f} | "
+                     f"{r['fps'] / b['fps']:.2f} |")
+    return "\n".join(lines)
 
 
 def table(rows: list[dict], shapes: int) -> str:
@@ -103,10 +149,10 @@ def table(rows: list[dict], shapes: int) -> str:
              f"{NOISE_MM:g} mm stereo noise); whole processes, one run each. Peak: the command's own process "
              "(Dask's workers not counted).", "",
              "| what | bundles | frames | wall s | frames/s | peak MiB | output MiB |", "|---|---|---|---|---|---|---|"]
-    for r in rows:
+    for r in ordered(rows):
         lines.append(f"| {r['what']} | {r['kind']} | {r['frames']} | {r['wall_s']:.1f} | {r['fps']:.0f} | "
                      f"{r['peak_mib']:.0f} | {r['out_mib']:.0f} |")
-    return "\n".join(lines)
+    return "\n".join(lines) + "\n\n" + ratios(rows)
 
 
 def main() -> int:
@@ -119,6 +165,7 @@ def main() -> int:
     ap.add_argument("--readers", default="export,review,compare,rig-solve")
     ap.add_argument("--doc", type=Path, action="append", default=[])
     ap.add_argument("--keep", action="store_true", help="keep the plain path's outputs in --work")
+    ap.add_argument("--again", action="store_true", help="measure rows already kept in --work again")
     args = ap.parse_args()
     if not has_ict(ICT_DIR):
         print(f"ICT FaceKit not found in {ICT_DIR}: nothing to measure")
@@ -137,31 +184,41 @@ def main() -> int:
         if which and "rig-solve" in which and not (rig_dir / "manifest.json").is_file():
             log("lgi rig-generate --template ict --index ...")
             lgi_timed("rig-generate", "--template", str(mat.ict), "--index", str(index), "--out", str(rig_dir), "-q")
-        rows = []
+        rows = Rows(args.work / "long-rows.json" if args.work else None, args.again)
+        reader_rows = {"export": "export --usd", "review": "review", "compare": "compare (one scan)",
+                       "rig-solve": "rig-solve"}
         for n in frames:
             for kind in kinds:
                 bundles = work / f"long-{kind}-{n}.csv"
                 if not bundles.is_file():
                     log(f"{kind}: the shot looped to {n} frames")
                     looped(mat.files[(kind, mat.frames)], bundles, n)
-                for path in paths:
+                recon = work / f"out-plain-{kind}-{n}"
+                need_readers = [w for w in which if not rows.has(reader_rows[w], n, kind)]
+                # plain last, so that its outputs (12 GB at 36,000 frames) are on disk only while the readers run
+                for path in sorted(paths, key=lambda q: q == "plain"):
                     out = work / f"out-{path}-{kind}-{n}"
+                    if rows.has(f"reconstruct ({path})", n, kind) and not (path == "plain" and need_readers
+                                                                             and not out.is_dir()):
+                        continue
+                    shutil.rmtree(out, ignore_errors=True)
                     extra = {"plain": [], "flow": ["--flow"], "dask": ["--flow", "--dask", "local:2"]}[path]
                     run = lgi_timed("reconstruct", str(index), "--bundles", str(bundles), "--out", str(out), "-q",
                                     *extra)
-                    rows.append(row(f"reconstruct ({path})", n, kind, run, out))
+                    rows.add(row(f"reconstruct ({path})", n, kind, run, out))
                     if path != "plain":
                         shutil.rmtree(out, ignore_errors=True)
-                recon = work / f"out-plain-{kind}-{n}"
-                if which and recon.is_dir():
+                if need_readers and not recon.is_dir():
+                    lgi_timed("reconstruct", str(index), "--bundles", str(bundles), "--out", str(recon), "-q")
+                if need_readers:
                     scratch = work / f"readers-{kind}-{n}"
                     shutil.rmtree(scratch, ignore_errors=True)
                     scratch.mkdir()
-                    rows += readers(recon, index, rig_dir, n, kind, which, scratch)
+                    readers(recon, index, rig_dir, n, kind, need_readers, scratch, rows)
                     shutil.rmtree(scratch, ignore_errors=True)
                 if not args.keep:  # a 36,000-frame ICT take's outputs are 12 GB
                     shutil.rmtree(recon, ignore_errors=True)
-        text = table(rows, args.shapes)
+        text = table(rows.rows, args.shapes)
         print(text)
         for doc in args.doc:
             write_marked(doc, "long", text)

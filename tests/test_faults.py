@@ -116,6 +116,25 @@ def test_full_disk_while_reconstruct_writes_meshes(shot: Path, tmp_path: Path) -
         assert snapshot(out) == before and not leftovers(disk)  # the same job, the same bytes
 
 
+def test_full_scratch_folder_names_it_and_tmpdir(shot: Path, tmp_path: Path) -> None:
+    """A full TMPDIR, where a take's bundles are spooled and its per-frame state kept: exit 2, one message naming
+    the folder and TMPDIR, no output; with TMPDIR elsewhere the same command succeeds."""
+    args = (str(shot / "index"), "--bundles", str(shot / "s" / "bundles.csv"), "--out", str(tmp_path / "out"),
+            "-q")
+    with tmpfs(tmp_path / "tmp", "1m") as tmp:
+        # Room for Python's check that the folder is writable (else it quietly takes /tmp), not for the take.
+        fill(tmp, 8192)
+        env = _env(tmp_path) | {"TMPDIR": str(tmp)}
+        r = lgi("reconstruct", *args, cwd=tmp_path, env=env)
+        assert r.returncode == 2, (r.returncode, r.stderr)
+        errors = [line for line in r.stderr.splitlines() if "error" in line]
+        assert "Traceback" not in r.stderr and len(errors) == 1, r.stderr
+        assert f"{tmp}: no space left on device" in r.stderr and "TMPDIR" in r.stderr, r.stderr
+        assert not (tmp_path / "out").exists()
+    r = lgi("reconstruct", *args, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+
+
 def test_storage_error_names_the_output_for_writers_without_errno(tmp_path: Path) -> None:
     """Arrow reports a full disk as an OSError without errno; it is still a full disk, named by the output."""
     from lgi.errors import StorageError

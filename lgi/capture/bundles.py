@@ -31,7 +31,7 @@ import pandas as pd
 
 from lgi.errors import InputError, cell_text
 from lgi.io.atomic import atomic_file
-from lgi.io.stored import ScratchArray
+from lgi.io.stored import ScratchArray, scratch_space
 from lgi.memory import release_free_memory
 
 COLUMNS = ["frame", "marker", "x", "y", "z"]
@@ -265,7 +265,7 @@ def _read(path: Path, batches: Iterator[pd.DataFrame], columns: list[str], is_cs
     # The smallest and largest frame number of each BATCH_ROWS rows of the spool: pass 2 reads only those it needs.
     ranges: list[tuple[int, int]] = []
     n_rows = 0
-    with tempfile.TemporaryFile() as spool:
+    with scratch_space(), tempfile.TemporaryFile() as spool:
         for batch in _batches(path, batches, is_csv):
             if uncertainty is None:
                 # After the rows, as before: a file with no rows says so whatever its columns.

@@ -35,10 +35,11 @@ def _free_mb(path: Path) -> str:
     return ""
 
 
-def storage_error(exc: BaseException, path: str | os.PathLike[str]) -> StorageError | None:
+def storage_error(exc: BaseException, path: str | os.PathLike[str], done: str | None = None) -> StorageError | None:
     """``exc`` (or an error it was raised from) as a :class:`StorageError` naming ``path``, when it is a full
     disk, an exceeded quota or a read-only file system; else None. Writers that report through their own
-    ``OSError`` without an errno (Arrow's "Error writing bytes to file. Detail: [errno 28] ...") count too."""
+    ``OSError`` without an errno (Arrow's "Error writing bytes to file. Detail: [errno 28] ...") count too.
+    ``done`` ends the message (default: that nothing was written under the output's name)."""
     seen: BaseException | None = exc
     while seen is not None:
         if isinstance(seen, StorageError):
@@ -50,7 +51,8 @@ def storage_error(exc: BaseException, path: str | os.PathLike[str]) -> StorageEr
                 code = next((c for c in _STORAGE if f"[errno {c}]" in text.lower() or os.strerror(c) in text), None)
             if code in _STORAGE:
                 where = Path(path)
-                done = "; nothing was written under this name and what was there before is unchanged"
+                if done is None:
+                    done = "; nothing was written under this name and what was there before is unchanged"
                 return StorageError(where, _STORAGE[code], (_free_mb(where) if code != errno.EROFS else "") + done)
         seen = seen.__cause__ or seen.__context__
     return None

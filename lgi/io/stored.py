@@ -8,8 +8,10 @@ per-frame state between its preparation and its blocks), gone when it is dropped
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -149,6 +151,24 @@ def rows_from(a, start: int):
     return tail
 
 
+@contextlib.contextmanager
+def scratch_space(dir: str | os.PathLike[str] | None = None) -> Iterator[None]:
+    """Writes to scratch files in ``dir`` (default the system's temporary folder): a full, over-quota or
+    read-only folder becomes a :class:`lgi.errors.StorageError` naming it and how to point lgi elsewhere,
+    instead of a bare "No space left on device" that names no folder."""
+    try:
+        yield
+    except OSError as exc:
+        from lgi.io.atomic import storage_error
+
+        where = os.fspath(dir) if dir is not None else tempfile.gettempdir()
+        full = storage_error(exc, where, done="; lgi keeps a long take's per-frame state in scratch files there "
+                                              "(set TMPDIR to a folder with room)")
+        if full is None:
+            raise
+        raise full from exc
+
+
 class ScratchArray(StoredArray):
     """A (N, ...) array in an unnamed temporary file (in ``dir``, default the system's, ``TMPDIR``): written by
     row range (:meth:`write`), read as a :class:`StoredArray`. Its pages are the page cache's, not the process's
@@ -156,9 +176,12 @@ class ScratchArray(StoredArray):
     """
 
     def __init__(self, shape: tuple[int, ...], dtype, dir: str | os.PathLike[str] | None = None) -> None:
-        self._file = tempfile.TemporaryFile(dir=dir)
+        self._dir = dir
+        with scratch_space(dir):
+            self._file = tempfile.TemporaryFile(dir=dir)
         super().__init__("<scratch>", 0, shape, dtype)
         self._fd = self._file.fileno()
+        # Sparse: the space is taken as rows are written, so a full folder shows in write().
         os.ftruncate(self._fd, self.nbytes)
 
     @classmethod
@@ -178,8 +201,9 @@ class ScratchArray(StoredArray):
         buf = memoryview(rows.reshape(-1).view(np.uint8))
         offset = lo * self._row_bytes
         done = 0
-        while done < len(buf):
-            done += os.pwritev(self._fd, [buf[done:]], offset + done)
+        with scratch_space(self._dir):
+            while done < len(buf):
+                done += os.pwritev(self._fd, [buf[done:]], offset + done)
 
     def close(self) -> None:
         self._file.close()
