@@ -3,7 +3,7 @@ processes.
 
     python benchmarks/bench_long.py [--work DIR] [--shapes 500] [--frames 1000,9000,36000] [--kinds clean,noisy]
                                     [--paths plain,flow,dask] [--readers export,review,compare,rig-solve]
-                                    [--doc docs/benchmarks.md] [--keep]
+                                    [--doc docs/benchmarks.md] [--keep] [--again] [--rows FILE]
 
 1. Test material, built in ``--work`` through the ``lgi`` command line as ``bench_speed.py`` builds it (and
    reused): ICT with ``--shapes`` shapes and the jaw rig, its index with the rig, a continuous 1,000-frame shot
@@ -18,10 +18,11 @@ processes.
    ``lgi review``, ``lgi compare`` of one scan (the reconstruction's middle frame written as OBJ), and
    ``lgi rig-solve`` onto a rig made once by ``lgi rig-generate``: wall time, peak memory and output size.
 
-Every figure is printed; nothing is asserted. With ``--work`` each measured row is kept in
-``long-rows.json`` there and not measured again (``--again`` re-measures), so the table can be filled by several
-runs of subsets; the table holds every kept row, and a second table gives, per row, the ratio of peak memory and
-of frames per second to the 1,000-frame row. ``--doc FILE`` rewrites the tables between
+Every figure is printed; nothing is asserted. With ``--work`` (or ``--rows FILE``) each measured row is kept in
+``long-rows.json`` there (or FILE), with the commit it measured, and not measured again (``--again`` re-measures),
+so the table can be filled by several runs of subsets, even on other machines (``docs/bench-long-rows.json``);
+the table holds every kept row, and a second table gives, per row, the ratio of peak memory and of frames per
+second to the 1,000-frame row. ``--doc FILE`` rewrites the tables between
 ``<!-- table:long -->`` and ``<!-- /table -->`` in FILE.
 """
 
@@ -30,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -41,6 +43,9 @@ from common import ICT_DIR, dir_mib, has_ict, lgi_timed, log, write_marked
 
 NOISE_MM = 0.1
 BASE_FRAMES = 1000
+# The code a row measured: rows kept from several runs (``--rows``) may come from different commits.
+COMMIT = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
+                        text=True).stdout.strip() or "unknown"
 
 
 def looped(src: Path, dst: Path, n: int) -> None:
@@ -63,7 +68,7 @@ def size_mib(path: Path) -> float:
 
 def row(what: str, frames: int, kind: str, run, out: Path) -> dict:
     r = {"what": what, "frames": frames, "kind": kind, "wall_s": run.wall_s, "fps": frames / run.wall_s,
-         "peak_mib": run.peak_mib, "out_mib": size_mib(out)}
+         "peak_mib": run.peak_mib, "out_mib": size_mib(out), "commit": COMMIT}
     log(f"{what} {frames} {kind}: {r['wall_s']:.1f} s, {r['fps']:.0f} frames/s, peak {r['peak_mib']:.0f} MiB, "
         f"output {r['out_mib']:.0f} MiB")
     return r
@@ -166,6 +171,7 @@ def main() -> int:
     ap.add_argument("--doc", type=Path, action="append", default=[])
     ap.add_argument("--keep", action="store_true", help="keep the plain path's outputs in --work")
     ap.add_argument("--again", action="store_true", help="measure rows already kept in --work again")
+    ap.add_argument("--rows", type=Path, help="where measured rows are kept (default: long-rows.json in --work)")
     args = ap.parse_args()
     if not has_ict(ICT_DIR):
         print(f"ICT FaceKit not found in {ICT_DIR}: nothing to measure")
@@ -184,7 +190,7 @@ def main() -> int:
         if which and "rig-solve" in which and not (rig_dir / "manifest.json").is_file():
             log("lgi rig-generate --template ict --index ...")
             lgi_timed("rig-generate", "--template", str(mat.ict), "--index", str(index), "--out", str(rig_dir), "-q")
-        rows = Rows(args.work / "long-rows.json" if args.work else None, args.again)
+        rows = Rows(args.rows or (args.work / "long-rows.json" if args.work else None), args.again)
         reader_rows = {"export": "export --usd", "review": "review", "compare": "compare (one scan)",
                        "rig-solve": "rig-solve"}
         for n in frames:

@@ -95,7 +95,8 @@ def test_temporal_term_does_not_lag_a_step_and_calms_holds(rig) -> None:
     rng = np.random.default_rng(0)
     meshes = np.stack([r.evaluate(x) for x in w]) + rng.normal(0, 0.01, (n_f, len(r.neutral), 3))
     solver = RigSolver(r, np.flatnonzero(r.face_region()))
-    curves, raw, _ = solve_shot(solver, meshes, smooth_frames=4.0)
+    curves, fits = solve_shot(solver, meshes, smooth_frames=4.0)
+    raw = fits.weights()
     lag = step_lag(curves[:, k], step, 0.0, 0.8)
     assert abs(lag) <= 1.0, lag
     c = curves[:, k]
@@ -364,3 +365,49 @@ def test_jaw_rig_bad_input_and_older_rigs(jaw_rig, rig, tmp_path, capsys) -> Non
     from lgi.jobs.rig_solve import read_curves
 
     assert read_curves(tmp_path / "old_out", rig["rig"].controls).shape == (3, len(A.CONTROLS))
+
+
+def test_a_long_shot_is_smoothed_in_windows_as_a_whole(rig, monkeypatch) -> None:
+    """The temporal solve in windows of 16 frames with 32 frames of context each side gives the curves of one
+    solve over the 90-frame shot (to the rounding), and a margin of one frame does not: the windows matter."""
+    import lgi.retarget.solve as S
+
+    r = rig["rig"]
+    n_f = 90
+    t = np.arange(n_f)[:, None]
+    w = np.clip(0.5 + 0.45 * np.sin(t / np.arange(3, 3 + r.n_controls)), 0, 1) * (np.arange(r.n_controls) % 3 == 0)
+    rng = np.random.default_rng(1)
+    meshes = np.stack([r.evaluate(x) for x in w]) + rng.normal(0, 0.01, (n_f, len(r.neutral), 3))
+    solver = S.RigSolver(r, np.flatnonzero(r.face_region()))
+    whole, fits = S.solve_shot(solver, meshes, smooth_frames=4.0)
+    monkeypatch.setattr(S, "SMOOTH_WINDOW", 16)
+    monkeypatch.setattr(S, "SMOOTH_MARGIN", 32)
+    windowed, fits2 = S.solve_shot(solver, meshes, smooth_frames=4.0)
+    assert np.array_equal(fits.weights(), fits2.weights()) and fits2.iterations.min() >= 1
+    assert np.abs(windowed - whole).max() < 1e-9
+    monkeypatch.setattr(S, "SMOOTH_MARGIN", 1)
+    assert np.abs(S.solve_shot(solver, meshes, smooth_frames=4.0)[0] - whole).max() > 1e-6
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".parquet"])
+def test_curves_written_in_blocks_are_the_whole_tables_bytes(tmp_path, suffix) -> None:
+    """curves.csv and curves.parquet written a block of frames at a time (3,000 frames of 61 curves: three
+    blocks) are the bytes of the whole table written at once."""
+    import pandas as pd
+
+    from lgi.io.csvio import write_csv
+    from lgi.jobs.rig_solve import _write_curves
+
+    names = [f"c{i}" for i in range(57)] + ["jaw_open", "jaw_yaw", "jaw_roll", "jaw_forward"]
+    frames = np.arange(3000) + 7
+    curves = np.random.default_rng(0).random((len(frames), len(names)))
+    whole = pd.DataFrame({"frame": np.repeat(frames, len(names)),
+                          "control": np.tile(np.asarray(names, object), len(frames)),
+                          "value": curves.reshape(-1).round(7)})
+    ref = tmp_path / f"whole{suffix}"
+    if suffix == ".csv":
+        write_csv(whole, ref)
+    else:
+        whole.to_parquet(ref, index=False)
+    _write_curves(tmp_path / f"blocks{suffix}", frames, names, curves)
+    assert (tmp_path / f"blocks{suffix}").read_bytes() == ref.read_bytes()

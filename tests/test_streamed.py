@@ -9,7 +9,7 @@ import pytest
 from lgi.capture.bundles import Bundles
 from lgi.io.stored import ScratchArray, StoredArray
 from lgi.solve import streamed, temporal
-from lgi.solve.streamed import row_reader, streamed_median, streamed_sum
+from lgi.solve.streamed import row_reader, streamed_median, streamed_percentile, streamed_sum
 
 WHOLE = 10**9  # a block longer than any shot here: the whole shot at once
 
@@ -39,6 +39,17 @@ def test_the_streamed_median_is_numpys(n) -> None:
     v[rng.integers(0, n, n // 3)] = v[0]  # ties
     assert streamed_median(lambda: np.array_split(v, 7)) == np.median(v)
     assert np.isnan(streamed_median(lambda: [np.zeros(0)]))
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 1001, 40000])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_streamed_percentile_is_numpys(n, dtype) -> None:
+    rng = np.random.default_rng(n)
+    v = (np.abs(rng.standard_normal(n)) * 10.0 ** rng.integers(-5, 3, n)).astype(dtype)
+    v[rng.integers(0, n, n // 3)] = v[0]  # ties
+    for q in (0, 5, 50, 95, 99.9, 100):
+        assert streamed_percentile(lambda: np.array_split(v, 7), q, dtype) == np.percentile(v, q), q
+    assert np.isnan(streamed_percentile(lambda: [np.zeros(0)], 95))
 
 
 def test_the_streamed_sum_is_numpys_pairwise_sum(monkeypatch) -> None:

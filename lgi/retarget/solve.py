@@ -11,8 +11,9 @@ controls against thousands of coordinates):
   weights on each vertex's residual distance (threshold ``robust`` times the frame's median), so a few
   bad vertices do not pull the weights.
 * **Over time** (:func:`smooth_curves`): the frames' quadratic models (the Gauss-Newton Hessians at the fit)
-  plus a second-difference penalty on each control's curve, solved jointly over the shot with the bounds
-  (a sparse active-set solve), then relinearised once. The penalty of control ``k`` is
+  plus a second-difference penalty on each control's curve, solved jointly with the bounds (a sparse active-set
+  solve; a long take in overlapping windows, :func:`smooth_shot`), then relinearised once. The frames' models
+  wait in a scratch file (:class:`ShotFits`), so a take's memory is a window's. The penalty of control ``k`` is
   ``lambda_k = median_f p_fk / (2 sin(pi / T))^4`` for ``--smooth T`` frames (``p_fk`` the control's marginal
   precision, :func:`penalty_weights`): a zero-phase low-pass
   (a Whittaker smoother) that halves a curve's wiggles of period T frames. Zero phase means no lag: a step
@@ -54,6 +55,12 @@ MOVED_CM = 0.005  # a vertex some rig shape moves by more than this (0.05 mm) be
 JAW_POSE_SCALE = np.array([1.0, 1.0, 1.0, 10.0])
 DRIVEN_PASSES = 3  # refits of the shot with the jaw controls following the fitted jaw
 DRIVEN_TOL = 1e-5  # ... until they move less than this (a weight)
+# The temporal solve's windows (frames) and their context each side: a window's sparse solve costs about 0.3 MB
+# a frame for 57 controls. On a 1,000-frame ICT shot (61 curves, --smooth 4) windows of 100 frames gave the
+# whole shot's curves within 5e-6 to 2e-5 of a weight at margins of 8 to 128 frames, no closer with more: the
+# smoother's kernel is gone within 8 frames, and what is left is the active-set solve's own tolerance.
+SMOOTH_WINDOW = 1024
+SMOOTH_MARGIN = 64
 
 
 @dataclass
@@ -471,7 +478,7 @@ def smooth_curves(fits: list[FrameFit], lam: np.ndarray, lo: float | np.ndarray 
     return x.reshape(n_f, k)
 
 
-def penalty_weights(fits: list[FrameFit], period_frames: float) -> np.ndarray:
+def penalty_weights(fits: ShotFits, period_frames: float) -> np.ndarray:
     """(K,) second-difference penalties for a smoother that halves wiggles of ``period_frames`` frames (0: none):
     ``median_f p_fk / (2 sin(pi / T))^4``, the Whittaker smoother's half-power period for a curve whose frames
     weigh ``p_fk``.
@@ -482,17 +489,106 @@ def penalty_weights(fits: list[FrameFit], period_frames: float) -> np.ndarray:
     noisy benchmark shot the jaw_right curve's correlation with the truth fell from 0.97 to 0.93 at T = 4; by the
     marginal precision it stays at 0.97 and the held frames are as calm).
     """
-    k = len(fits[0].weights) if fits else 0
-    if period_frames <= 0 or not fits:
-        return np.zeros(k)
+    if period_frames <= 0 or not len(fits):
+        return np.zeros(fits.n)
     t = max(float(period_frames), 2.0)
-    prec = np.median(np.stack([1.0 / np.diag(np.linalg.inv(f.hessian)) for f in fits]), axis=0)
-    return prec / (2 * np.sin(np.pi / t)) ** 4
+    return np.median(fits.precision(), axis=0) / (2 * np.sin(np.pi / t)) ** 4
+
+
+def _precision(hessian: np.ndarray) -> np.ndarray:
+    """(N,) the unknowns' marginal precisions ``1 / diag(H^-1)`` of a frame's Hessian (N, N)."""
+    return 1.0 / np.diag(np.linalg.inv(hessian))
+
+
+class ShotFits:
+    """A shot's F per-frame fits (:class:`FrameFit`), kept so that a long take costs a window of them: each frame's
+    model (Hessian and gradient), weights and marginal precisions (:func:`penalty_weights`), (N, N + 3) float64
+    (31 kB a frame for 61 unknowns), in a scratch file (:class:`~lgi.io.stored.ScratchArray`), read back by frame
+    range; only the iterations are in memory.
+
+    Parameters
+    ----------
+    n_frames : int
+    n : int, the unknowns per frame
+    """
+
+    def __init__(self, n_frames: int, n: int) -> None:
+        from lgi.io.stored import ScratchArray
+
+        self.n = n
+        self.iterations = np.zeros(n_frames, np.int64)
+        # Per frame: the Hessian's N columns, then the gradient, the weights and the precisions.
+        self._rows = ScratchArray((n_frames, n, n + 3), np.float64)
+
+    def __len__(self) -> int:
+        return len(self.iterations)
+
+    def put(self, f: int, fit: FrameFit) -> None:
+        """Keep frame ``f``'s fit."""
+        self.iterations[f] = fit.iterations
+        self._rows.write(f, np.concatenate([fit.hessian, fit.gradient[:, None], fit.weights[:, None],
+                                            _precision(fit.hessian)[:, None]], axis=1)[None])
+
+    def block(self, lo: int, hi: int) -> list[FrameFit]:
+        """The fits of frames ``lo .. hi``."""
+        n = self.n
+        return [FrameFit(m[:, n + 1].copy(), m[:, :n], m[:, n], int(self.iterations[f]))
+                for f, m in zip(range(lo, hi), self._rows.rows(lo, hi), strict=True)]
+
+    def weights(self, lo: int = 0, hi: int | None = None, columns: slice = slice(None)) -> np.ndarray:
+        """(hi - lo, C) float64: frames lo .. hi's fitted unknowns (``columns`` of them)."""
+        return self._column(self.n + 1, lo, len(self) if hi is None else hi, columns)
+
+    def precision(self) -> np.ndarray:
+        """(F, N) float64: every frame's marginal precisions."""
+        return self._column(self.n + 2, 0, len(self), slice(None))
+
+    def _column(self, c: int, lo: int, hi: int, columns: slice) -> np.ndarray:
+        from lgi.solve.streamed import frame_blocks
+
+        out = np.empty((hi - lo, len(range(self.n)[columns])))
+        for a, b in frame_blocks(hi - lo):
+            out[a:b] = self._rows.rows(lo + a, lo + b)[:, columns, c]
+        return out
+
+
+def smooth_shot(fits: ShotFits, lam: np.ndarray, bounds, window: int | None = None,
+                margin: int | None = None) -> np.ndarray:
+    """:func:`smooth_curves` of a whole shot, solved in windows of ``window`` frames with ``margin`` frames of
+    context each side (a shot of at most ``window + 2 margin`` frames in one solve).
+
+    The smoother couples a frame to its neighbours through a kernel that decays within a few periods ``T``
+    (:func:`penalty_weights`), so a window's curves a margin away from its ends are the whole shot's to within
+    the active-set solve's tolerance (:data:`SMOOTH_MARGIN`), and the solve's memory is a window's, not the
+    shot's.
+
+    Parameters
+    ----------
+    fits : ShotFits, F frames
+    lam : (K,) float, the penalties
+    window, margin : int, default :data:`SMOOTH_WINDOW`, :data:`SMOOTH_MARGIN`
+    bounds : callable ``(lo, hi) -> (lower, upper)``, each (hi - lo, N): the bounds of frames lo .. hi
+
+    Returns
+    -------
+    (F, N) float64
+    """
+    window = window or SMOOTH_WINDOW
+    margin = SMOOTH_MARGIN if margin is None else margin
+    n_f = len(fits)
+    out = np.empty((n_f, fits.n))
+    if n_f <= window + 2 * margin:
+        window = max(n_f, 1)
+    for a in range(0, n_f, window):
+        b = min(a + window, n_f)
+        s, e = (a, b) if window >= n_f else (max(0, a - margin), min(n_f, b + margin))
+        out[a:b] = smooth_curves(fits.block(s, e), lam, *bounds(s, e))[a - s:b - s]
+    return out
 
 
 def solve_shot(solver: RigSolver, meshes: np.ndarray, smooth_frames: float = 4.0, relinearise: int = 1,
                progress=None, jaw: np.ndarray | None = None,
-               fix_jaw: bool = False) -> tuple[np.ndarray, np.ndarray, list[FrameFit]]:
+               fix_jaw: bool = False) -> tuple[np.ndarray, ShotFits]:
     """Curves for a shot.
 
     Parameters
@@ -516,8 +612,7 @@ def solve_shot(solver: RigSolver, meshes: np.ndarray, smooth_frames: float = 4.0
     Returns
     -------
     curves : (F, N) float64: the smoothed weights in [0, 1] (K), then the jaw parameters (4, with a jaw joint)
-    raw : (F, N) float64, the per-frame fits (no temporal term)
-    fits : the per-frame fits
+    fits : ShotFits, the per-frame fits (no temporal term: ``fits.weights()``)
     """
     k = solver.rig.n_controls
     if fix_jaw and jaw is None:
@@ -525,53 +620,56 @@ def solve_shot(solver: RigSolver, meshes: np.ndarray, smooth_frames: float = 4.0
     jc = solver.rig.jaw_controls
     driven = None
     if jc.size and jaw is None:
-        first = _per_frame(solver, meshes, None, False, None, None)
-        jaw = np.stack([f.weights[k:] for f in first]) if first else np.zeros((0, 4))
+        jaw = _per_frame(solver, meshes, None, False, None, None).weights(columns=slice(k, None))
     if jc.size:
         driven = jaw_control_weights(solver.rig, jaw)
     fits = _per_frame(solver, meshes, jaw, fix_jaw, driven, progress)
     for _ in range(DRIVEN_PASSES if jc.size and not fix_jaw else 0):
         # The fitted jaw moved from the start: the jaw controls follow it, and the frames are refitted from
         # their own fits (a pass or two of one or two iterations each).
-        fitted = np.stack([f.weights[k:] for f in fits])
+        fitted = fits.weights(columns=slice(k, None))
         new = jaw_control_weights(solver.rig, fitted)
         if np.abs(new - driven).max(initial=0.0) < DRIVEN_TOL:
             break
         driven = new
-        fits = _per_frame(solver, meshes, fitted, False, driven, None, [f.weights for f in fits])
-    raw = np.stack([f.weights for f in fits]) if fits else np.zeros((0, solver.n))
+        fits = _per_frame(solver, meshes, fitted, False, driven, None, fits)
     lam = penalty_weights(fits, smooth_frames)
     if not np.any(lam > 0):
-        return raw.copy(), raw, fits
-    lo = np.broadcast_to(solver.lo, raw.shape).copy()
-    hi = np.broadcast_to(solver.hi, raw.shape).copy()
-    if fix_jaw and solver.rig.jaw is not None:
-        lo[:, k:] = hi[:, k:] = raw[:, k:]
-    if driven is not None:
-        lo[:, jc] = hi[:, jc] = driven
-    curves = smooth_curves(fits, lam, lo, hi)
+        return fits.weights(), fits
+
+    def bounds(lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        lower = np.broadcast_to(solver.lo, (hi - lo, solver.n)).copy()
+        upper = np.broadcast_to(solver.hi, (hi - lo, solver.n)).copy()
+        if fix_jaw and solver.rig.jaw is not None:
+            lower[:, k:] = upper[:, k:] = fits.weights(lo, hi, slice(k, None))
+        if driven is not None:
+            lower[:, jc] = upper[:, jc] = driven[lo:hi]
+        return lower, upper
+
+    curves = smooth_shot(fits, lam, bounds)
     for _ in range(relinearise):
-        models = []
+        models = ShotFits(len(curves), solver.n)
         for f, c in enumerate(curves):
             h, g, _, _ = solver.linearise(c, np.asarray(meshes[f][solver.vertices], np.float64).reshape(-1))
-            models.append(FrameFit(c, h, g, 0))
-        curves = smooth_curves(models, lam, lo, hi)
-    return curves, raw, fits
+            models.put(f, FrameFit(c, h, g, 0))
+        curves = smooth_shot(models, lam, bounds)
+    return curves, fits
 
 
 def _per_frame(solver: RigSolver, meshes: np.ndarray, jaw: np.ndarray | None, fix_jaw: bool,
-               driven: np.ndarray | None, progress, starts: list[np.ndarray] | None = None) -> list[FrameFit]:
-    """Each frame fitted on its own, warm-started from the previous one (or from ``starts``, one per frame);
+               driven: np.ndarray | None, progress, starts: ShotFits | None = None) -> ShotFits:
+    """Each frame fitted on its own, warm-started from the previous one (or from its fit in ``starts``);
     ``driven`` (F, J): the jaw controls' weights, held."""
     jc = solver.rig.jaw_controls
-    fits: list[FrameFit] = []
+    fits = ShotFits(len(meshes), solver.n)
     w = None
     frames = range(len(meshes))
     for f in (progress(frames) if progress else frames):
-        fit = solver.fit_frame(np.asarray(meshes[f][solver.vertices], np.float64), w if starts is None else starts[f],
+        fit = solver.fit_frame(np.asarray(meshes[f][solver.vertices], np.float64),
+                               w if starts is None else starts.weights(f, f + 1)[0],
                                jaw=None if jaw is None else jaw[f], fix_jaw=fix_jaw,
                                held=None if driven is None else dict(zip(jc.tolist(), driven[f], strict=True)))
-        fits.append(fit)
+        fits.put(f, fit)
         w = fit.weights
     return fits
 

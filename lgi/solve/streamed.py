@@ -36,6 +36,44 @@ def streamed_median(values: Callable[[], Iterable[np.ndarray]]) -> float:
     float
         NaN for no values (as numpy's, without its warning).
     """
+    n, pick = _order_statistics(values, lambda n: np.array([(n - 1) // 2, n // 2]))
+    if n == 0:
+        return float("nan")
+    # numpy's median is the mean of the middle one or two
+    return float(pick[0]) if n % 2 else float(np.mean(pick))
+
+
+def streamed_percentile(values: Callable[[], Iterable[np.ndarray]], q: float, dtype=np.float64) -> float:
+    """``np.percentile(x, q)`` (its default, linear interpolation) of ``x``, the concatenation of the arrays of
+    ``dtype`` that ``values()`` yields (non-negative and finite; it is called twice), bit for bit, holding only a
+    block and the values next to the percentile.
+
+    Returns
+    -------
+    float
+        NaN for no values.
+    """
+    virtual = np.zeros(1)
+
+    def ranks(n: int) -> np.ndarray:
+        # numpy's virtual index of the linear method, and its neighbours
+        virtual[0] = (n - 1) * np.true_divide(q, 100)
+        lo = int(np.floor(virtual[0]))
+        return np.array([lo, min(lo + 1, n - 1)])
+
+    n, pick = _order_statistics(values, ranks)
+    if n == 0:
+        return float("nan")
+    a, b = np.asarray(pick, dtype)
+    gamma = float(virtual[0] - np.floor(virtual[0]))
+    # numpy's _lerp: from the nearer end
+    return float(b - (b - a) * (1 - gamma) if gamma >= 0.5 else a + (b - a) * gamma)
+
+
+def _order_statistics(values: Callable[[], Iterable[np.ndarray]],
+                      ranks: Callable[[int], np.ndarray]) -> tuple[int, np.ndarray]:
+    """The count ``n`` of the values that ``values()`` yields (non-negative and finite; called twice) and those of
+    ``ranks(n)`` (ascending) in their sorted order, as float64."""
     shift = np.uint64(64 - _MEDIAN_BITS)
     counts = np.zeros(1 << _MEDIAN_BITS, np.int64)
     for v in values():
@@ -44,10 +82,10 @@ def streamed_median(values: Callable[[], Iterable[np.ndarray]]) -> float:
         counts += np.bincount(top.astype(np.intp), minlength=len(counts))
     n = int(counts.sum())
     if n == 0:
-        return float("nan")
-    ranks = np.array([(n - 1) // 2, n // 2])
+        return 0, np.zeros(0)
+    want = ranks(n)
     cum = np.cumsum(counts)
-    lo_bin, hi_bin = np.searchsorted(cum, ranks, side="right")
+    lo_bin, hi_bin = np.searchsorted(cum, want[[0, -1]], side="right")
     kept = []
     for v in values():
         v = np.ascontiguousarray(v, np.float64).ravel()
@@ -55,9 +93,7 @@ def streamed_median(values: Callable[[], Iterable[np.ndarray]]) -> float:
         kept.append(v[(b >= lo_bin) & (b <= hi_bin)])
     near = np.sort(np.concatenate(kept))
     below = int(cum[lo_bin - 1]) if lo_bin > 0 else 0
-    pick = near[ranks - below]
-    # numpy's median is the mean of the middle one or two
-    return float(pick[0]) if n % 2 else float(np.mean(pick))
+    return n, near[want - below]
 
 
 def streamed_sum(read: Callable[[int, int], np.ndarray], n: int) -> float:
