@@ -66,9 +66,9 @@ def size_mib(path: Path) -> float:
     return dir_mib(path) if path.is_dir() else path.stat().st_size / 2**20
 
 
-def row(what: str, frames: int, kind: str, run, out: Path) -> dict:
+def row(what: str, frames: int, kind: str, run, *out: Path) -> dict:
     r = {"what": what, "frames": frames, "kind": kind, "wall_s": run.wall_s, "fps": frames / run.wall_s,
-         "peak_mib": run.peak_mib, "out_mib": size_mib(out), "commit": COMMIT}
+         "peak_mib": run.peak_mib, "out_mib": sum(size_mib(o) for o in out if o.exists()), "commit": COMMIT}
     log(f"{what} {frames} {kind}: {r['wall_s']:.1f} s, {r['fps']:.0f} frames/s, peak {r['peak_mib']:.0f} MiB, "
         f"output {r['out_mib']:.0f} MiB")
     return r
@@ -80,10 +80,14 @@ def readers(recon: Path, index: Path, rig_dir: Path, frames: int, kind: str, whi
     from lgi.io.obj import write_obj
 
     if "export" in which and not rows.has("export --usd", frames, kind):
+        from lgi.export.clips import usd_clip_dir
+
         usd = scratch / "shot.usdc"
+        # Over 1,000 frames the file is value clips: the layers in NAME.clips/ beside it are the output too.
         rows.add(row("export --usd", frames, kind, lgi_timed("export", str(recon), "--index", str(index), "--usd",
-                                                             str(usd), "-q"), usd))
+                                                             str(usd), "-q"), usd, usd_clip_dir(usd)))
         usd.unlink()
+        shutil.rmtree(usd_clip_dir(usd), ignore_errors=True)
     if "review" in which and not rows.has("review", frames, kind):
         page = scratch / "review"
         rows.add(row("review", frames, kind, lgi_timed("review", str(recon), "--index", str(index), "--out",
@@ -105,6 +109,59 @@ def readers(recon: Path, index: Path, rig_dir: Path, frames: int, kind: str, whi
         solved = scratch / "solved"
         rows.add(row("rig-solve", frames, kind, lgi_timed("rig-solve", str(recon), "--rig", str(rig_dir), "--out",
                                                           str(solved), "-q"), solved))
+
+
+def same_files(a: Path, b: Path) -> list[str]:
+    """The files that differ between folders ``a`` and ``b`` (by bytes, or present in one only), run.json's timings
+    and paths aside."""
+    names = sorted({str(p.relative_to(a)) for p in a.rglob("*") if p.is_file()}
+                   | {str(p.relative_to(b)) for p in b.rglob("*") if p.is_file()})
+    differ = []
+    for n in names:
+        x, y = a / n, b / n
+        if not (x.is_file() and y.is_file()):
+            differ.append(n)
+        elif n == "run.json":
+            drop = ("seconds", "out", "resumed_from_frame")
+            jx, jy = ({k: v for k, v in json.loads(p.read_text()).items() if k not in drop} for p in (x, y))
+            if jx != jy:
+                differ.append(n)
+        elif x.read_bytes() != y.read_bytes():
+            differ.append(n)
+    return differ
+
+
+def kill_and_resume(index: Path, bundles: Path, work: Path, path: str, frames: int, kind: str, seed: int) -> dict:
+    """``lgi reconstruct`` (``path``: plain or flow) killed (SIGKILL to its whole process group) at a random moment
+    of an uninterrupted run's wall time (10 to 90 %), then the same command again: its outputs against the
+    uninterrupted run's."""
+    import os
+    import signal
+    import time
+
+    extra = {"plain": [], "flow": ["--flow"]}[path]
+    ref, out = work / f"kill-ref-{path}", work / f"kill-out-{path}"
+    for d in (ref, out):
+        shutil.rmtree(d, ignore_errors=True)
+    argv = [sys.executable, "-m", "lgi", "reconstruct", str(index), "--bundles", str(bundles), "-q", *extra]
+    whole = lgi_timed(*argv[3:], "--out", str(ref))
+    at = float(np.random.default_rng(seed).uniform(0.1, 0.9)) * whole.wall_s
+    p = subprocess.Popen([*argv, "--out", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         start_new_session=True)
+    time.sleep(at)
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait()
+    again = lgi_timed(*argv[3:], "--out", str(out))
+    run = json.loads((out / "run.json").read_text())
+    differ = same_files(ref, out)
+    r = {"what": f"kill and resume ({path})", "frames": frames, "kind": kind, "killed_at_s": at,
+         "whole_s": whole.wall_s, "again_s": again.wall_s, "resumed_from": int(run.get("resumed_from_frame", 0)),
+         "differ": differ, "commit": COMMIT}
+    log(f"{path} {frames} {kind}: killed at {at:.0f} s of {whole.wall_s:.0f}; the same command again resumed from "
+        f"frame {r['resumed_from']} in {again.wall_s:.0f} s; outputs {'identical' if not differ else differ}")
+    for d in (ref, out):
+        shutil.rmtree(d, ignore_errors=True)
+    return r
 
 
 class Rows:
@@ -149,15 +206,30 @@ def ratios(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def kill_table(rows: list[dict]) -> str:
+    kills = [r for r in rows if r["what"].startswith("kill and resume")]
+    if not kills:
+        return ""
+    lines = ["Killed (SIGKILL to the process group) at a random moment, then the same command again (`--kill`):", "",
+             "| what | frames | killed at | uninterrupted run | the run again | resumed from frame | outputs |",
+             "|---|---|---|---|---|---|---|"]
+    for r in kills:
+        lines.append(f"| {r['what']} | {r['frames']} | {r['killed_at_s']:.0f} s | {r['whole_s']:.0f} s | "
+                     f"{r['again_s']:.0f} s | {r['resumed_from']} | "
+                     f"{'byte-identical' if not r['differ'] else 'differ: ' + ', '.join(r['differ'])} |")
+    return "\n".join(lines)
+
+
 def table(rows: list[dict], shapes: int) -> str:
     lines = [f"ICT with {shapes} shapes and the jaw rig; the 1,000-frame eased shot looped to F frames (clean, and "
              f"{NOISE_MM:g} mm stereo noise); whole processes, one run each. Peak: the command's own process "
              "(Dask's workers not counted).", "",
              "| what | bundles | frames | wall s | frames/s | peak MiB | output MiB |", "|---|---|---|---|---|---|---|"]
-    for r in ordered(rows):
+    measured = [r for r in rows if "peak_mib" in r]
+    for r in ordered(measured):
         lines.append(f"| {r['what']} | {r['kind']} | {r['frames']} | {r['wall_s']:.1f} | {r['fps']:.0f} | "
                      f"{r['peak_mib']:.0f} | {r['out_mib']:.0f} |")
-    return "\n".join(lines) + "\n\n" + ratios(rows)
+    return "\n".join(lines) + "\n\n" + ratios(measured) + ("\n\n" + kill_table(rows) if kill_table(rows) else "")
 
 
 def main() -> int:
@@ -171,6 +243,8 @@ def main() -> int:
     ap.add_argument("--doc", type=Path, action="append", default=[])
     ap.add_argument("--keep", action="store_true", help="keep the plain path's outputs in --work")
     ap.add_argument("--again", action="store_true", help="measure rows already kept in --work again")
+    ap.add_argument("--kill", type=int, metavar="FRAMES", help="instead of the table: kill a run of this many frames "
+                    "(clean) at a random moment, plain and with --flow, run it again, and compare the outputs")
     ap.add_argument("--rows", type=Path, help="where measured rows are kept (default: long-rows.json in --work)")
     args = ap.parse_args()
     if not has_ict(ICT_DIR):
@@ -191,6 +265,17 @@ def main() -> int:
             log("lgi rig-generate --template ict --index ...")
             lgi_timed("rig-generate", "--template", str(mat.ict), "--index", str(index), "--out", str(rig_dir), "-q")
         rows = Rows(args.rows or (args.work / "long-rows.json" if args.work else None), args.again)
+        if args.kill:
+            bundles = work / f"long-clean-{args.kill}.csv"
+            if not bundles.is_file():
+                looped(mat.files[("clean", mat.frames)], bundles, args.kill)
+            for i, path in enumerate(("plain", "flow")):
+                if not rows.has(f"kill and resume ({path})", args.kill, "clean"):
+                    rows.add(kill_and_resume(index, bundles, work, path, args.kill, "clean", seed=i))
+            print(kill_table(rows.rows))
+            for doc in args.doc:
+                write_marked(doc, "long", table(rows.rows, args.shapes))
+            return 0
         reader_rows = {"export": "export --usd", "review": "review", "compare": "compare (one scan)",
                        "rig-solve": "rig-solve"}
         for n in frames:

@@ -4,6 +4,7 @@ ICT frames.
     python benchmarks/bench_review.py [--work DIR] [--repeat 3] [--skip-ict] [--doc docs/review.md]
     python benchmarks/bench_review.py --long RECON_DIR --index INDEX_DIR [--frames 1000,36000] [--blocks 128]
                                       [--scratch /tmp/DIR] [--keep] [--doc docs/review.md]
+    python benchmarks/bench_review.py --floor PAGE_DIR [--doc docs/review.md]
 
 Default mode, the material built through the ``lgi`` command line in ``--work`` (default: a temporary directory)
 and reused when it is already there:
@@ -21,6 +22,13 @@ backwards (ping-pong, so that the take has no jump), written under ``--scratch``
 are left out, 3.5 GB of the 4.9 GB CSV at that length) and removed afterwards unless ``--keep``. ``--blocks
 64,128,256`` writes each page at those block sizes; ``--reuse`` measures the pages a ``--keep`` run left again,
 with the current ``viewer.js``, and that run's ``lgi review`` figures.
+
+``--floor PAGE_DIR``: where a far jump's time goes, on a page ``lgi review`` wrote. In the same headless Chromium,
+from ``file://``, median of ``JUMPS`` trials each: framing a block page that holds nothing (lgi's own page script,
+an empty block: the cost of the iframe itself, the floor of any design that loads files beside a ``file://`` page
+without a server), framing each of ``JUMPS`` of the page's block files until their text arrives, ``JSON.parse`` of
+that text, and the page's own far jump (block loaded, decoded, drawn). ``--doc`` writes it between
+``<!-- table:review-floor -->`` and ``<!-- /table -->``.
 
 Per page: its size on disk (all files; per 1000 frames), ``lgi review``'s wall time and peak resident memory
 (its own high-water mark, VmHWM), and in headless Chromium (Debian's ``/usr/bin/chromium`` through Playwright,
@@ -322,6 +330,66 @@ def _chromium() -> str:
         return ""
 
 
+FLOOR_JS = """async ([files, empty]) => {
+    const frame = (url) => new Promise((resolve) => {
+        const f = document.createElement("iframe"), t = performance.now();
+        f.style.display = "none"; f.src = url;
+        const on = (e) => { if (!e.data || typeof e.data.lgiReviewBlock !== "string" || f.contentWindow !== e.source)
+            return; window.removeEventListener("message", on, true); e.stopImmediatePropagation(); f.remove();
+            resolve([performance.now() - t, e.data.lgiReviewBlock]); };
+        window.addEventListener("message", on, true);
+        document.body.appendChild(f);
+    });
+    const out = { empty: [], framed: [], parsed: [], bytes: 0 };
+    for (let i = 0; i < files.length; i++) {
+        out.empty.push((await frame(empty))[0]);
+        const [ms, text] = await frame(files[i]);
+        out.framed.push(ms);
+        const t = performance.now(); JSON.parse(text); out.parsed.push(performance.now() - t);
+        out.bytes = Math.max(out.bytes, text.length);
+    }
+    return out;
+}"""
+
+
+def floor_figures(page: Path) -> dict[str, float]:
+    """Where a far jump's time goes on ``page`` (ms, medians): an empty block page framed, a real block page framed
+    until its text arrives, its JSON parsed, and the page's own jump to a full frame (:func:`page_figures`)."""
+    from playwright.sync_api import sync_playwright
+
+    from lgi.review.pack import write_block_page
+
+    files = sorted(p for p in page.rglob("*.html") if p.name != "index.html" and "overview" not in p.name)
+    rng = np.random.default_rng(0)
+    pick = [files[i] for i in rng.choice(len(files), min(JUMPS, len(files)), replace=False)]
+    empty = files[0].parent / "floor-empty.html"
+    write_block_page(empty, {"block": -1}, "LGI_REVIEW_BLOCKS")
+    try:
+        with sync_playwright() as p:
+            b = p.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_ARGS)
+            pg = b.new_page(viewport={"width": 1280, "height": 800})
+            pg.goto((page / "index.html").resolve().as_uri())
+            pg.wait_for_function("window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)",
+                                 timeout=300_000)
+            r = pg.evaluate(FLOOR_JS, [[f.resolve().as_uri() for f in pick], empty.resolve().as_uri()])
+            b.close()
+    finally:
+        empty.unlink()
+    jump = page_figures(page, 1)
+    return {"empty_ms": float(np.median(r["empty"])), "framed_ms": float(np.median(r["framed"])),
+            "parsed_ms": float(np.median(r["parsed"])), "block_mb": r["bytes"] / 1e6,
+            "jump_full_ms": jump["jump_full_ms"]}
+
+
+def floor_table(page: Path, f: dict[str, float], load0: str) -> str:
+    return (f"Headless Chromium {_chromium()} from `file://`, {page.name}; median of {JUMPS} trials; 1-minute load "
+            f"average {load0} before and {_load()} after.\n\n"
+            "| empty block page framed | block page framed (its text arrived) | its JSON parsed | the page's far jump "
+            "to a full frame | block text |\n|---|---|---|---|---|\n"
+            f"| {f['empty_ms']:.0f} ms | {f['framed_ms']:.0f} ms | {f['parsed_ms']:.0f} ms | "
+            f"{f['jump_full_ms']:.0f} ms | {f['block_mb']:.1f} MB |")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", type=Path, help="material folder (default: a temporary one)")
@@ -338,8 +406,15 @@ def main() -> int:
                     "in --scratch again (with this lgi's viewer.js) instead of writing them")
     ap.add_argument("--doc", type=Path, action="append", default=[], help="write the table into this Markdown "
                     "file's markers (repeatable)")
+    ap.add_argument("--floor", type=Path, metavar="PAGE_DIR", help="where a far jump's time goes on this page")
     a = ap.parse_args()
     load0 = _load()
+    if a.floor:
+        text = floor_table(a.floor, floor_figures(a.floor), load0)
+        print("\n" + text)
+        for doc in a.doc:
+            write_marked(doc, "review-floor", text)
+        return 0
     if a.long:
         if not a.index:
             ap.error("--long needs --index")

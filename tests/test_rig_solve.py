@@ -380,6 +380,7 @@ def test_a_long_shot_is_smoothed_in_windows_as_a_whole(rig, monkeypatch) -> None
     meshes = np.stack([r.evaluate(x) for x in w]) + rng.normal(0, 0.01, (n_f, len(r.neutral), 3))
     solver = S.RigSolver(r, np.flatnonzero(r.face_region()))
     whole, fits = S.solve_shot(solver, meshes, smooth_frames=4.0)
+    monkeypatch.setattr(S, "SMOOTH_WHOLE", 0)
     monkeypatch.setattr(S, "SMOOTH_WINDOW", 16)
     monkeypatch.setattr(S, "SMOOTH_MARGIN", 32)
     windowed, fits2 = S.solve_shot(solver, meshes, smooth_frames=4.0)

@@ -76,3 +76,38 @@ def test_shot_flow_from_footage(prefect_harness, tmp_path: Path) -> None:
     m = np.load(tmp_path / "rec" / "meshes.npz")["vertices"]
     truth = np.load(s / "truth.npz")["vertices"]
     assert np.sqrt(np.mean(np.sum((m - truth) ** 2, axis=2))) * 10 < 1.0  # mm, footage to meshes
+
+
+def test_shot_flow_on_threads_finishes_a_few_chunks_at_a_time(prefect_harness, shot: Path, monkeypatch) -> None:
+    """The flow on its own threads finishes at most FINISHING chunks at once, however many chunks have their
+    choices made (else a long take's chunks were all finished at once: 5 GB at 9,000 ICT frames), with the same
+    meshes."""
+    import threading
+    import time
+
+    from flows.reconstruct_shot import reconstruct_shot
+    from lgi.orchestration import reconstruct as orch
+
+    running, most, lock = [0], [0], threading.Lock()
+    finish = orch.job.finish_chunk
+
+    def counted(*a, **k):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        try:
+            time.sleep(0.05)  # long enough for the chunks made ready meanwhile to start, were they allowed
+            return finish(*a, **k)
+        finally:
+            with lock:
+                running[0] -= 1
+
+    monkeypatch.setattr(orch.job, "finish_chunk", counted)
+    reconstruct_shot(index_dir=str(shot / "idx"), bundles=str(shot / "s" / "bundles.csv"), chunk_size=4,
+                     out=str(shot / "few"), review=False)
+    assert 1 <= most[0] <= orch.FINISHING, most[0]
+    ref = shot / "few_plain"
+    assert main(["reconstruct", str(shot / "idx"), "--bundles", str(shot / "s" / "bundles.csv"), "--out", str(ref),
+                 "-q"]) == 0
+    np.testing.assert_array_equal(np.load(shot / "few" / "meshes.npz")["vertices"],
+                                  np.load(ref / "meshes.npz")["vertices"])

@@ -14,6 +14,7 @@ import shutil
 from dataclasses import fields
 from pathlib import Path
 
+import numpy as np
 from prefect import flow, get_run_logger, task
 from prefect.artifacts import (
     create_markdown_artifact,
@@ -336,6 +337,13 @@ def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list
     return chunk_work(index_dir, bundles, options, bounds, work, out, progress_key=progress_key)
 
 
+#: On the flow's own threads, chunks submitted to be finished and not yet finished, and the same of the chain of
+#: choices: two each, as lgi reconstruct's schedule (one choosing, one finishing) with one more ready, so that the
+#: cores never wait.
+FINISHING = 2
+CHOOSING = 2
+
+
 def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work: str, out: str,
                keep: bool = False, progress_key: str | None = None) -> dict:
     """The chunk work of :func:`reconstruct_shot`, on the task runner of the flow that calls it: frames chosen
@@ -353,22 +361,38 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
     try:
         progress = create_progress_artifact(progress=0.0, key=progress_key or artifact_key("shot-progress", out),
                                             description=f"{bounds[-1][1]} frames chosen, in {len(bounds)} chunks")
-        prev = None
-        for lo, hi in bounds:
+        opts = job.ReconstructOptions.from_json(options)
+        n_frames = bounds[-1][1]
+
+        def choose(k: int) -> None:
+            # The chain of choices, each continuing from the last: on this process's threads at most CHOOSING
+            # submitted and unfinished (each holds a thread waiting for the one before).
+            if keep and k >= CHOOSING:
+                _result(futures[k - CHOOSING])
+            lo, hi = bounds[k]
             chosen = work_dir / f"choice_{lo:06d}.npz"
             # A chunk a stopped run of this job chose (its file is whole or absent) is not chosen again.
-            prev = str(chosen) if chosen.is_file() else choose_chunk.submit(index_dir, bundles, options, lo, hi,
-                                                                            str(chosen), prev)
-            futures.append(prev)
+            futures.append(str(chosen) if chosen.is_file() else choose_chunk.submit(
+                index_dir, bundles, options, lo, hi, str(chosen), futures[-1] if futures else None))
+
+        def needed(i: int) -> list[int]:
+            a, b = job.chunk_needs(opts, n_frames, *bounds[i])
+            return [k for k, (c0, c1) in enumerate(bounds) if c1 > a and c0 < b]
+
         # Each chunk is finished as soon as the choices its windows read are made (Shot.needs), while the chain
-        # goes on choosing: the two overlap as in lgi reconstruct's two-thread schedule.
-        opts = job.ReconstructOptions.from_json(options)
-        for lo, hi in bounds:
-            a, b = job.chunk_needs(opts, bounds[-1][1], lo, hi)
-            needed = [k for k, (c0, c1) in enumerate(bounds) if c1 > a and c0 < b]
+        # goes on choosing: the two overlap as in lgi reconstruct's two-thread schedule. On this process's
+        # threads (keep) the work is handed out a little ahead of need, not all at once: every task submitted
+        # holds a thread, and a 9,000-frame ICT take's 300 threads peaked at 5 GB.
+        for i, (lo, hi) in enumerate(bounds):
+            want = needed(i)
+            upto = len(bounds) if not keep else min(len(bounds), want[-1] + 1 + CHOOSING)
+            while len(futures) < upto:
+                choose(len(futures))
+            if keep and i >= FINISHING:
+                _result(parts[i - FINISHING])
             part = work_dir / f"part_{lo:06d}.npz"
             parts.append(str(part) if part.is_file() else finish_chunk.submit(
-                index_dir, bundles, options, [futures[k] for k in needed], lo, hi, str(part), bounds[needed[0]][0],
+                index_dir, bundles, options, [futures[k] for k in want], lo, hi, str(part), bounds[want[0]][0],
                 keep))
         for k, fut in enumerate(futures):
             _result(fut)
@@ -430,17 +454,40 @@ def _scan_report(summary: dict, out: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _per_marker(path: Path, rows: int = 200_000):
+    """Per marker (sorted by name): the share of frames contained, the frames projected, taking a neighbour's
+    blend and missing or bridged, and the median projection (mm) of ``diagnostics.csv``, read ``rows`` at a time
+    (a 36,000-frame ICT take's table is millions of rows; read whole, it was most of the flow's peak)."""
+    import pandas as pd
+
+    counts: dict[str, np.ndarray] = {}
+    projections: dict[str, list[np.ndarray]] = {}
+    kinds = ("contained", "projected", "neighbour", "missing", "bridged")
+    for d in pd.read_csv(path, usecols=["marker", "status", "projection_mm"], chunksize=rows,
+                         dtype={"marker": str, "status": str}):
+        for m, g in d.groupby("marker", sort=False):
+            c = counts.setdefault(m, np.zeros(len(kinds) + 1, np.int64))
+            st = g["status"].to_numpy()
+            c[0] += len(st)
+            for k, name in enumerate(kinds, 1):
+                c[k] += int((st == name).sum())
+            p = g["projection_mm"].to_numpy(np.float64)
+            projections.setdefault(m, []).append(p[np.isfinite(p)])
+    table = []
+    for m in sorted(counts):
+        n, contained, projected, neighbour, missing, bridged = counts[m]
+        p = np.concatenate(projections[m])
+        table.append({"marker": m, "contained": round(float(contained / n), 3), "projected": int(projected),
+                      "neighbour": int(neighbour), "missing": int(missing + bridged),
+                      "median_projection_mm": float(np.median(p)) if p.size else float("nan")})
+    return pd.DataFrame(table)
+
+
 def _report(summary: dict, out: str) -> None:
     """Per-marker table and a markdown report as artifacts."""
     import pandas as pd
 
-    d = pd.read_csv(Path(out) / "diagnostics.csv")
-    per_marker = d.groupby("marker").agg(
-        contained=("status", lambda s: round(float((s == "contained").mean()), 3)),
-        projected=("status", lambda s: int((s == "projected").sum())),
-        neighbour=("status", lambda s: int((s == "neighbour").sum())),
-        missing=("status", lambda s: int(s.isin(["missing", "bridged"]).sum())),
-        median_projection_mm=("projection_mm", "median")).reset_index()
+    per_marker = _per_marker(Path(out) / "diagnostics.csv")
     create_table_artifact(table=per_marker.to_dict(orient="records"), key=artifact_key("shot-markers", out),
                           description="per marker: share of frames contained in the data; frames projected, "
                                       "taking a neighbour's blend, missing")

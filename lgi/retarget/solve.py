@@ -55,11 +55,15 @@ MOVED_CM = 0.005  # a vertex some rig shape moves by more than this (0.05 mm) be
 JAW_POSE_SCALE = np.array([1.0, 1.0, 1.0, 10.0])
 DRIVEN_PASSES = 3  # refits of the shot with the jaw controls following the fitted jaw
 DRIVEN_TOL = 1e-5  # ... until they move less than this (a weight)
-# The temporal solve's windows (frames) and their context each side: a window's sparse solve costs about 0.3 MB
-# a frame for 57 controls. On a 1,000-frame ICT shot (61 curves, --smooth 4) windows of 100 frames gave the
-# whole shot's curves within 5e-6 to 2e-5 of a weight at margins of 8 to 128 frames, no closer with more: the
-# smoother's kernel is gone within 8 frames, and what is left is the active-set solve's own tolerance.
-SMOOTH_WINDOW = 1024
+# The temporal solve: a shot of up to SMOOTH_WHOLE frames in one sparse solve, a longer one in windows of
+# SMOOTH_WINDOW frames with SMOOTH_MARGIN of context each side, fewer frames in all than the whole solve of the
+# longest one-solve shot, so that a long take's peak stays below a short one's (a solve costs about 0.35 MB a
+# frame for 61 unknowns: at windows of 1,152 frames a 9,000-frame ICT take peaked 1.11x above 1,000 frames).
+# On a 1,000-frame ICT shot (61 curves, --smooth 4) windows of 100 frames gave the whole solve's curves within
+# 5e-6 to 2e-5 of a weight at margins of 8 to 128 frames, no closer with more: the smoother's kernel is gone
+# within 8 frames, and what is left is the active-set solve's own tolerance.
+SMOOTH_WHOLE = 1024
+SMOOTH_WINDOW = 768
 SMOOTH_MARGIN = 64
 
 
@@ -555,7 +559,7 @@ class ShotFits:
 def smooth_shot(fits: ShotFits, lam: np.ndarray, bounds, window: int | None = None,
                 margin: int | None = None) -> np.ndarray:
     """:func:`smooth_curves` of a whole shot, solved in windows of ``window`` frames with ``margin`` frames of
-    context each side (a shot of at most ``window + 2 margin`` frames in one solve).
+    context each side (a shot of at most :data:`SMOOTH_WHOLE` or ``window + 2 margin`` frames in one solve).
 
     The smoother couples a frame to its neighbours through a kernel that decays within a few periods ``T``
     (:func:`penalty_weights`), so a window's curves a margin away from its ends are the whole shot's to within
@@ -577,7 +581,7 @@ def smooth_shot(fits: ShotFits, lam: np.ndarray, bounds, window: int | None = No
     margin = SMOOTH_MARGIN if margin is None else margin
     n_f = len(fits)
     out = np.empty((n_f, fits.n))
-    if n_f <= window + 2 * margin:
+    if n_f <= max(SMOOTH_WHOLE, window + 2 * margin):
         window = max(n_f, 1)
     for a in range(0, n_f, window):
         b = min(a + window, n_f)
