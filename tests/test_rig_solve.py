@@ -412,3 +412,27 @@ def test_curves_written_in_blocks_are_the_whole_tables_bytes(tmp_path, suffix) -
         whole.to_parquet(ref, index=False)
     _write_curves(tmp_path / f"blocks{suffix}", frames, names, curves)
     assert (tmp_path / f"blocks{suffix}").read_bytes() == ref.read_bytes()
+
+
+def test_jaw_rig_model_is_the_reweighted_gauss_newton_of_its_residuals(jaw_rig) -> None:
+    """The frame's model from the jaw-moved vertices' precomputed Grams equals ``J' W J`` and ``J' W r`` with the
+    Jacobian ``J`` of the residuals taken by central differences (controls, correctives' chain and the jaw),
+    some vertices down-weighted."""
+    from lgi.retarget.solve import RigSolver
+
+    r = jaw_rig["rig"]
+    solver = RigSolver(r, np.arange(0, r.neutral.shape[0], 3))
+    rng = np.random.default_rng(3)
+    z = np.r_[rng.uniform(0.1, 0.9, r.n_controls), [9.0, 3.0, -2.0, 0.1]]
+    y = solver._residual(z, np.zeros(solver.x0.size))[0] + rng.normal(0, 0.01, solver.x0.size)
+    y[rng.uniform(size=y.size) < 0.03] += 0.5  # outliers: the Huber weights drop below 1
+    h, g, omega, _ = solver.linearise(z, y)
+    assert 0 < np.sum(omega < 1) < omega.size // 4
+    eps = 1e-6
+    jac = np.stack([(solver._residual(z + eps * e, y)[0] - solver._residual(z - eps * e, y)[0]) / (2 * eps)
+                    for e in np.eye(z.size)], axis=1)
+    wts = np.repeat(omega, 3)
+    res = solver._residual(z, y)[0]
+    np.testing.assert_allclose(h, jac.T @ (wts[:, None] * jac) + solver.ridge * np.eye(z.size), rtol=1e-6,
+                               atol=1e-6 * np.abs(h).max())
+    np.testing.assert_allclose(g, jac.T @ (wts * res), rtol=1e-6, atol=1e-6 * np.abs(g).max())
