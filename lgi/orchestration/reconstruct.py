@@ -454,7 +454,7 @@ def _scan_report(summary: dict, out: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _per_marker(path: Path, rows: int = 200_000):
+def _per_marker(path: Path, rows: int = 50_000):
     """Per marker (sorted by name): the share of frames contained, the frames projected, taking a neighbour's
     blend and missing or bridged, and the median projection (mm) of ``diagnostics.csv``, read ``rows`` at a time
     (a 36,000-frame ICT take's table is millions of rows; read whole, it was most of the flow's peak)."""
