@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -151,14 +152,19 @@ def kill_and_resume(index: Path, bundles: Path, work: Path, path: str, frames: i
     time.sleep(at)
     os.killpg(p.pid, signal.SIGKILL)
     p.wait()
-    again = lgi_timed(*argv[3:], "--out", str(out))
-    run = json.loads((out / "run.json").read_text())
+    # Without -q: the run says where it went on from (the frames written, or the flow's chunks chosen).
+    again = lgi_timed(*[a for a in argv[3:] if a != "-q"], "--out", str(out))
+    said = again.stdout + again.stderr
+    m = (re.search(r"resumed a stopped run of the same command: its (\d+) frames", said)
+         or re.search(r"resuming a stopped run of this shot: (\d+) chunks", said))
+    resumed = "not resumed" if m is None else (f"frame {m.group(1)}" if "frames" in m.group(0)
+                                               else f"{m.group(1)} chunks chosen")
     differ = same_files(ref, out)
     r = {"what": f"kill and resume ({path})", "frames": frames, "kind": kind, "killed_at_s": at,
-         "whole_s": whole.wall_s, "again_s": again.wall_s, "resumed_from": int(run.get("resumed_from_frame", 0)),
-         "differ": differ, "commit": COMMIT}
+         "whole_s": whole.wall_s, "again_s": again.wall_s, "resumed_from": resumed, "differ": differ,
+         "commit": COMMIT}
     log(f"{path} {frames} {kind}: killed at {at:.0f} s of {whole.wall_s:.0f}; the same command again resumed from "
-        f"frame {r['resumed_from']} in {again.wall_s:.0f} s; outputs {'identical' if not differ else differ}")
+        f"{resumed} in {again.wall_s:.0f} s; outputs {'identical' if not differ else differ}")
     for d in (ref, out):
         shutil.rmtree(d, ignore_errors=True)
     return r
@@ -211,7 +217,7 @@ def kill_table(rows: list[dict]) -> str:
     if not kills:
         return ""
     lines = ["Killed (SIGKILL to the process group) at a random moment, then the same command again (`--kill`):", "",
-             "| what | frames | killed at | uninterrupted run | the run again | resumed from frame | outputs |",
+             "| what | frames | killed at | uninterrupted run | the run again | went on from | outputs |",
              "|---|---|---|---|---|---|---|"]
     for r in kills:
         lines.append(f"| {r['what']} | {r['frames']} | {r['killed_at_s']:.0f} s | {r['whole_s']:.0f} s | "

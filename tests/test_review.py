@@ -136,7 +136,9 @@ def test_review_writes_a_self_contained_page(shot):
     page = shot / "page"
     assert sorted(p.name for p in page.iterdir()) == ["frames", "index.html", "review_frames.js", "review_meta.js",
                                                       "viewer.js"]
-    assert sorted(p.name for p in (page / "frames").iterdir()) == ["block_00000.html", "overview.html"]  # 1 block
+    # 20 frames: a block of 16 and one of 4
+    assert sorted(p.name for p in (page / "frames").iterdir()) == ["block_00000.html", "block_00001.html",
+                                                                    "overview.html"]
     html = (page / "index.html").read_text()
     js = (page / "viewer.js").read_text()
     for text in (html, js):  # nothing fetched at view time
@@ -237,7 +239,7 @@ def small_blocks(shot, tmp_path_factory) -> Path:
 
 def test_blocks_decode_to_the_shot_quantised_whole(shot, small_blocks):
     """Blocks of 8 frames hold the codes of the whole shot quantised at once (one scale for the shot: the same
-    values as the page of one block), within half a step of the meshes; the colour maps and the overview are the
+    values as the page of blocks of 16), within half a step of the meshes; the colour maps and the overview are the
     same whatever the block size."""
     from lgi.index.build import LGIIndex
 
@@ -668,7 +670,7 @@ def test_clicking_a_curve_jumps_to_its_frame(page):
 
 def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_path):
     """A shot longer than a block is loaded block by block; frame 19 from blocks of 8 frames is the same
-    picture as from one block."""
+    picture as from blocks of 16."""
     import lgi.jobs.review as job
 
     monkeypatch.setattr(job, "BLOCK", 8)
@@ -733,7 +735,7 @@ def test_a_far_frame_shows_the_overview_then_the_full_frame(browser, shot, monke
             for f in range(20)]
     assert max(held) <= 6 and pg.evaluate("window.lgiReview.blocksHeld()")[0] > 0
     pg.close()
-    other = _open(browser, shot / "page")  # one block: frame 15 there from the start
+    other = _open(browser, shot / "page")  # frame 15 in its first block: there from the start
     other.uncheck("#showMarkers")
     other.evaluate("window.lgiReview.setFrame(15)")
     assert np.abs(_pixels(other.locator("#gl").screenshot()).astype(int) - full).max() <= 2
