@@ -155,10 +155,9 @@ def kill_and_resume(index: Path, bundles: Path, work: Path, path: str, frames: i
     # Without -q: the run says where it went on from (the frames written, or the flow's chunks chosen).
     again = lgi_timed(*[a for a in argv[3:] if a != "-q"], "--out", str(out))
     said = again.stdout + again.stderr
-    m = (re.search(r"resumed a stopped run of the same command: its (\d+) frames", said)
-         or re.search(r"resuming a stopped run of this shot: (\d+) chunks", said))
-    resumed = "not resumed" if m is None else (f"frame {m.group(1)}" if "frames" in m.group(0)
-                                               else f"{m.group(1)} chunks chosen")
+    m = re.search(r"resumed a stopped run of the same command: its (\d+) (frames|chunks chosen)", said)
+    resumed = ("not resumed" if m is None else f"frame {m.group(1)}" if m.group(2) == "frames"
+               else f"{m.group(1)} chunks chosen")
     differ = same_files(ref, out)
     r = {"what": f"kill and resume ({path})", "frames": frames, "kind": kind, "killed_at_s": at,
          "whole_s": whole.wall_s, "again_s": again.wall_s, "resumed_from": resumed, "differ": differ,

@@ -4,6 +4,7 @@ outputs are those of a run never stopped, bit for bit."""
 from __future__ import annotations
 
 import filecmp
+import re
 import signal
 import subprocess
 import sys
@@ -129,6 +130,8 @@ def test_a_killed_flow_resumes_from_its_chunks(shot: Path, prefect_api: str, tmp
     again = subprocess.run([*cmd, "--out", str(out)], env=env, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-3000:]
     assert "resuming a stopped run of this shot" in again.stdout + again.stderr
+    # ... and the command's own report says so (Prefect's log is off by default)
+    assert re.search(r"resumed a stopped run of the same command: its [1-9]\d* chunks chosen", again.stdout)
     for name in FILES:
         assert filecmp.cmp(plain / name, out / name, shallow=False), name
     assert not list(out.parent.glob(f".{out.name}.chunks-*"))

@@ -223,6 +223,9 @@ def reconstruct_shot(
     # folder (its process gone) is this run's when it was the same job in the same chunks: the chunks it finished
     # are not done again; any other is removed.
     work = _chunk_folder(Path(out), f"{job.resume_key(index_dir, bundles, opts)}:{chunk_size}")
+    # What a stopped run of this job left (both passes' chunks, with markers on rays), for the report.
+    kept = {"chosen": len(list(work.rglob("choice_*.npz"))), "finished": len(list(work.rglob("part_*.npz"))),
+            "chunks": len(bounds)}
     # One progress artifact per shot (keyed by OUT, so `prefect artifact ls` lists it), updated by both passes.
     progress_key = artifact_key("shot-progress", out)
 
@@ -256,6 +259,8 @@ def reconstruct_shot(
         raise
     job.forget_parts(work)
     shutil.rmtree(work, ignore_errors=True)
+    if kept["chosen"] or kept["finished"]:
+        summary["resumed_chunks"] = kept
     page_warnings = []
     if scan_opts is not None:
         summary["compare"] = _compare_scans(out, scan_opts, scan_pairs)

@@ -144,6 +144,10 @@ def report_lines(s: dict[str, Any]) -> list[str]:
     """The summary as the lines ``lgi reconstruct`` prints (and the flow logs)."""
     sec = s["seconds"]
     lines = []
+    if s.get("resumed_chunks"):
+        k = s["resumed_chunks"]
+        lines.append(f"resumed a stopped run of the same command: its {k['chosen']} chunks chosen and {k['finished']} "
+                     f"finished (of {k['chunks']} a pass) are kept, the rest done now")
     if s.get("resumed_from_frame"):
         lines.append(f"resumed a stopped run of the same command: its {s['resumed_from_frame']} frames written are "
                      "kept, the rest solved now")
