@@ -12,8 +12,8 @@ processes.
    and backwards until it has F frames ("looped": continuous motion, the same poses again).
 2. For every F, kind and path (``plain``: ``lgi reconstruct``; ``flow``: with ``--flow``; ``dask``: with
    ``--flow --dask local:2``): the process's wall time, frames per second and peak resident memory
-   (``os.wait4`` of the command's process; Dask's worker processes are not counted, and their peak is not
-   known here), and the size of the output folder.
+   (``os.wait4`` of the command's process, which is the largest of it and of the processes it waited for: with
+   Dask, its local workers; not their sum), and the size of the output folder.
 3. For every F and kind, the readers of the plain path's output, each a whole process: ``lgi export --usd``,
    ``lgi review``, ``lgi compare`` of one scan (the reconstruction's middle frame written as OBJ), and
    ``lgi rig-solve`` onto a rig made once by ``lgi rig-generate``: wall time, peak memory and output size.
@@ -227,8 +227,8 @@ def kill_table(rows: list[dict]) -> str:
 
 def table(rows: list[dict], shapes: int) -> str:
     lines = [f"ICT with {shapes} shapes and the jaw rig; the 1,000-frame eased shot looped to F frames (clean, and "
-             f"{NOISE_MM:g} mm stereo noise); whole processes, one run each. Peak: the command's own process "
-             "(Dask's workers not counted).", "",
+             f"{NOISE_MM:g} mm stereo noise); whole processes, one run each. Peak: the largest of the "
+             "command's process and the processes it started (Dask's local workers), not their sum.", "",
              "| what | bundles | frames | wall s | frames/s | peak MiB | output MiB |", "|---|---|---|---|---|---|---|"]
     measured = [r for r in rows if "peak_mib" in r]
     for r in ordered(measured):

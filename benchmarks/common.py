@@ -10,7 +10,6 @@ take from it comes through here (ICT as the sets import it: ``ict_dataset``, ``i
 from __future__ import annotations
 
 import json
-import os
 import re
 import subprocess
 import sys
@@ -147,8 +146,23 @@ class Run:
     stderr: str
 
 
+# Linux starts an exec'd child's peak memory (ru_maxrss) at the peak of the process it was forked from (the
+# old address space's high-water mark is kept across exec), so a child started straight from a benchmark that
+# has held large arrays reports the benchmark's peak. A small launcher between them starts the command afresh and
+# passes on the command's own figures.
+_LAUNCHER = """
+import json, os, subprocess, sys, time
+t = time.perf_counter()
+p = subprocess.Popen(sys.argv[2:])
+_, status, usage = os.wait4(p.pid, 0)
+with open(sys.argv[1], "w") as f:
+    json.dump({"wall_s": time.perf_counter() - t, "maxrss_kib": usage.ru_maxrss,
+               "returncode": os.waitstatus_to_exitcode(status)}, f)
+"""
+
+
 def run_process(argv: list[str], env: dict[str, str] | None = None) -> Run:
-    """Run ``argv`` to completion; wall time and the peak resident set size of that process alone.
+    """Run ``argv`` to completion; wall time and the peak resident set size of that process.
 
     Parameters
     ----------
@@ -160,18 +174,22 @@ def run_process(argv: list[str], env: dict[str, str] | None = None) -> Run:
     Returns
     -------
     Run
-        ``peak_mib`` from ``os.wait4`` (the child's own ``ru_maxrss``, not the maximum over all children).
+        ``peak_mib``: the command's own ``ru_maxrss`` (``os.wait4``, through a small launcher so that this
+        process's peak does not count), which is the largest of the command's process and of the processes it
+        started and waited for (Dask's local workers), not their sum.
     """
-    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-        t = time.perf_counter()
-        p = subprocess.Popen(argv, stdout=out, stderr=err, env=env, cwd=REPO_ROOT)
-        _, status, usage = os.wait4(p.pid, 0)
-        wall = time.perf_counter() - t
-        p.returncode = os.waitstatus_to_exitcode(status)
+    with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err, \
+            tempfile.TemporaryDirectory() as tmp:
+        figures = Path(tmp) / "figures.json"
+        p = subprocess.run([sys.executable, "-c", _LAUNCHER, str(figures), *argv], stdout=out, stderr=err, env=env,
+                           cwd=REPO_ROOT)
         out.seek(0)
         err.seek(0)
-        return Run(wall, usage.ru_maxrss / 1024, p.returncode, out.read().decode(errors="replace"),
-                   err.read().decode(errors="replace"))
+        stdout, stderr = out.read().decode(errors="replace"), err.read().decode(errors="replace")
+        if not figures.is_file():
+            raise SystemExit(f"the launcher of {' '.join(argv)} failed (status {p.returncode}):\n{stderr}")
+        f = json.loads(figures.read_text())
+        return Run(f["wall_s"], f["maxrss_kib"] / 1024, f["returncode"], stdout, stderr)
 
 
 def lgi_timed(*args: str, env: dict[str, str] | None = None) -> Run:
