@@ -257,7 +257,7 @@ def main() -> int:
         return 0
     frames = [int(f) for f in args.frames.split(",")]
     kinds = args.kinds.split(",")
-    paths = args.paths.split(",")
+    paths = [p for p in args.paths.split(",") if p]
     which = [r for r in args.readers.split(",") if r]
     work = args.work or Path(tempfile.mkdtemp(prefix="lgi-bench-long-"))
     work.mkdir(parents=True, exist_ok=True)

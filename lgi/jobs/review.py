@@ -62,9 +62,10 @@ OVERVIEW_FILE = "overview.html"
 #: The overview's frames are at least this many frames apart (a short shot's overview stays small: its blocks
 #: come at once anyway).
 OVERVIEW_MIN_STRIDE = 16
-#: Rows of diagnostics.csv parsed at a time (108 ICT markers: about 185 frames, some 25 MB of pandas objects with
-#: the shape lists).
-DIAG_CHUNK_ROWS = 20_000
+#: Rows of diagnostics.csv parsed at a time (108 ICT markers: about 46 frames, some 6 MB of pandas objects with the
+#: shape lists). With 20,000 rows a 36,000-frame ICT take peaked at 522 MiB against 449 at 1,000 frames: the more
+#: chunks, the likelier one lands on a block's peak; with 5,000, 439 MiB in the same time.
+DIAG_CHUNK_ROWS = 5_000
 #: The status of a marker in a frame, in the order of the page's codes (the diagnostics' ``status`` values, and
 #: ``ray`` where the ``constraint`` column says a viewing ray held the marker).
 STATUSES = ("contained", "projected", "neighbour", "fitted", "missing", "bridged", "ray", "other")
