@@ -106,8 +106,8 @@ def _reconstruct_options(args: argparse.Namespace):
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from lgi.jobs.compare import IN_SHOT, check_outputs, checked_pairs, shot_scan_options
-    from lgi.jobs.reconstruct import check_output, preflight, reconstruct, report_lines
+    from lgi.jobs.compare import scan_inputs, shot_scan_options
+    from lgi.jobs.reconstruct import report_lines
 
     opts = _reconstruct_options(args)
     if args.dask and not args.flow:
@@ -124,9 +124,37 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         from lgi.jobs.review import REVIEW_ENTRIES
 
         check_dir(f"{args.out}/review", "dir", owned=REVIEW_ENTRIES, what="lgi review folder")  # before the work
+    inputs = (args.index_dir, args.bundles, opts.jaw, opts.observations, opts.calib, opts.contours,
+              *scan_inputs(scan_opts))
+    from lgi.io.atomic import output_lock
+
+    with output_lock(args.out):  # one run at a time in OUT: the reconstruction, its scans' comparison, its page
+        summary = _reconstruct_in(args, opts, scan, scan_opts, inputs)
+    report = report_lines
+    if opts.method == "blendshape":
+        from lgi.jobs.reconstruct.blendshape import blendshape_report as report
+    for line in report(summary):
+        print(line)
+    c = summary.get("compare")
+    if c is not None and c["status"] == "done":
+        print(f"scans: {len(c['pairs'])} frames compared, tables and heat maps in {c['out']}")
+    if summary.get("review"):
+        print(f"review page: {summary['review']}")
+    if c is not None and c["status"] != "done":
+        print(f"lgi reconstruct: error: the reconstruction in {args.out} is written, but the scan comparison "
+              f"failed: {c['error']}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _reconstruct_in(args: argparse.Namespace, opts, scan: dict, scan_opts, inputs: tuple) -> dict:
+    """``lgi reconstruct``'s work in the output folder it holds: the reconstruction (plain or the flow), the scans'
+    comparison, the review page; returns the summary."""
+    from lgi.jobs.compare import IN_SHOT, check_outputs, checked_pairs
+    from lgi.jobs.reconstruct import check_output, preflight, reconstruct
+
     if args.flow:
-        check_output(args.out, (args.index_dir, args.bundles, opts.jaw, opts.observations, opts.calib,
-                                opts.contours))
+        check_output(args.out, inputs)
         preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
         from lgi.orchestration.reconstruct import reconstruct_shot
 
@@ -143,6 +171,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
             from lgi.jobs.reconstruct import forget_shots, prepared_shot
 
             pairs = checked_pairs(scan_opts)
+            check_output(args.out, inputs)
             check_outputs(args.out, scan_opts, pairs)
             check_scan_frames(pairs, prepared_shot(args.index_dir, args.bundles, opts).frames, scan_opts)
             forget_shots()  # the reconstruction below prepares its own: two at once would double the memory
@@ -169,21 +198,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
             from lgi.jobs.compare import remove_outputs
 
             remove_outputs(f"{args.out}/{IN_SHOT}")  # as the flow does: they measured the earlier meshes
-    report = report_lines
-    if opts.method == "blendshape":
-        from lgi.jobs.reconstruct.blendshape import blendshape_report as report
-    for line in report(summary):
-        print(line)
-    c = summary.get("compare")
-    if c is not None and c["status"] == "done":
-        print(f"scans: {len(c['pairs'])} frames compared, tables and heat maps in {c['out']}")
-    if summary.get("review"):
-        print(f"review page: {summary['review']}")
-    if c is not None and c["status"] != "done":
-        print(f"lgi reconstruct: error: the reconstruction in {args.out} is written, but the scan comparison "
-              f"failed: {c['error']}", file=sys.stderr)
-        return 2
-    return 0
+    return summary
 
 
 def cmd_verify(args: argparse.Namespace) -> int:

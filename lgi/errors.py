@@ -8,6 +8,15 @@ from __future__ import annotations
 
 from os import PathLike
 
+#: The most of a user's text an error quotes (a cell, a line): a 50 MB cell is not echoed into a terminal or log.
+QUOTED_CHARS = 200
+#: The longest message an error carries; the rest is cut, with a count of what was left out.
+MESSAGE_CHARS = 2000
+
+
+def _capped(s: str, limit: int) -> str:
+    return s if len(s) <= limit else f"{s[:limit]}... ({len(s) - limit:,} more characters)"
+
 
 class LgiError(ValueError):
     """Base class of all errors that lgi raises on bad input or bad configuration (a ValueError, so that
@@ -38,11 +47,11 @@ class InputError(LgiError):
         frame: int | None = None,
         marker: str | None = None,
     ) -> None:
-        self.message = message
+        self.message = _capped(message, MESSAGE_CHARS)
         self.path = None if path is None else str(path)
         self.line = line
         self.frame = frame
-        self.marker = marker
+        self.marker = None if marker is None else _capped(str(marker), QUOTED_CHARS)
         super().__init__(self._format())
 
     def _format(self) -> str:
@@ -69,13 +78,16 @@ class StorageError(LgiError):
 
 def cell_text(value: object) -> str:
     """A table cell as the user wrote it, for messages: text quoted, numbers plain (not numpy's
-    ``np.float64(0.5)``), anything else (a list in a Parquet cell) as printed."""
+    ``np.float64(0.5)``), anything else (a list in a Parquet cell) as printed; at most :data:`QUOTED_CHARS` of
+    it."""
     if isinstance(value, str):
-        return repr(value)
+        if len(value) <= QUOTED_CHARS:
+            return repr(value)
+        return f"{value[:QUOTED_CHARS]!r}... ({len(value) - QUOTED_CHARS:,} more characters)"
     item = getattr(value, "item", None)
     if item is not None and getattr(value, "ndim", 1) == 0:
         return str(item())
-    return str(value)
+    return _capped(str(value), QUOTED_CHARS)
 
 
 class Terminated(KeyboardInterrupt):

@@ -59,3 +59,26 @@ def gaps_mm(vertices: np.ndarray, layout, bundles: np.ndarray) -> np.ndarray:
     (F, V, 3): the seen ones only, flattened."""
     d = np.linalg.norm(layout_points(vertices, layout) - np.asarray(bundles, np.float64), axis=-1) * 10.0
     return d[np.isfinite(d)]
+
+
+# Linux keeps the high-water mark of the address space a child was forked from across exec, so a command started
+# straight from the test process would report at least the test process's own peak; a small launcher in between
+# starts it afresh and passes on its own figure.
+_LAUNCHER = """
+import json, os, subprocess, sys
+p = subprocess.Popen(sys.argv[2:], stdout=subprocess.DEVNULL, stderr=open(sys.argv[1] + ".err", "wb"))
+_, status, usage = os.wait4(p.pid, 0)
+json.dump({"code": os.waitstatus_to_exitcode(status), "peak_kib": usage.ru_maxrss}, open(sys.argv[1], "w"))
+"""
+
+
+def peak_memory_run(argv: list[str], scratch: Path) -> tuple[int, float, str]:
+    """Run ``argv`` as its own process: its exit status, its peak resident memory (MiB) and its standard error."""
+    import json
+    import subprocess
+    import sys
+
+    figures = scratch / "figures.json"
+    subprocess.run([sys.executable, "-c", _LAUNCHER, str(figures), *argv], check=True)
+    f = json.loads(figures.read_text())
+    return f["code"], f["peak_kib"] / 1024, Path(f"{figures}.err").read_text(errors="replace")

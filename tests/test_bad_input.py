@@ -22,7 +22,7 @@ import pytest
 from lgi.cli import main
 from lgi.io.npz import save_npz
 from lgi.io.obj import write_obj
-from tests.checks import THROUGH_MM, bundle_gaps_mm
+from tests.checks import THROUGH_MM, bundle_gaps_mm, peak_memory_run
 
 
 def run(argv: list[str], capsys) -> tuple[int, str, str]:
@@ -386,6 +386,18 @@ CASES = [
          ("o.usdc",)),
     Case("export-meshes-truncated", [*EXP, "--usd", f"{C}/o.usdc"], 2, "meshes.npz",
          chain(REC_COPY, truncate("rec/meshes.npz", 500)), ("o.usdc",)),
+    *[Case(f"export-{what}-zero-frames", [*EXP, f"--{what}", f"{C}/{name}"], 2, "meshes.npz: holds no frames",
+           chain(REC_COPY, npz_edit("rec/meshes.npz", lambda a: {k: v[:0] for k, v in a.items()})), (name,))
+      for what, name in (("usd", "o.usdc"), ("exr", "x"))],
+    Case("review-zero-frames", ["review", f"{C}/rec", "--index", f"{W}/idx", "--out", f"{C}/out"], 2,
+         "meshes.npz: holds no frames",
+         chain(REC_COPY, npz_edit("rec/meshes.npz", lambda a: {k: v[:0] for k, v in a.items()}))),
+    Case("review-diagnostics-header-only", ["review", f"{C}/rec", "--index", f"{W}/idx", "--out", f"{C}/out"], 2,
+         "diagnostics.csv: holds no rows", chain(REC_COPY, lambda w, c: (c / "rec" / "diagnostics.csv").write_text(
+             (w / "rec" / "diagnostics.csv").read_text().splitlines()[0] + "\n"))),
+    *[Case(f"{cmd[0]}-{flag[2:]}-empty", [*cmd, flag, ""], 2, "the output path is empty", REC_COPY, ())
+      for cmd, flag in ((REC[:4], "--out"), (["review", f"{C}/rec", "--index", f"{W}/idx"], "--out"),
+                        (EXP, "--exr"), (EXP, "--usd"))],
     Case("export-nothing-asked", EXP, 2, "nothing to export", REC_COPY),
     Case("export-exr-size-0", [*EXP, "--exr", f"{C}/x", "--exr-size", "0"], 2, "--exr-size", REC_COPY, ("x",)),
     Case("export-fps-0", [*EXP, "--usd", f"{C}/o.usdc", "--fps", "0"], 2, "--fps", REC_COPY, ("o.usdc",)),
@@ -531,6 +543,32 @@ CASES = [
          lambda w, c: pd.read_csv(w / "s" / "bundles.csv").assign(y=lambda d: [[v, v] for v in d.y]).to_parquet(
              c / "b.parquet")),
     Case("unknown-command", ["fly"], 2, "fly"),
+    # --- inputs are never outputs ----------------------------------------------------------------------------
+    *[Case(f"reconstruct-{mode}-scan-{where}", [*REC, *flow, *extra, "--scans", f"{C}/pairs.csv"], 2,
+           "would replace this run's input", chain(copy("objs/neutral.obj", f"out/obj/{scan}"),
+                                                  write("pairs.csv", f"frame,scan\n5,out/obj/{scan}\n")), ())
+      for mode, flow in (("plain", []), ("flow", ["--flow"]))
+      for where, scan, extra in (("where-obj-writes-it", "frame_00005.obj", ["--obj"]),
+                                 ("in-obj-folder", "frame_00005.obj", []))],
+    Case("reconstruct-obj-folder-is-a-link", [*REC, "--obj"], 2, "out/obj: is a symbolic link",
+         chain(copy("rec", "other"), write("other/obj/frame_00000.obj", "v 0 0 0\n"),
+               lambda w, c: (c / "out").mkdir() or (c / "out" / "obj").symlink_to(c / "other" / "obj")),
+         ("out/meshes.npz",)),
+    Case("reconstruct-out-not-utf8", [*REC[:5], f"{C}/o\udcff", "-q"], 2, "not UTF-8 text", absent=()),
+    # --- outputs inside a folder lgi rebuilds as a whole --------------------------------------------------------
+    Case("reconstruct-out-inside-an-index", [*RECI[:5], f"{C}/idx/out", "-q"], 2, "inside an LGI index",
+         copy("idx"), ("idx/out",)),
+    Case("review-out-inside-an-index", ["review", f"{C}/rec", "--index", f"{C}/idx", "--out", f"{C}/idx/rv"], 2,
+         "inside an LGI index", chain(copy("idx"), REC_COPY), ("idx/rv",)),
+    Case("compare-out-inside-a-dataset", ["compare", f"{C}/rec", "--index", f"{W}/idx", "--frame", "5", "--scan",
+                                          f"{C}/scan.obj", "--out", f"{C}/ds/cmp"], 2, "inside a shape dataset",
+         chain(copy("s/dataset", "ds"), REC_COPY, copy("objs/neutral.obj", "scan.obj")), ("ds/cmp",)),
+    *[Case(f"export-{flag[2:]}-inside-an-index", [*EXP, flag, f"{C}/idx/{name}"], 2, f"{flag} is inside an LGI index",
+           chain(copy("idx"), REC_COPY), (f"idx/{name}",)) for flag, name in (("--usd", "o.usdc"), ("--exr", "x"))],
+    *[Case(f"reconstruct-{mode}-pairs-is-per-frame", [*REC, *flow, "--scans", f"{C}/out/per_frame.csv"], 2,
+           "would replace this run's input",
+           chain(copy("objs/neutral.obj", "scan.obj"), write("out/per_frame.csv", "frame,scan\n5,../scan.obj\n")),
+           ()) for mode, flow in (("plain", []), ("flow", ["--flow"]))],
 ]
 
 
@@ -626,6 +664,30 @@ HMC_CASES = [
 @pytest.mark.parametrize("case", HMC_CASES, ids=[c.id for c in HMC_CASES])
 def test_bad_capture_input(case: Case, hmc: Path, world: Path, tmp_path: Path, capsys) -> None:
     test_bad_input(case, world, tmp_path, capsys)
+
+
+def test_a_row_of_two_million_fields_is_refused_in_bounded_memory(world: Path, tmp_path: Path) -> None:
+    lines = (world / "s" / "bundles.csv").read_text().splitlines()
+    lines[1] += ",9" * 2_000_000  # a 4 MB line
+    bad = tmp_path / "b.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    (tmp_path / "run").mkdir()
+    code, peak_mib, err = peak_memory_run([sys.executable, "-m", "lgi", "reconstruct", str(world / "idx"), "--bundles",
+                                           str(bad), "--out", str(tmp_path / "out"), "-q"], tmp_path / "run")
+    assert code == 2 and f"{bad}:2: 2,000,005 fields where the header has 5" in err, err[-500:]
+    assert len(err) < 1000 and "Traceback" not in err  # the line quoted, not echoed
+    assert peak_mib < 500, peak_mib
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_huge_cell_is_quoted_not_echoed(world: Path, tmp_path: Path, capsys) -> None:
+    d = pd.read_csv(world / "s" / "bundles.csv", dtype=str)
+    d.loc[3, "x"] = "7" * 1_000_000 + "x"
+    bad = tmp_path / "b.csv"
+    d.to_csv(bad, index=False)
+    code, out, err = run(["reconstruct", str(world / "idx"), "--bundles", str(bad), "--out", str(tmp_path / "o"), "-q"],
+                         capsys)
+    assert code == 2 and f"{bad}:5" in err and "more characters" in err and len(err) < 1000, err[:2000]
 
 
 def test_csv_with_a_byte_order_mark_is_read(world: Path, tmp_path: Path, capsys) -> None:
@@ -828,6 +890,53 @@ def test_sigkill_then_rerun_cleans_up(world: Path, long_shot: Path, tmp_path: Pa
     r = subprocess.run([sys.executable, "-m", "lgi", *rerun], cwd=tmp_path, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert sorted(q.name for q in out.iterdir()) == ["diagnostics.csv", "meshes.npz", "per_frame.csv", "run.json"]
+
+
+def _outputs(folder: Path) -> dict[str, bytes]:
+    return {n: (folder / n).read_bytes() for n in ("meshes.npz", "diagnostics.csv", "per_frame.csv")}
+
+
+@pytest.mark.slow
+def test_two_runs_into_one_folder_never_leave_a_mixture(world: Path, tmp_path: Path) -> None:
+    """20 rounds of two runs into one OUT (12 and 8 frames), the first held for 6 s inside its commit (its meshes
+    replaced, its tables not yet), the second started then or at a random moment: OUT ends as one run's outputs,
+    bit for bit, and a run refused names the other's pid."""
+    short = tmp_path / "short.csv"
+    d = pd.read_csv(world / "s" / "bundles.csv")
+    d[d.frame < 8].to_csv(short, index=False)
+    argv = {"a": ["reconstruct", str(world / "idx"), "--bundles", str(world / "s" / "bundles.csv"), "-q"],
+            "b": ["reconstruct", str(world / "idx"), "--bundles", str(short), "-q"]}
+    ref = {}
+    for k in argv:
+        assert main([*argv[k], "--out", str(tmp_path / f"ref_{k}")]) == 0
+        ref[k] = _outputs(tmp_path / f"ref_{k}")
+    assert ref["a"]["meshes.npz"] != ref["b"]["meshes.npz"]
+    out = tmp_path / "out"
+    rng = np.random.default_rng(7)
+    refused = 0
+    for r in range(20):
+        stages = tmp_path / f"stages{r}"
+        a = _spawn([*argv["a"], "--out", str(out)], tmp_path, stages, "commit:6")
+        if r % 2 == 0:  # the second run starts while the first is inside its commit
+            deadline = time.monotonic() + 120
+            while not (stages / "commit").exists() and a.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.02)
+        else:  # or at any moment
+            time.sleep(float(rng.uniform(0.0, 3.0)))
+        b = _spawn([*argv["b"], "--out", str(out)], tmp_path)
+        (_, err_a), (_, err_b) = a.communicate(timeout=300), b.communicate(timeout=300)
+        codes = (a.returncode, b.returncode)
+        assert codes in ((0, 0), (0, 2), (2, 0)), (r, codes, err_a[-500:], err_b[-500:])
+        if 2 in codes:
+            refused += 1
+            loser, winner = (err_a, b) if codes[0] == 2 else (err_b, a)
+            assert f"another lgi run (pid {winner.pid})" in loser, loser[-500:]
+        got = _outputs(out)
+        assert got in (ref["a"], ref["b"]), f"round {r}: a mixture of the two runs"
+        if r % 2 == 0:
+            assert codes == (0, 2) and got == ref["a"]
+        assert not list(out.glob(".lgi-*")) and not list(out.glob(".*.old-*"))
+    assert refused >= 10
 
 
 def test_closed_pipe_is_quiet(world: Path, tmp_path: Path, capsys) -> None:

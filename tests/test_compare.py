@@ -189,6 +189,23 @@ def test_pairs_file_regions_and_obj_topology(shot, capsys, tmp_path) -> None:
     assert code == 2 and "FIRST:LAST" in err
 
 
+def test_two_scans_of_a_frame_with_one_name_keep_both_heat_maps(shot, capsys, tmp_path) -> None:
+    w = shot["w"]
+    for sub, dz in (("a", 0.0), ("b", 0.05)):
+        (tmp_path / sub).mkdir()
+        save_scan(tmp_path / sub / "scan.obj", shot["scan_v"] + [0.0, 0.0, dz], shot["scan_t"])
+    out = tmp_path / "out"
+    code, _, err = run(["compare", str(w / "true"), "--index", str(w / "s" / "dataset"), "--frame", str(FRAME),
+                        "--scan", str(tmp_path / "a" / "scan.obj"), "--frame", str(FRAME), "--scan",
+                        str(tmp_path / "b" / "scan.obj"), "--out", str(out)], capsys)
+    assert code == 0, err
+    summary = pd.read_csv(out / "summary.csv")
+    assert list(summary["heatmap"]) == ["heatmaps/frame_00002_scan.png", "heatmaps/frame_00002_scan_2.png"]
+    pictures = [(out / h).read_bytes() for h in summary["heatmap"]]
+    assert sorted(p.name for p in (out / "heatmaps").iterdir()) == ["frame_00002_scan.png", "frame_00002_scan_2.png"]
+    assert pictures[0] != pictures[1]  # the 0.5 mm offset scan's picture is its own
+
+
 def test_bad_scans_exit_2_naming_the_file(shot, capsys, tmp_path) -> None:
     w = shot["w"]
     base = ["compare", str(w / "true"), "--index", str(w / "s" / "dataset"), "--frame", str(FRAME)]
@@ -204,6 +221,11 @@ def test_bad_scans_exit_2_naming_the_file(shot, capsys, tmp_path) -> None:
     ply.write_text("ply\nformat nonsense\n")
     code, _, err = run([*base, "--scan", str(ply)], capsys)
     assert code == 2 and str(ply) in err
+    huge = tmp_path / "huge.ply"  # pymeshlab would try to allocate 2^31 - 1 vertices (std::bad_alloc, exit 3)
+    huge.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 2147483647\nproperty float x\nproperty float y\n"
+                     b"property float z\nend_header\n0 0 0\n")
+    code, _, err = run([*base, "--scan", str(huge)], capsys)
+    assert code == 2 and f"{huge}:3" in err and "declares 2,147,483,647 vertex rows" in err
     code, _, err = run([*base, "--scan", str(tmp_path / "missing.obj")], capsys)
     assert code == 2 and "missing.obj" in err
     assert not out_dir.exists()  # no partial output

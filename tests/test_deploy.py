@@ -141,6 +141,48 @@ def test_relative_paths_go_under_the_data_root(tmp_path: Path) -> None:
     assert PathResolver(None)("datasets/ict", "out") == "datasets/ict"  # outside a deployment: as given
 
 
+def test_outputs_stay_under_the_data_root_after_links(tmp_path: Path) -> None:
+    from lgi.errors import InputError
+    from lgi.orchestration.deploy import PathResolver
+
+    root, extra, outside = tmp_path / "root", tmp_path / "extra", tmp_path / "outside"
+    for d in (root, extra, outside):
+        d.mkdir()
+    (root / "escape").symlink_to(outside)  # a link inside the root that leads out of it
+    at = PathResolver(root, [extra])
+    assert at("shots/a/recon", "out", output=True) == str(root / "shots" / "a" / "recon")
+    assert at(str(extra / "x"), "out", output=True) == str(extra / "x")  # an output root from the Variable
+    assert at(str(outside / "in.csv"), "bundles") == str(outside / "in.csv")  # inputs may be read anywhere
+    for value, says in (("escape/recon", "parameter out: the output 'escape/recon' leads to"),
+                        (str(outside / "recon"), "outside the data root"), ("", "parameter out: an empty path"),
+                        (".", "is the data root"), ("~/recon", "names a home folder"),
+                        ("../x", "leaves the data root")):
+        with pytest.raises(InputError, match=re.escape(says)):
+            at(value, "out", output=True)
+
+
+def test_a_deployment_run_refuses_an_output_outside_its_root(prefect_harness, tmp_path: Path, monkeypatch) -> None:
+    """The reconstruct-shot flow run as a deployment's run would be (its parameters resolved under the data root):
+    an output that a link inside the root takes out of it is refused before any work, naming the parameter."""
+    from prefect.variables import Variable
+
+    import lgi.orchestration.deploy as deploy
+    from lgi.errors import InputError
+    from lgi.orchestration.reconstruct import reconstruct_shot
+
+    root, outside = tmp_path / "root", tmp_path / "outside"
+    outside.mkdir()
+    (root / "shots").mkdir(parents=True)
+    (root / "shots" / "escape").symlink_to(outside)
+    Variable.set(deploy.DATA_ROOT_VARIABLE, str(root), overwrite=True)
+    monkeypatch.setattr(deploy, "in_deployment", lambda: True)
+    with pytest.raises(InputError, match="parameter out: the output 'shots/escape/recon' leads to"):
+        reconstruct_shot("index", "shots/bundles.csv", "shots/escape/recon")
+    with pytest.raises(InputError, match="parameter scan_region: the relative path '../v.json' leaves"):
+        reconstruct_shot("index", "shots/bundles.csv", "shots/recon", scan_region="../v.json")
+    assert not list(outside.iterdir())
+
+
 def test_data_root_from_the_variable(prefect_harness, caplog) -> None:
     from prefect.variables import Variable
 

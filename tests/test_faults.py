@@ -248,6 +248,14 @@ def test_read_only_cache_is_refused_before_the_work(prefect_harness, tmp_path: P
         assert not any(s["stages"].values()) and len(_cache_ok(cache)) == 6
 
 
+def test_an_output_on_a_read_only_file_system_says_so(tmp_path: Path) -> None:
+    with tmpfs(tmp_path / "ro", "1m") as disk:
+        remount(disk, "ro")
+        r = lgi("synth", "--out", str(disk / "out"), "--vertices", "500", "--frames", "2", "-q", cwd=tmp_path)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert f"{disk}: the output cannot be written here: the file system is read-only" in r.stderr, r.stderr
+
+
 def test_check_writable_probes_a_missing_folder_through_its_parent(tmp_path: Path) -> None:
     from lgi.errors import StorageError
     from lgi.io.atomic import check_writable

@@ -236,6 +236,9 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None,
         pass
     # A file pyarrow cannot type (a field that is not a number, blanks around a number, an empty frame) is read
     # whole as text: the checks then say which row is wrong and how.
+    from lgi.io.csvio import check_field_counts
+
+    check_field_counts(path, "bundles file")
     try:
         df = pd.read_csv(path, dtype=dict.fromkeys(["marker", "frame", "x", "y", "z", *extra], str),
                          keep_default_na=False, encoding="utf-8-sig")

@@ -80,6 +80,10 @@ def read_scan(path: str | os.PathLike[str], units: str = "cm") -> Scan:
     elif suffix in PYMESHLAB_FORMATS:
         import pymeshlab
 
+        from lgi.io.meshfiles import check_mesh_file
+
+        # pymeshlab drops non-finite vertices without a word and allocates what a header declares.
+        check_mesh_file(path)
         ms = pymeshlab.MeshSet()
         try:
             ms.load_new_mesh(str(path))

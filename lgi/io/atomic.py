@@ -15,6 +15,8 @@ import logging
 import os
 import shutil
 import tempfile
+import threading
+import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -156,6 +158,19 @@ def files_in(folder: str | os.PathLike[str] | None, patterns: tuple[str, ...], r
     return [p for pat in patterns for p in (root.rglob(pat) if recursive else root.glob(pat)) if p.is_file()]
 
 
+def _not_empty(path: str | os.PathLike[str]) -> None:
+    if isinstance(path, str) and not path.strip():
+        # Path("") is the current folder: an empty option (a script's unset variable) would write there.
+        raise InputError("the output path is empty: give a file or folder")
+    try:
+        os.fspath(path).encode("utf-8")
+    except UnicodeEncodeError:
+        # Bytes that are not UTF-8 (kept by Python as lone surrogates): the run's records (run.json) cannot hold
+        # the path, which would fail only after the work.
+        raise InputError("the output path is not UTF-8 text: rename it", path=os.fsdecode(os.fsencode(path))
+                         .encode("utf-8", "backslashreplace").decode("utf-8")) from None
+
+
 def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Iterable[Any] = (),
                  owned: tuple[str, ...] | None = None, what: str = "lgi output") -> None:
     """Refuse, before any work, an output path that cannot become a ``kind`` ("dir" or "file") output.
@@ -166,6 +181,7 @@ def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Ite
     whole (``owned`` given: the fnmatch patterns of what ``what`` holds), an existing directory holding anything
     else (a folder that is not an earlier output of this kind is never wiped).
     """
+    _not_empty(path)
     p = Path(path)
     if p.exists() or p.is_symlink():
         if kind == "dir" and not p.is_dir():
@@ -178,6 +194,8 @@ def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Ite
     if not parent.is_dir():
         raise InputError("cannot create the output: a file is in its path", path=parent)
     if not os.access(parent, os.W_OK | os.X_OK):
+        if os.statvfs(parent).f_flag & os.ST_RDONLY:
+            raise InputError("the output cannot be written here: the file system is read-only", path=parent)
         raise InputError("the output cannot be written here (permission denied)", path=parent)
     target = _resolved(p)
     for inp in inputs:
@@ -193,6 +211,28 @@ def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Ite
             raise InputError(f"the folder exists and holds entries that are not an {what}'s "
                              f"({shown}); lgi replaces this output as a whole, so it will not write here: remove "
                              "them or choose another path", path=p)
+
+
+#: The manifests' formats of the folders lgi rebuilds as a whole (an index, a shape dataset): nothing else may be
+#: written inside them, or the next ``lgi build`` or ``lgi import`` into the folder refuses the foreign entry.
+STORE_FORMATS = {"lgi-index": "an LGI index", "lgi-shape-dataset": "a shape dataset"}
+
+
+def check_not_in_store(path: str | os.PathLike[str], option: str = "--out") -> None:
+    """Refuse an output inside an LGI index or shape dataset folder (one of its parents holds such a
+    ``manifest.json``)."""
+    target = _resolved(path)
+    for parent in target.parents:
+        manifest = parent / "manifest.json"
+        if not manifest.is_file():
+            continue
+        try:
+            fmt = json.loads(manifest.read_text()).get("format")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if fmt in STORE_FORMATS:
+            raise InputError(f"{option} is inside {STORE_FORMATS[fmt]} ({parent}), which lgi rebuilds as a whole: "
+                             "choose a path outside it", path=path)
 
 
 def check_distinct(outputs: dict[str, Any]) -> None:
@@ -279,7 +319,12 @@ def check_contents(out: str | os.PathLike[str], contents: dict[str, tuple[str, .
     """Refuse an owned directory of ``out`` (name -> the patterns of what it holds) holding anything else: the
     job replaces it whole (see :func:`job_outputs`)."""
     for name, patterns in (contents or {}).items():
-        check_output(Path(out) / name, "dir", owned=patterns, what=f"lgi {name}/ folder")
+        p = Path(out) / name
+        if p.is_symlink():
+            # Replaced whole at the commit, it cannot take the link's place (nor should the link's target go).
+            raise InputError(f"is a symbolic link (to {os.readlink(p)}), and lgi replaces its {name}/ folder as a "
+                             "whole: remove the link, or choose another output folder", path=p)
+        check_output(p, "dir", owned=patterns, what=f"lgi {name}/ folder")
 
 
 #: A staging folder holding this file (a JSON object with the job's ``"key"``) is a stopped run's, to be resumed
@@ -310,6 +355,90 @@ def _adopt_stopped(out: Path, key: str) -> Path | None:
     return taken
 
 
+#: The lock file of an output folder a run is writing into (:func:`output_lock`); it holds the run's pid.
+LOCK_FILE = ".lgi-lock"
+# The folders this process holds the lock of, and how many times (a job inside a command that locked its folder).
+_HELD: dict[Path, int] = {}
+_HELD_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def output_lock(out: str | os.PathLike[str]) -> Iterator[None]:
+    """Hold the output folder ``out`` for this process: one run writes into a folder at a time, so two runs
+    into one ``--out`` never leave a mixture of their outputs. A second run is refused at once (an
+    :class:`~lgi.errors.InputError`, exit 2) naming the holder's pid.
+
+    An OS lock (``flock``) on :data:`LOCK_FILE` in ``out``, released by the kernel if the process dies; the file
+    goes when the run ends. Re-entrant in one process (a command that locks its folder runs jobs that lock it
+    too). A folder this made for the lock and left empty is removed.
+    """
+    import fcntl
+
+    _not_empty(out)
+    out = Path(out)
+    key = _resolved(out)
+    with _HELD_LOCK:
+        if key in _HELD:
+            _HELD[key] += 1
+            held = True
+        else:
+            held = False
+    if held:
+        try:
+            yield
+        finally:
+            with _HELD_LOCK:
+                _HELD[key] -= 1
+        return
+    check_output(out, "dir")  # a file there, a folder that cannot be made: said before the folder is made
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise (storage_error(exc, out) or exc) from exc
+    lock = out / LOCK_FILE
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            raise (storage_error(exc, out) or exc) from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = ""
+            for _ in range(20):  # the holder writes its pid just after it takes the lock
+                holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+                if holder:
+                    break
+                time.sleep(0.01)
+            os.close(fd)
+            holder = holder or "unknown"
+            raise InputError(f"another lgi run (pid {holder}) is writing into this folder: wait for it to end, or "
+                             "choose another output", path=out) from None
+        try:
+            same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # the holder removed the file as it ended: lock the next one
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    with _HELD_LOCK:
+        _HELD[key] = 1
+    try:
+        yield
+    finally:
+        with _HELD_LOCK:
+            del _HELD[key]
+        with contextlib.suppress(OSError):
+            lock.unlink()  # before the release: a run waiting on this file then locks a new one
+        os.close(fd)
+        if created:
+            with contextlib.suppress(OSError):
+                out.rmdir()
+
+
 @contextlib.contextmanager
 def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
                 contents: dict[str, tuple[str, ...]] | None = None, resume: str | None = None) -> Iterator[Path]:
@@ -331,8 +460,13 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
     out = Path(out)
     check_output(out, "dir")
     check_contents(out, contents)
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
+    with output_lock(out), _staged(out, owned, resume) as stage:
+        yield stage
+
+
+@contextlib.contextmanager
+def _staged(out: Path, owned: tuple[str, ...], resume: str | None) -> Iterator[Path]:
+    """:func:`job_outputs` in a folder this process holds (:func:`output_lock`)."""
     adopted = _adopt_stopped(out, resume) if resume else None
     for prefix in (".lgi-staging-", ".lgi-resuming-", *(f".{name}.old-" for name in owned)):
         sweep(out, prefix)
@@ -351,7 +485,11 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
         if unknown:
             raise RuntimeError(f"job wrote outputs it does not declare: {sorted(unknown)}")
         _fsync_tree(stage)
-        for name in owned:
+        from lgi._stages import stage as debug_stage
+
+        for k, name in enumerate(owned):
+            if k == 1:
+                debug_stage("commit")  # a test holds the run here, its first entry replaced
             entry, target = stage / name, out / name
             if name in written:
                 if target.is_dir() and not target.is_symlink():
@@ -380,9 +518,6 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
                 logging.getLogger(__name__).warning(
                     "stopped: what was written waits in %s for the same command to go on from (the next run of "
                     "another job into %s removes it)", stage, out)
-        if created:  # a failed first run leaves no empty folder behind either
-            with contextlib.suppress(OSError):
-                out.rmdir()
         if full is not None and full is not exc:
             raise full from exc
         raise

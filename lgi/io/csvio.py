@@ -78,6 +78,81 @@ class CsvAppender:
             self._sink = None
 
 
+#: Bytes of a CSV read at a time by :func:`check_field_counts`.
+FIELD_CHUNK = 1 << 22
+#: The longest header line read.
+HEADER_BYTES = 1 << 20
+#: Bytes of a line kept for a message (it quotes 200 characters of it).
+QUOTE_BYTES = 1024
+
+
+def check_field_counts(path: str | os.PathLike[str], what: str) -> None:
+    """Refuse, reading :data:`FIELD_CHUNK` bytes at a time, a CSV line with more fields than the header, before a parser
+    makes a row of it (a line of two million fields took a parser 23 GB), naming the line and quoting the
+    start of it.
+
+    Parameters
+    ----------
+    path : a CSV file (commas between fields, double quotes around fields that hold commas or line ends)
+    what : the table's name in messages ("bundles file")
+
+    Raises
+    ------
+    InputError
+        Naming the file and line.
+    """
+    import csv
+
+    from lgi.errors import InputError, cell_text
+
+    with open(path, "rb") as fh:
+        header = fh.readline(HEADER_BYTES)
+        if len(header) == HEADER_BYTES and not header.endswith(b"\n"):
+            raise InputError(f"the {what}'s header line is longer than {HEADER_BYTES:,} bytes", path=path, line=1)
+        if not header.strip():
+            return  # an empty file, or a blank first line: the reader says what is wrong
+        fields = len(next(csv.reader([header.decode("utf-8-sig", errors="replace")]), [""]))
+        # line: the file's line at the chunk's start; row_line: where the row read on into it began (a quoted
+        # field may hold line ends, so rows and lines differ).
+        line, row_line, pending, head, quotes = 2, 2, 0, b"", 0
+        while True:
+            data = fh.read(FIELD_CHUNK)
+            if not data:
+                break
+            b = np.frombuffer(data, np.uint8)
+            is_quote = b == 34
+            lines = np.flatnonzero(b == 10)
+            if quotes or is_quote.any():
+                # Commas and line ends inside quotes are a field's text: an odd number of quotes before them.
+                outside = (np.cumsum(is_quote, dtype=np.int32) + quotes) % 2 == 0
+                quotes = int((quotes + is_quote.sum()) % 2)
+                nl, cm = lines[outside[lines]], np.flatnonzero((b == 44) & outside)
+            else:
+                nl, cm = lines, np.flatnonzero(b == 44)
+            ends = np.searchsorted(cm, nl)
+            commas = np.diff(ends, prepend=0)
+            if len(commas):
+                commas[0] += pending
+            bad = np.flatnonzero(commas + 1 > fields)
+            if bad.size:
+                i = int(bad[0])
+                text = head + data[:nl[0]] if i == 0 else data[nl[i - 1] + 1:nl[i]]
+                at = row_line if i == 0 else line + int(np.searchsorted(lines, nl[i - 1] + 1))
+                raise InputError(f"{int(commas[i]) + 1:,} fields where the header has {fields}: "
+                                 f"{cell_text(text.decode('utf-8', errors='replace'))}", path=path, line=at)
+            if len(nl):
+                row_line = line + int(np.searchsorted(lines, nl[-1] + 1))
+                pending = len(cm) - int(ends[-1])
+                head = data[nl[-1] + 1:][:QUOTE_BYTES]
+            else:
+                pending += len(cm)
+                head = (head + data)[:QUOTE_BYTES]
+            line += len(lines)
+        if pending + 1 > fields:
+            raise InputError(f"{pending + 1:,} fields where the header has {fields}: "
+                             f"{cell_text(head.decode('utf-8', errors='replace'))}", path=path, line=row_line)
+
+
 def read_table(path: str | os.PathLike[str], what: str, columns: tuple[str, ...], numeric: tuple[str, ...] = (),
                key: str | None = None, allow_missing: tuple[str, ...] = (), need_rows: bool = True) -> pd.DataFrame:
     """Read a user's CSV table, refusing what is wrong with the file, line and row named.
@@ -99,10 +174,11 @@ def read_table(path: str | os.PathLike[str], what: str, columns: tuple[str, ...]
     -------
     DataFrame, numeric columns float64, the others str.
     """
-    from lgi.errors import InputError
+    from lgi.errors import InputError, cell_text
 
     if not os.path.isfile(path):
         raise InputError(f"{what} not found", path=path)
+    check_field_counts(path, what)
     try:
         df = pd.read_csv(path, dtype=str, keep_default_na=False, encoding="utf-8-sig", skipinitialspace=True)
     except pd.errors.EmptyDataError:
@@ -132,6 +208,6 @@ def read_table(path: str | os.PathLike[str], what: str, columns: tuple[str, ...]
             r = int(np.flatnonzero(bad)[0])
             if blank[r]:
                 raise InputError(f"missing {col} value", **ref(r))
-            raise InputError(f"non-numeric or non-finite {col} value {df[col].iloc[r]!r}", **ref(r))
+            raise InputError(f"non-numeric or non-finite {col} value {cell_text(df[col].iloc[r])}", **ref(r))
         df[col] = np.where(empty, np.nan, num)
     return df

@@ -203,7 +203,7 @@ def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> di
 def load_meshes(path: str | os.PathLike[str], required: tuple[str, ...] = ("vertices",)) -> dict[str, np.ndarray]:
     """A reconstruction's ``meshes.npz`` for a reader that goes frame by frame: ``vertices`` read by frame range
     (:func:`npz_member`) when stored uncompressed, as lgi writes it, the other arrays loaded; an archive
-    compressed by another tool is loaded whole. Errors as :func:`load_npz`."""
+    compressed by another tool is loaded whole. Errors as :func:`load_npz`, and for vertices that hold no frame."""
     try:
         with zipfile.ZipFile(path) as zf:
             infos = {i.filename: i for i in zf.infolist()}
@@ -211,7 +211,7 @@ def load_meshes(path: str | os.PathLike[str], required: tuple[str, ...] = ("vert
         return load_npz(path, required)  # its message names what is wrong
     entry = infos.get("vertices.npy")
     if entry is None or entry.compress_type != zipfile.ZIP_STORED:
-        return load_npz(path, required)
+        return _with_frames(load_npz(path, required), path)
     out = {}
     for name in infos:
         if name.endswith(".npy"):
@@ -222,6 +222,16 @@ def load_meshes(path: str | os.PathLike[str], required: tuple[str, ...] = ("vert
         from lgi.errors import InputError
 
         raise InputError(f"missing arrays {missing}", path=path)
+    return _with_frames(out, path)
+
+
+def _with_frames(out: dict[str, np.ndarray], path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
+    """``out``, refused when its vertices hold no frame (a reader would have nothing to read)."""
+    v = out.get("vertices")
+    if v is not None and (len(v.shape) == 0 or v.shape[0] == 0):
+        from lgi.errors import InputError
+
+        raise InputError(f"holds no frames (vertices of shape {tuple(v.shape)})", path=path)
     return out
 
 

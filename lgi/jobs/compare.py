@@ -240,13 +240,14 @@ def checked_pairs(options: CompareOptions) -> list[tuple[int, Path]]:
 
 def check_outputs(recon_dir: str | Path, options: CompareOptions, pairs: list[tuple[int, Path]]) -> None:
     """Refuse, before any work, an ``--out`` that cannot hold the outputs or would replace an input."""
-    from lgi.io.atomic import check_contents, check_output
+    from lgi.io.atomic import check_contents, check_not_in_store, check_output
 
     o = options
     if not o.out:
         return
     inputs = [recon_dir, o.index, o.pairs, *(s for _, s in pairs)]
     check_output(o.out, "dir", inputs=inputs)
+    check_not_in_store(o.out)
     check_contents(o.out, OUTPUT_CONTENTS)
     for name in OUTPUTS:
         check_output(Path(o.out) / name, "dir" if name == "heatmaps" else "file", inputs=inputs)
@@ -262,8 +263,20 @@ def remove_outputs(folder: str | Path) -> None:
         shutil.rmtree(p)
 
 
-def heatmap_name(frame: int, scan: Path) -> str:
-    return f"frame_{frame:05d}_{scan.stem}"
+def heatmap_names(pairs: list[tuple[int, Path]]) -> list[str]:
+    """The heat map file of each ``(frame, scan)`` pair, ``frame_NNNNN_SCANSTEM.png``; a name that an earlier pair
+    has (two scans of one frame with one stem: ``a/scan.obj``, ``b/scan.ply``) gets ``_2``, ``_3``, ... so that no
+    picture replaces another."""
+    names, seen = [], set()
+    for frame, scan in pairs:
+        base = f"frame_{frame:05d}_{Path(scan).stem}"
+        name, k = base, 1
+        while name in seen:
+            k += 1
+            name = f"{base}_{k}"
+        seen.add(name)
+        names.append(f"{name}.png")
+    return names
 
 
 def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
@@ -297,7 +310,7 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
         raise InputError(f"--region {o.region!r} holds no vertex")
     gate = o.gate_mm / MM_PER_CM
     rows, vertex_tables, scan_tables, pictures = [], [], [], []
-    for f, scan_path in pairs:
+    for (f, scan_path), picture in zip(pairs, heatmap_names(pairs), strict=True):
         v = np.asarray(vertices[row[f]], np.float64)
         if not np.all(np.isfinite(v)):
             raise InputError("non-finite vertex positions", path=src, frame=f)
@@ -330,6 +343,7 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
             "translation_mm": float(np.linalg.norm(res.transform[:3, 3]) * MM_PER_CM),
             "icp_steps": res.icp_steps, "transform_cm": res.transform.tolist(),
             "vertices_sha256": frame_fingerprint(vertices[row[f]]),
+            "heatmap": f"heatmaps/{picture}" if o.out else "",
         }
         rows.append(r)
         if o.out:
@@ -341,7 +355,7 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
             scan_tables.append(pd.DataFrame({
                 "frame": f, "scan": str(scan_path), "scan_vertex": scan.file_index,
                 "distance_mm": (res.scan_distance * MM_PER_CM).astype(np.float32), "inside": res.inside}))
-            pictures.append((heatmap_name(f, scan_path), v, np.where(res.covered, res.distance * MM_PER_CM, 0.0),
+            pictures.append((picture, v, np.where(res.covered, res.distance * MM_PER_CM, 0.0),
                              res.covered, f"frame {f} vs {scan_path.name}\nRMS {fwd['rms_mm']:.3f}, p95 "
                              f"{fwd['p95_mm']:.3f}, max {fwd['max_mm']:.3f} mm ({share * 100:.0f} % covered)"))
     s: dict[str, Any] = {"recon": str(Path(recon_dir).resolve()), "topology": topo.source, "region": region_text,
@@ -367,7 +381,7 @@ def _write(out: str | Path, rows: list[dict[str, Any]], vertex_tables: list[pd.D
         for name, v, values, covered, title in pictures:
             # Only whole covered triangles are painted; a scan covering scattered vertices alone gets the whole mesh.
             mask = covered if np.all(covered[triangles], axis=1).any() else None
-            heatmap_row(stage / "heatmaps" / f"{name}.png", v, triangles, {"distance to the scan": values},
+            heatmap_row(stage / "heatmaps" / name, v, triangles, {"distance to the scan": values},
                         mask=mask, label="distance (mm)", title=title)
 
 
@@ -407,6 +421,15 @@ def shot_scan_options(scans: str | list | None, index_dir: str, out: str, units:
     except (TypeError, ValueError):
         raise InputError(f"scans: give a pairs CSV or a list of [frame, scan] pairs, not {scans!r}") from None
     return CompareOptions(frames=frames, scans=files, **common)
+
+
+def scan_inputs(options: CompareOptions | None) -> tuple[Path | str, ...]:
+    """What a reconstruction with ``options``' scans reads besides its own inputs (the pairs CSV and the scan
+    files), for its output check: a scan inside OUT (OUT/obj/frame_NNNNN.obj) would be overwritten or removed by
+    the reconstruction, and then compared with itself."""
+    if options is None:
+        return ()
+    return tuple(p for p in (options.pairs, *(s for _, s in checked_pairs(options))) if p)
 
 
 def check_scan_frames(pairs: list[tuple[int, Path]], frames, options: CompareOptions) -> None:

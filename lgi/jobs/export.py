@@ -26,6 +26,9 @@ class ExportOptions:
     fps: float = 30.0
 
     def __post_init__(self) -> None:
+        for flag, path in (("--usd", self.usd), ("--exr", self.exr)):
+            if isinstance(path, str) and not path.strip():
+                raise InputError(f"{flag}: the output path is empty: give a file or folder")
         if not (self.usd or self.exr):
             raise InputError("nothing to export: give --usd FILE and/or --exr DIR")
         if isinstance(self.exr_size, bool) or not isinstance(self.exr_size, int) or not 8 <= self.exr_size <= 16384:
@@ -47,7 +50,7 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     from lgi.export.formats import displacement_map, write_exr, write_usd
     from lgi.index.build import LGIIndex
     from lgi.io.arrays import nonfinite_frames
-    from lgi.io.atomic import atomic_dir, check_distinct, check_output
+    from lgi.io.atomic import atomic_dir, check_distinct, check_not_in_store, check_output
     from lgi.io.npz import load_meshes
     from lgi.progress import progress
 
@@ -55,8 +58,10 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     check_distinct({"--usd": o.usd, "--exr": o.exr})
     if o.usd:
         check_output(o.usd, "file", inputs=[recon_dir, index_dir])
+        check_not_in_store(o.usd, "--usd")
     if o.exr:
         check_output(o.exr, "dir", inputs=[recon_dir, index_dir], owned=EXR_ENTRIES, what="lgi displacement map folder")
+        check_not_in_store(o.exr, "--exr")
     src = Path(recon_dir) / "meshes.npz"
     if not src.is_file():
         raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)

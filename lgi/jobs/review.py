@@ -301,6 +301,9 @@ class _Diagnostics:
             if self.has_jaw:
                 np.fmax.at(self._jaw, f, _numbers(d, "jaw_open_deg")[ok])
             self._last_chunk[np.unique(f // block)] = i
+        if not self.status_counts:
+            raise InputError("holds no rows (a header alone): not the diagnostics of this reconstruction's frames",
+                             path=path)
 
     def _chunks(self, usecols: list[str] | None = None, nrows: int | None = None) -> Iterator[pd.DataFrame]:
         """The file's rows, :data:`DIAG_CHUNK_ROWS` at a time (the same chunks on every pass)."""
@@ -515,15 +518,17 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     :data:`DIAG_CHUNK_ROWS` rows at a time, twice.
     """
     from lgi.index.build import LGIIndex
-    from lgi.io.atomic import atomic_dir, check_output
+    from lgi.io.atomic import atomic_dir, check_not_in_store, check_output
     from lgi.review.pack import NOT_MEASURED, DisplacementRange, blob, codes_blob, write_block_page, write_script
 
     o = options or ReviewOptions()
     t0 = time.perf_counter()
     block = int(BLOCK)
-    recon, out = Path(recon_dir), Path(out)
+    recon = Path(recon_dir)
     inputs = [recon, index_dir] + [p for p in (o.truth, o.compare, o.scans, o.rig_solve, o.rig) if p]
     check_output(out, "dir", owned=REVIEW_ENTRIES, what="lgi review folder", inputs=inputs)
+    check_not_in_store(out)
+    out = Path(out)
     meshes = _read_meshes(recon, "RECON_DIR")
     if summary is None:
         summary = _run_record(recon)

@@ -108,7 +108,7 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
 
     from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
     from lgi.io.arrays import nonfinite_frames
-    from lgi.io.atomic import check_distinct, check_output, files_in, job_outputs
+    from lgi.io.atomic import check_distinct, check_not_in_store, check_output, files_in, job_outputs
     from lgi.io.npz import load_meshes
     from lgi.progress import progress
     from lgi.retarget.solve import RigSolver, solve_shot
@@ -123,8 +123,10 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
             raise InputError("--usd needs --rig-usd (the rig's USD from lgi rig-generate --usd): the animation is "
                              "bound to it", path=usd)
         check_output(usd, "file", inputs=inputs)
+        check_not_in_store(usd, "--usd")
         check_distinct({"--out": out, "--usd": usd})
     check_output(out, "dir", inputs=inputs)
+    check_not_in_store(out)
     if not src.is_file():
         raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)
     t0 = time.perf_counter()

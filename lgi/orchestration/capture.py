@@ -193,7 +193,7 @@ def capture_session(
     capture_library_logs()
     at = run_paths()  # a deployment run's relative paths go under the data root, never the worker's cwd
     calibration_images, index_dir = at(calibration_images, "calibration_images"), at(index_dir, "index_dir")
-    markers, out, helmet = at(markers, "markers"), at(out, "out"), at(helmet, "helmet")
+    markers, out, helmet = at(markers, "markers"), at(out, "out", output=True), at(helmet, "helmet")
     shots = [at(s, "shots") for s in shots] if isinstance(shots, (list, tuple)) else at(shots, "shots")
     from lgi.io.atomic import check_output
     from lgi.jobs.export import ExportOptions

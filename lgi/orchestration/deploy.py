@@ -22,6 +22,9 @@ from pathlib import Path
 DATA_ROOT_VARIABLE = "lgi_data_root"
 #: Its value when the Variable is not set (``~``: the home folder of the user the worker runs as).
 DEFAULT_DATA_ROOT = "~/lgi-data"
+#: The Prefect Variable listing, besides the data root, the folders a deployment run may write into (a JSON list
+#: of absolute paths; unset: the data root alone).
+OUTPUT_ROOTS_VARIABLE = "lgi_output_roots"
 #: The environment variable that overrides the project directory recorded at deploy time.
 PROJECT_ENV = "LGI_PROJECT_DIR"
 #: Files that make a folder the lgi project: the deployments' entry points.
@@ -197,35 +200,77 @@ def data_root() -> Path:
     return root
 
 
+def output_roots() -> list[Path]:
+    """The folders besides the data root a deployment run may write into (Prefect Variable
+    :data:`OUTPUT_ROOTS_VARIABLE`), each absolute."""
+    from prefect.variables import Variable
+
+    from lgi.errors import InputError
+
+    value = Variable.get(OUTPUT_ROOTS_VARIABLE, default=None)
+    if value is None:
+        return []
+    if isinstance(value, str):
+        import json
+
+        try:
+            value = json.loads(value)
+        except ValueError:
+            value = [value]
+    if not isinstance(value, list) or not all(isinstance(v, str) and Path(v).is_absolute() for v in value):
+        raise InputError(f"Prefect variable {OUTPUT_ROOTS_VARIABLE} must be a list of absolute folder paths, not "
+                         f"{value!r}")
+    return [Path(v) for v in value]
+
+
 def run_paths() -> PathResolver:
     """The path resolver of the current flow run: relative paths under :func:`data_root` in a deployment's run,
-    as given elsewhere."""
+    outputs kept under it or :func:`output_roots`; as given elsewhere."""
     if not in_deployment():
         return PathResolver(None)
     root = data_root()
     log.info("deployment run: relative paths are taken under %s (Prefect variable %s)", root, DATA_ROOT_VARIABLE)
-    return PathResolver(root)
+    return PathResolver(root, output_roots())
 
 
 class PathResolver:
-    """Resolves a flow's path parameters: with a ``root``, a relative path goes under it (and one climbing out
-    of it with ``..`` is refused); without one, paths are left as given."""
+    """Resolves a flow's path parameters. With a ``root`` (a deployment's run): a relative path goes under it; an
+    output (``output=True``), after its symbolic links are followed, must stay under the root or one of
+    ``allowed`` (a deployment's parameters never make the worker write wherever it may); an input may be
+    absolute; ``~`` and empty paths are refused. Without a root, paths are left as given."""
 
-    def __init__(self, root: Path | None) -> None:
+    def __init__(self, root: Path | None, allowed: list[Path] | tuple[Path, ...] = ()) -> None:
         self.root = root
+        self.allowed = tuple(allowed)
 
-    def __call__(self, value: str | None, name: str, keywords: tuple[str, ...] = ()) -> str | None:
+    def __call__(self, value: str | None, name: str, keywords: tuple[str, ...] = (),
+                 output: bool = False) -> str | None:
         """``value`` of the parameter ``name`` resolved; None, and the ``keywords`` it may take instead of a
         path (``auto``, ``none``), as given."""
         from lgi.errors import InputError
 
         if self.root is None or value is None or not isinstance(value, str) or value in keywords:
             return value
-        path = Path(value).expanduser()
-        if path.is_absolute():
-            return str(path)
-        full = Path(os.path.normpath(self.root / path))
-        if not full.is_relative_to(os.path.normpath(self.root)):
+        if not value.strip():
+            raise InputError(f"parameter {name}: an empty path (it would be the data root {self.root} itself)")
+        if value.startswith("~"):
+            raise InputError(f"parameter {name}: {value!r} names a home folder, which a deployment's run does not "
+                             f"take: give a path under the data root {self.root}")
+        path = Path(value)
+        full = Path(os.path.normpath(path if path.is_absolute() else self.root / path))
+        if not path.is_absolute() and not full.is_relative_to(os.path.normpath(self.root)):
             raise InputError(f"parameter {name}: the relative path {value!r} leaves the data root {self.root} "
                              f"(Prefect variable {DATA_ROOT_VARIABLE}); give an absolute path")
+        if output:
+            real = Path(os.path.realpath(full))
+            roots = [Path(os.path.realpath(r)) for r in (self.root, *self.allowed)]
+            if not any(real == r or real.is_relative_to(r) for r in roots):
+                where = f"the data root {self.root}" + (f" or {', '.join(map(str, self.allowed))}" if self.allowed
+                                                         else "")
+                raise InputError(f"parameter {name}: the output {value!r} leads to {real}, outside {where}: a "
+                                 f"deployment's run writes only there (Prefect variables {DATA_ROOT_VARIABLE}, "
+                                 f"{OUTPUT_ROOTS_VARIABLE})")
+            if real == roots[0]:
+                raise InputError(f"parameter {name}: the output {value!r} is the data root {self.root} itself: "
+                                 "give a folder inside it")
         return str(full)

@@ -167,9 +167,9 @@ def rebuild_dataset(
     """
     capture_library_logs()
     at = run_paths()  # a deployment run's relative paths go under the data root, never the worker's cwd
-    shapes_dir, out, markers = at(shapes_dir, "shapes_dir"), at(out, "out"), at(markers, "markers")
+    shapes_dir, out, markers = at(shapes_dir, "shapes_dir"), at(out, "out", output=True), at(markers, "markers")
     rigid_vertices = at(rigid_vertices, "rigid_vertices", ("auto", "none"))
-    jaw_rig, cache_dir = at(jaw_rig, "jaw_rig"), at(cache_dir, "cache_dir")
+    jaw_rig, cache_dir = at(jaw_rig, "jaw_rig"), at(cache_dir, "cache_dir", output=True)
     if rig is not None:
         rig = rig if isinstance(rig, RigOptions) else RigOptions(**rig)
         if not re.fullmatch(r"\s*\d+\s*:\s*\d+\s*", rig.jaw_vertices):  # an index file, not FIRST:LAST

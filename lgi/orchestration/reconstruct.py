@@ -10,6 +10,7 @@ task_runner=DaskTaskRunner(...))``) give the files ``lgi reconstruct`` writes, b
 from __future__ import annotations
 
 import os
+import re
 import shutil
 from dataclasses import fields
 from pathlib import Path
@@ -24,8 +25,9 @@ from prefect.artifacts import (
 )
 from prefect.cache_policies import NO_CACHE
 
+from lgi.io.atomic import output_lock
 from lgi.jobs import reconstruct as job
-from lgi.jobs.compare import IN_SHOT, CompareOptions, check_scan_frames, shot_scan_options
+from lgi.jobs.compare import IN_SHOT, REGIONS, CompareOptions, check_scan_frames, scan_inputs, shot_scan_options
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
@@ -185,106 +187,112 @@ def reconstruct_shot(
     """
     capture_library_logs()
     at = run_paths()  # a deployment run's relative paths go under the data root, never the worker's cwd
-    index_dir, bundles, out = at(index_dir, "index_dir"), at(bundles, "bundles"), at(out, "out")
+    footage, markers, helmet = at(footage, "footage"), at(markers, "markers"), at(helmet, "helmet")
+    index_dir, out = at(index_dir, "index_dir"), at(out, "out", output=True)
+    bundles = at(bundles, "bundles", output=bool(footage))  # from footage, the tracked bundles are written there
     jaw = at(jaw, "jaw", ("auto", "none"))
     observations, calib, contours = at(observations, "observations"), at(calib, "calib"), at(contours, "contours")
-    footage, markers, helmet = at(footage, "footage"), at(markers, "markers"), at(helmet, "helmet")
     if scans is not None:
         scans = at(scans, "scans") if isinstance(scans, str) else [(f, at(s, "scans")) for f, s in scans]
+    if isinstance(scan_region, str) and scan_region.strip() not in REGIONS \
+            and not re.fullmatch(r"\s*\d+\s*:\s*\d+\s*", scan_region):
+        scan_region = at(scan_region, "scan_region")  # a vertex index file
     params = dict(locals())
     if footage and not (calib and markers):
         raise ValueError("a shot from footage needs calib and markers")
     if footage and not observations:
         params["calib"] = None  # it calibrates the tracking; without observations there are no rays to make
     opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
-    job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
-                           contours))
     # Scans are checked before any work (files there, frames in the shot), their loading and coverage after.
     scan_opts = shot_scan_options(scans, index_dir, out, scan_units, scan_align, scan_region, scan_gate)
-    scan_pairs = None
-    if scan_opts is not None:
-        from lgi.jobs.compare import check_outputs, checked_pairs
+    job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
+                           contours, *scan_inputs(scan_opts)))
+    # One run at a time in OUT (lgi reconstruct holds it already; a deployment's run takes it here).
+    with output_lock(out):
+        scan_pairs = None
+        if scan_opts is not None:
+            from lgi.jobs.compare import check_outputs, checked_pairs
 
-        scan_pairs = checked_pairs(scan_opts)
-        check_outputs(out, scan_opts, scan_pairs)
-    tracking = None
-    if footage:
-        # The actor's index is at hand: the head pose is solved with the face (lgi track --index).
-        tracking = track_footage(footage, calib, markers, bundles, helmet=helmet, index=index_dir)
-        create_table_artifact(table=[{k: v for k, v in tracking.items() if not isinstance(v, (list, dict))}],
-                              key=artifact_key("shot-tracking", out),
-                              description="footage to bundles: tracking summary")
-    n = job.preflight(index_dir, bundles, opts)
-    if scan_pairs:
-        check_scan_frames(scan_pairs, job.prepared_shot(index_dir, bundles, opts).frames, scan_opts)
-    runner = task_runner(dask_address)
-    bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
-    # One working folder per run: two runs into the same OUT never touch each other's chunk files. A stopped run's
-    # folder (its process gone) is this run's when it was the same job in the same chunks: the chunks it finished
-    # are not done again; any other is removed.
-    work = _chunk_folder(Path(out), f"{job.resume_key(index_dir, bundles, opts)}:{chunk_size}")
-    # What a stopped run of this job left (both passes' chunks, with markers on rays), for the report.
-    kept = {"chosen": len(list(work.rglob("choice_*.npz"))), "finished": len(list(work.rglob("part_*.npz"))),
-            "chunks": len(bounds)}
-    # One progress artifact per shot (keyed by OUT, so `prefect artifact ls` lists it), updated by both passes.
-    progress_key = artifact_key("shot-progress", out)
+            scan_pairs = checked_pairs(scan_opts)
+            check_outputs(out, scan_opts, scan_pairs)
+        tracking = None
+        if footage:
+            # The actor's index is at hand: the head pose is solved with the face (lgi track --index).
+            tracking = track_footage(footage, calib, markers, bundles, helmet=helmet, index=index_dir)
+            create_table_artifact(table=[{k: v for k, v in tracking.items() if not isinstance(v, (list, dict))}],
+                                  key=artifact_key("shot-tracking", out),
+                                  description="footage to bundles: tracking summary")
+        n = job.preflight(index_dir, bundles, opts)
+        if scan_pairs:
+            check_scan_frames(scan_pairs, job.prepared_shot(index_dir, bundles, opts).frames, scan_opts)
+        runner = task_runner(dask_address)
+        bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
+        # One working folder per run: two runs into the same OUT never touch each other's chunk files. A stopped run's
+        # folder (its process gone) is this run's when it was the same job in the same chunks: the chunks it finished
+        # are not done again; any other is removed.
+        work = _chunk_folder(Path(out), f"{job.resume_key(index_dir, bundles, opts)}:{chunk_size}")
+        # What a stopped run of this job left (both passes' chunks, with markers on rays), for the report.
+        kept = {"chosen": len(list(work.rglob("choice_*.npz"))), "finished": len(list(work.rglob("part_*.npz"))),
+                "chunks": len(bounds)}
+        # One progress artifact per shot (keyed by OUT, so `prefect artifact ls` lists it), updated by both passes.
+        progress_key = artifact_key("shot-progress", out)
 
-    def chunks(bundles_file: str, options: dict, into: str, folder: Path) -> dict:
-        folder.mkdir(exist_ok=True)
-        if runner is None:
-            # Prefect's threads in this process: the flow's own task runner, and the finished chunks handed to
-            # the writer in memory.
-            return chunk_work(index_dir, bundles_file, options, bounds, str(folder), into, keep=True,
-                              progress_key=progress_key)
-        return reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles_file, options, bounds,
-                                                                   str(folder), into, progress_key)
+        def chunks(bundles_file: str, options: dict, into: str, folder: Path) -> dict:
+            folder.mkdir(exist_ok=True)
+            if runner is None:
+                # Prefect's threads in this process: the flow's own task runner, and the finished chunks handed to
+                # the writer in memory.
+                return chunk_work(index_dir, bundles_file, options, bounds, str(folder), into, keep=True,
+                                  progress_key=progress_key)
+            return reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles_file, options, bounds,
+                                                                       str(folder), into, progress_key)
 
-    try:
-        if opts.observations:
-            # As lgi reconstruct does: the shot without the markers seen by one camera, then through their points
-            # on their rays.
-            first = job.replace_outputs(opts)
-            chunks(bundles, first.to_json(), str(work / "first"), work / "pass1")
-            constrained = str(work / job.CONSTRAINED)
-            counts = rays_task(index_dir, bundles, opts.to_json(), str(work / "first"), constrained)
-            summary = {**chunks(constrained, opts.to_json(), out, work / "pass2"), **counts}
-        else:
-            summary = chunks(bundles, opts.to_json(), out, work)
-    except (KeyboardInterrupt, SystemExit):
-        job.forget_parts(work)  # stopped: the chunks written wait for the same run again
-        raise
-    except BaseException:
+        try:
+            if opts.observations:
+                # As lgi reconstruct does: the shot without the markers seen by one camera, then through their points
+                # on their rays.
+                first = job.replace_outputs(opts)
+                chunks(bundles, first.to_json(), str(work / "first"), work / "pass1")
+                constrained = str(work / job.CONSTRAINED)
+                counts = rays_task(index_dir, bundles, opts.to_json(), str(work / "first"), constrained)
+                summary = {**chunks(constrained, opts.to_json(), out, work / "pass2"), **counts}
+            else:
+                summary = chunks(bundles, opts.to_json(), out, work)
+        except (KeyboardInterrupt, SystemExit):
+            job.forget_parts(work)  # stopped: the chunks written wait for the same run again
+            raise
+        except BaseException:
+            job.forget_parts(work)
+            shutil.rmtree(work, ignore_errors=True)
+            raise
         job.forget_parts(work)
         shutil.rmtree(work, ignore_errors=True)
-        raise
-    job.forget_parts(work)
-    shutil.rmtree(work, ignore_errors=True)
-    if kept["chosen"] or kept["finished"]:
-        summary["resumed_chunks"] = kept
-    page_warnings = []
-    if scan_opts is not None:
-        summary["compare"] = _compare_scans(out, scan_opts, scan_pairs)
-        if summary["compare"]["status"] != "done":
-            page_warnings.append(f"scan comparison failed: {summary['compare']['error']}")
-    else:
-        from lgi.jobs.compare import remove_outputs
+        if kept["chosen"] or kept["finished"]:
+            summary["resumed_chunks"] = kept
+        page_warnings = []
+        if scan_opts is not None:
+            summary["compare"] = _compare_scans(out, scan_opts, scan_pairs)
+            if summary["compare"]["status"] != "done":
+                page_warnings.append(f"scan comparison failed: {summary['compare']['error']}")
+        else:
+            from lgi.jobs.compare import remove_outputs
 
-        remove_outputs(Path(out) / IN_SHOT)  # an earlier run's distances were measured on other meshes
-    if review:
-        done = summary.get("compare", {}).get("status") == "done"
-        summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, fps,
-                                        scan_opts.out if done else None, page_warnings)
-    else:
-        from lgi.jobs.review import remove_review
+            remove_outputs(Path(out) / IN_SHOT)  # an earlier run's distances were measured on other meshes
+        if review:
+            done = summary.get("compare", {}).get("status") == "done"
+            summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, fps,
+                                            scan_opts.out if done else None, page_warnings)
+        else:
+            from lgi.jobs.review import remove_review
 
-        remove_review(out)  # an earlier run's page would show that run, not this one
-    _report(summary, out)
-    logger = get_run_logger()
-    for line in job.report_lines(summary):
-        logger.info(line)
-    if tracking:
-        summary["tracking"] = tracking
-    return summary
+            remove_review(out)  # an earlier run's page would show that run, not this one
+        _report(summary, out)
+        logger = get_run_logger()
+        for line in job.report_lines(summary):
+            logger.info(line)
+        if tracking:
+            summary["tracking"] = tracking
+        return summary
 
 
 def _chunk_folder(out: Path, key: str) -> Path:
@@ -429,8 +437,6 @@ EMBEDDED_HEATMAPS = 3
 def _scan_report(summary: dict, out: str) -> str:
     """The scan comparison's table artifact (a row per pair: its figures, or that it failed) and its section of
     the shot's report ("" without scans)."""
-    from lgi.jobs.compare import heatmap_name
-
     c = summary.get("compare")
     if not c:
         return ""
@@ -452,8 +458,8 @@ def _scan_report(summary: dict, out: str) -> str:
               f"{r['p95_mm']:.3f} | {r['max_mm']:.3f} | {r['hausdorff_mm']:.3f} |" for r in c["pairs"]]
     lines.append("")
     for k, r in enumerate(c["pairs"]):
-        png = folder / "heatmaps" / f"{heatmap_name(int(r['frame']), Path(r['scan']))}.png"
-        if png.is_file():
+        png = folder / r["heatmap"] if r.get("heatmap") else None
+        if png is not None and png.is_file():
             lines.append(embedded_png(png, f"frame {r['frame']} against {Path(r['scan']).name}")
                          if k < EMBEDDED_HEATMAPS else f"- heat map: [{png.name}]({png.as_uri()})")
     return "\n".join(lines) + "\n"

@@ -32,10 +32,11 @@ OUTPUT_CONTENTS = {"obj": ("frame_*.obj", "*.mtl"), "shot.clips": USD_CLIP_CONTE
 def check_output(out: str | Path, inputs: tuple[Any, ...] = ()) -> None:
     """Refuse, before any work, an output path that cannot become the job's directory, or whose outputs would
     replace one of the run's ``inputs`` (index, bundles, jaw file)."""
-    from lgi.io.atomic import check_contents
+    from lgi.io.atomic import check_contents, check_not_in_store
     from lgi.io.atomic import check_output as check
 
     check(out, "dir")
+    check_not_in_store(out)
     check_contents(out, OUTPUT_CONTENTS)
     for name in OUTPUTS:
         check(Path(out) / name, "dir" if name in OUTPUT_CONTENTS else "file", inputs=inputs)

@@ -417,10 +417,10 @@
     const m = S.pinned >= 0 ? S.pinned : S.hover, el = $("marker");
     if (m < 0) { el.textContent = "hover or click a marker"; return; }
     const row = diagnostics(S.frame, m);
-    const rows = Object.entries(row).map(([k, v]) => `<tr><td>${k}</td><td>${esc(fmt(v))}</td></tr>`).join("");
+    const rows = Object.entries(row).map(([k, v]) => `<tr><td>${esc(k)}</td><td>${esc(fmt(v))}</td></tr>`).join("");
     el.innerHTML = (S.pinned >= 0 ? "<i>pinned (click empty space to unpin)</i>" : "") + `<table>${rows}</table>`;
   }
-  function esc(s) { return String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" })[c]); }
+  function esc(s) { return String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]); }
   function colourBar() {
     const c = $("cbar"), g = c.getContext("2d"), m = maps[S.map];
     $("colourbar").style.display = m ? "block" : "none";
@@ -460,7 +460,7 @@
     for (let i = 0; i < status.length; i++) used.add(status[i]);
     $("legend").innerHTML = META.statuses.filter((s, i) => used.has(i)).map((s) => {
       const c = STATUS_RGB[s].map((v) => Math.round(v * 255));
-      return `<span><i style="background:rgb(${c})"></i>${s}</span>`;
+      return `<span><i style="background:rgb(${c})"></i>${esc(s)}</span>`;
     }).join("");
   }
   function summary() {
