@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from _review_checks import check_marker_colours
+from _review_checks import SHOW_HOSTILE, check_marker_colours, check_nothing_ran, hostile_page
 
 from lgi.cli import main
 from lgi.review.pack import blob, decode_codes, dequantise_frames, encode_codes, quantise_frames, quantise_map, unblob
@@ -797,4 +797,29 @@ def test_scan_map_in_the_browser(browser, scanned, tmp_path):
     scan_at_0 = _pixels(pg.locator("#gl").screenshot())
     pg.select_option("#map", "none")
     assert np.abs(scan_at_0 - _pixels(pg.locator("#gl").screenshot())).max() <= 2
+    pg.close()
+
+
+@pytest.fixture(scope="module")
+def hostile(tmp_path_factory) -> dict:
+    return hostile_page(tmp_path_factory.mktemp("hostile"))
+
+
+# An inline handler added to the page after it loaded: the page's policy forbids it, whatever put it there.
+INJECTED = """new Promise((done) => {
+  document.body.insertAdjacentHTML("beforeend", '<img src="data:," onload="window.__injected = 1">');
+  setTimeout(() => done(window.__injected === undefined ? null : window.__injected), 500);
+})"""
+
+
+def test_names_in_the_data_run_no_script(browser, hostile):
+    pg = browser.new_page()
+    violations: list[str] = []
+    pg.on("console", lambda m: violations.append(m.text) if "Content Security Policy" in m.text else None)
+    pg.goto(hostile["page"].resolve().as_uri())
+    pg.wait_for_function("window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)", timeout=60_000)
+    assert pg.evaluate("window.lgiReview.error") is None
+    check_nothing_ran(pg.evaluate(SHOW_HOSTILE), hostile)
+    assert not violations  # the names were text: nothing even tried to run
+    assert pg.evaluate(INJECTED) is None and violations  # and markup that did get in would not run
     pg.close()

@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 from _firefox import FIREFOX, BiDiError, Firefox
-from _review_checks import check_marker_colours
-from test_review import SCANNED, _pixels, scanned, shot  # noqa: F401 - fixtures shared with the Chromium tests
+from _review_checks import SHOW_HOSTILE, check_marker_colours, check_nothing_ran
+from test_review import INJECTED, SCANNED, _pixels, hostile, scanned, shot  # noqa: F401 - fixtures shared with the Chromium tests
 
 READY = "window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)"
 
@@ -160,3 +160,12 @@ def test_a_far_frame_loads_its_block(firefox, shot, tmp_path, monkeypatch):  # n
                       "await p; return [at, window.lgiReview.shown()]; })()")
     assert got == [{"frame": 15, "at": 16, "exact": False}, {"frame": 15, "at": 15, "exact": True}]
     assert 7 in ff.evaluate("window.lgiReview.blocksHeld()")
+
+
+def test_names_in_the_data_run_no_script(firefox, hostile):  # noqa: F811 - pytest's fixture, imported above
+    firefox.errors.clear()
+    firefox.goto(hostile["page"].resolve().as_uri())
+    firefox.wait_for(READY)
+    assert firefox.evaluate("window.lgiReview.error") is None
+    check_nothing_ran(firefox.evaluate(SHOW_HOSTILE), hostile)
+    assert firefox.evaluate(INJECTED) is None

@@ -519,7 +519,16 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     """
     from lgi.index.build import LGIIndex
     from lgi.io.atomic import atomic_dir, check_not_in_store, check_output
-    from lgi.review.pack import NOT_MEASURED, DisplacementRange, blob, codes_blob, write_block_page, write_script
+    from lgi.review.pack import (
+        NOT_MEASURED,
+        PAGE_POLICY,
+        DisplacementRange,
+        blob,
+        codes_blob,
+        with_policy,
+        write_block_page,
+        write_script,
+    )
 
     o = options or ReviewOptions()
     t0 = time.perf_counter()
@@ -668,8 +677,8 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     files: list[str] = []
     static = resources.files("lgi.review") / "static"
     with atomic_dir(out, REVIEW_ENTRIES, "lgi review folder") as tmp:
-        for name in ("index.html", "viewer.js"):
-            (tmp / name).write_bytes((static / name).read_bytes())
+        (tmp / "index.html").write_text(with_policy((static / "index.html").read_text("utf-8"), PAGE_POLICY), "utf-8")
+        (tmp / "viewer.js").write_bytes((static / "viewer.js").read_bytes())
         (tmp / FRAMES_DIR).mkdir()
         block_bytes = 0
         for b, rows in diag.blocks():

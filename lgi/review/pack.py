@@ -303,6 +303,31 @@ def unblob(b: dict[str, Any]) -> np.ndarray:
     return np.frombuffer(raw, np.dtype("<" + b["dtype"])).reshape(b["shape"])
 
 
+#: The review page's Content-Security-Policy (its inline scripts' hashes are added): scripts from the page's folder
+#: and the inline ones lgi wrote, nothing from elsewhere, no inline handlers (an ``onerror=`` that a name in the
+#: data smuggled into the page does not run), no network.
+PAGE_POLICY = ("default-src 'none'; script-src 'self' {hashes}; style-src 'self' 'unsafe-inline'; "
+               "img-src 'self' data:; frame-src 'self'; connect-src 'none'; base-uri 'none'; form-action 'none'")
+#: A block page's: its own script only.
+BLOCK_POLICY = "default-src 'none'; script-src {hashes}; base-uri 'none'; form-action 'none'"
+
+
+def with_policy(html: str, policy: str) -> str:
+    """``html`` with a ``<meta http-equiv="Content-Security-Policy">`` of ``policy`` (``{hashes}``: the sha256 of
+    each inline ``<script>`` of ``html``) right after its ``<meta charset>``."""
+    import hashlib
+    import re
+
+    scripts = re.findall(r"<script>(.*?)</script>", html, re.S)
+    hashes = " ".join(f"'sha256-{base64.b64encode(hashlib.sha256(t.encode('utf-8')).digest()).decode()}'"
+                      for t in scripts)
+    meta = f'<meta http-equiv="Content-Security-Policy" content="{policy.format(hashes=hashes)}">'
+    charset = '<meta charset="utf-8">'
+    if charset not in html:
+        raise ValueError("a review page without <meta charset=\"utf-8\">")
+    return html.replace(charset, f"{charset}\n{meta}", 1)
+
+
 def write_script(path: str | Path, name: str, payload: dict[str, Any]) -> int:
     """Write ``payload`` as a script assigning ``window[name]``; returns its size in bytes. Non-finite numbers
     become null (JSON has none)."""
@@ -333,8 +358,9 @@ def write_block_page(path: str | Path, payload: dict[str, Any], registry: str) -
     whole."""
     text = json.dumps(_finite(payload), separators=(",", ":"), allow_nan=False).replace("<", "\\u003c")
     script = block_page_script(registry)
-    html = (f'<!DOCTYPE html>\n<meta charset="utf-8">\n<title>lgi review block {payload["block"]}</title>\n'
-            f'<script type="application/json" id="lgi-block">{text}</script>\n<script>{script}</script>\n')
+    html = with_policy(f'<!DOCTYPE html>\n<meta charset="utf-8">\n<title>lgi review block {payload["block"]}</title>\n'
+                       f'<script type="application/json" id="lgi-block">{text}</script>\n<script>{script}</script>\n',
+                       BLOCK_POLICY)
     data = html.encode("utf-8")
     Path(path).write_bytes(data)
     return len(data)
