@@ -578,7 +578,7 @@ def browser():
 
 @pytest.fixture()
 def page(browser, shot):
-    pg = browser.new_page(viewport={"width": 1100, "height": 760}, device_scale_factor=1)
+    pg = browser.new_page(viewport={"width": 1100, "height": 760}, device_scale_factor=1, bypass_csp=True)
     errors: list[str] = []
     pg.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     pg.on("pageerror", lambda e: errors.append(str(e)))
@@ -677,7 +677,7 @@ def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_
     job.review(shot / "rec", shot / "idx", tmp_path / "blocks", job.ReviewOptions(truth=str(shot / "s" / "truth.npz")))
     shots = []
     for folder in (shot / "page", tmp_path / "blocks"):
-        pg = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1)
+        pg = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1, bypass_csp=True)
         pg.goto((folder / "index.html").resolve().as_uri())
         pg.wait_for_function("window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)",
                              timeout=60_000)
@@ -689,7 +689,7 @@ def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_
 
 
 def _open(browser, folder: Path):
-    pg = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1)
+    pg = browser.new_page(viewport={"width": 900, "height": 600}, device_scale_factor=1, bypass_csp=True)
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
     pg.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
@@ -702,7 +702,7 @@ def _open(browser, folder: Path):
 def test_a_block_file_loads_on_its_own(browser, small_blocks):
     """A block file is a page of its own: opened alone, it puts its block in window.LGI_REVIEW_BLOCKS (framed by
     the review page, it hands the block over instead); its data is JSON the browser does not run."""
-    pg = browser.new_page()
+    pg = browser.new_page(bypass_csp=True)
     pg.goto((small_blocks / "frames" / "block_00001.html").resolve().as_uri())
     got = pg.evaluate("[Object.keys(window.LGI_REVIEW_BLOCKS), window.LGI_REVIEW_BLOCKS[1].lo, "
                       "window.LGI_REVIEW_BLOCKS[1].n, Object.keys(window.LGI_REVIEW_BLOCKS[1].maps)]")
@@ -750,7 +750,7 @@ def test_scan_map_in_the_browser(browser, scanned, tmp_path):
     from lgi.review.pack import NOT_COVERED, TOP_WITH_GAPS
 
     t = scanned
-    pg = browser.new_page(viewport={"width": 1000, "height": 700}, device_scale_factor=1)
+    pg = browser.new_page(viewport={"width": 1000, "height": 700}, device_scale_factor=1, bypass_csp=True)
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
     pg.goto((t / "page_scans" / "index.html").resolve().as_uri())
@@ -813,11 +813,13 @@ INJECTED = """new Promise((done) => {
 
 
 def test_names_in_the_data_run_no_script(browser, hostile):
+    # The page's policy on (the other tests bypass it: it forbids the eval of Playwright's wait_for_function).
     pg = browser.new_page()
     violations: list[str] = []
     pg.on("console", lambda m: violations.append(m.text) if "Content Security Policy" in m.text else None)
     pg.goto(hostile["page"].resolve().as_uri())
-    pg.wait_for_function("window.lgiReview && (window.lgiReview.idle || window.lgiReview.error)", timeout=60_000)
+    pg.evaluate("""new Promise((done) => { const poll = () => { const a = window.lgiReview;
+      if (a && (a.idle || a.error)) done(); else setTimeout(poll, 20); }; poll(); })""")
     assert pg.evaluate("window.lgiReview.error") is None
     check_nothing_ran(pg.evaluate(SHOW_HOSTILE), hostile)
     assert not violations  # the names were text: nothing even tried to run

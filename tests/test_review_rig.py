@@ -88,7 +88,7 @@ def test_rig_map_bad_input(solved, tmp_path, capsys):
 
 
 def test_rig_map_in_the_browser(browser, solved, tmp_path):  # noqa: F811
-    pg = browser.new_page(viewport={"width": 1000, "height": 700}, device_scale_factor=1)
+    pg = browser.new_page(viewport={"width": 1000, "height": 700}, device_scale_factor=1, bypass_csp=True)
     errors: list[str] = []
     pg.on("pageerror", lambda e: errors.append(str(e)))
     pg.goto((solved / "page" / "index.html").resolve().as_uri())
