@@ -11,15 +11,23 @@ the blendshape fit misses most (its true vertex RMS over the face; the nonlinear
 ``lgi compare --index --region face --units mm`` (the job function) measures both, without and with ``--align
 rigid``; the table also gives each frame's true vertex RMS over the same region (known here, not in a studio) for
 reference. Prints a Markdown table (mm).
+
+``--dense 1e6,5e6``: the size studios scan. One of those scans (a remeshed frame with its hole) subdivided at
+edge midpoints until it has about each count of vertices, written as binary PLY in mm, and ``lgi compare`` on the
+LGI frame as a whole process (its wall time and peak resident memory), with and without ``--align rigid``. The
+table goes into docs/compare.md with ``--doc``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from common import lgi_timed, log, write_marked
 
 HOLE = (0.0, 6.0, 1.6, 1.2)  # the forehead (cm): centre x, y, half width, half height
 
@@ -30,9 +38,98 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=120)
     p.add_argument("--scans", type=int, default=3)
     p.add_argument("--out", help="keep the work folder here (default: a temporary one)")
+    p.add_argument("--dense", help="comma-separated scan sizes (vertices, e.g. 2.5e5,1e6,5e6): the dense-scan "
+                                   "table instead of the methods' one")
+    p.add_argument("--doc", type=Path, action="append", default=[], help="write the table into this Markdown file")
     a = p.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench-compare-") as tmp:
-        run(Path(a.out) if a.out else Path(tmp), a.vertices, a.frames, a.scans)
+        w = Path(a.out) if a.out else Path(tmp)
+        if a.dense:
+            text = dense(w, a.vertices, a.frames, [int(float(x)) for x in a.dense.split(",")])
+            print(text)
+            for doc in a.doc:
+                write_marked(doc, "compare-dense", text)
+        else:
+            run(w, a.vertices, a.frames, a.scans)
+
+
+def subdivided(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One midpoint subdivision: a vertex at each edge's middle, each triangle split in four (the surface is
+    unchanged, the vertex count about four times)."""
+    t = np.asarray(triangles, np.int64)
+    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    uniq, inverse = np.unique(e, axis=0, return_inverse=True)
+    mid = (len(vertices) + inverse.reshape(3, -1)).T  # (T, 3): the middles of edges 01, 12, 20
+    v = np.concatenate([vertices, 0.5 * (vertices[uniq[:, 0]] + vertices[uniq[:, 1]])])
+    a, b, c = t.T
+    ab, bc, ca = mid.T
+    return v, np.concatenate([np.stack(x, 1) for x in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+
+
+def write_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    """A binary little-endian PLY, as scanners write them (float32 vertices, uchar-counted int32 faces)."""
+    face = np.zeros(len(triangles), np.dtype([("n", "u1"), ("v", "<i4", 3)]))
+    face["n"], face["v"] = 3, triangles
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as f:
+        f.write((f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\nproperty float x\n"
+                 f"property float y\nproperty float z\nelement face {len(triangles)}\n"
+                 "property list uchar int vertex_indices\nend_header\n").encode())
+        f.write(np.ascontiguousarray(vertices, "<f4").tobytes())
+        f.write(face.tobytes())
+
+
+def dense(w: Path, vertices: int, frames: int, sizes: list[int]) -> str:
+    """The dense-scan table: ``lgi compare`` of the LGI frame against its remeshed frame subdivided to about each
+    of ``sizes`` vertices, as a whole process."""
+    from lgi.dataset.shapes import ShapeDataset
+    from lgi.evaluation.compare import remeshed_scan
+    from lgi.jobs.index import build
+    from lgi.jobs.reconstruct import reconstruct
+    from lgi.jobs.synthetic import SynthOptions, write_synthetic
+
+    s = w / "synth"
+    if not (w / "lgi" / "meshes.npz").is_file():
+        write_synthetic(s, SynthOptions(vertices=vertices, frames=frames))
+        build(s / "dataset", s / "markers.csv", w / "index", jaw_rig=s / "jaw_rig.npz")
+        reconstruct(w / "index", s / "bundles.csv", w / "lgi")
+    truth = np.load(s / "truth.npz")["vertices"].astype(np.float64)
+    ds = ShapeDataset.load(s / "dataset")
+    tri = ds.triangles.astype(np.int64)
+    frame = frames // 2
+    edge = float(np.linalg.norm(ds.neutral[tri[:, 0]] - ds.neutral[tri[:, 1]], axis=1).mean())
+    rows = []
+    for size in sizes:
+        # Subdivision multiplies the count by about 4: the remeshed base is sized so that the last level lands
+        # near ``size``.
+        levels = max(0, round(np.log(size / ds.n_vertices) / np.log(4)))
+        base = size / 4 ** levels
+        sv, st = remeshed_scan(truth[frame], tri, 0.8 * edge * np.sqrt(ds.n_vertices * 1.19 / base), HOLE)
+        for _ in range(levels):
+            sv, st = subdivided(sv, st)
+        path = w / "scans" / f"scan_{len(sv)}.ply"
+        write_ply(path, sv * 10.0, st)
+        log(f"{path.name}: {len(sv)} vertices, {len(st)} triangles, {path.stat().st_size / 2 ** 20:.0f} MiB")
+        del sv, st
+        for align in ("none", "rigid"):
+            out = w / f"compare-{size}-{align}"
+            shutil.rmtree(out, ignore_errors=True)
+            r = lgi_timed("compare", str(w / "lgi"), "--frame", str(frame), "--scan", str(path), "--index",
+                          str(w / "index"), "--region", "face", "--units", "mm", "--align", align, "--out", str(out))
+            summary = json.loads((out / "summary.json").read_text())[0]
+            rows.append((summary["scan_points"], path.stat().st_size / 2 ** 20, align, r.wall_s, r.peak_mib,
+                         summary["rms_mm"], summary["covered_share"]))
+            shutil.rmtree(out, ignore_errors=True)
+        path.unlink()
+    lines = [f"synthetic actor, {ds.n_vertices} vertices; frame {frame} of LGI's reconstruction against its true "
+             "surface remeshed with the forehead hole and subdivided at edge midpoints; binary PLY in mm; `lgi "
+             "compare --region face --units mm` as a whole process, one run each; peak resident memory of the "
+             "process", "",
+             "| scan vertices | PLY MiB | align | wall s | us per scan vertex | peak MiB | RMS mm | covered |",
+             "|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {n:,} | {mib:.0f} | {align} | {wall:.1f} | {wall / n * 1e6:.1f} | {peak:.0f} | {rms:.3f} | "
+              f"{cov * 100:.1f} % |" for n, mib, align, wall, peak, rms, cov in rows]
+    return "\n".join(lines) + "\n"
 
 
 def run(w: Path, vertices: int, frames: int, n_scans: int) -> None:

@@ -113,3 +113,33 @@ def test_a_header_that_declares_more_than_the_file_holds_is_refused(tmp_path) ->
     s.write_bytes(bytes(80) + struct.pack("<I", 1000) + bytes(50))
     with pytest.raises(InputError, match="neither a binary STL"):
         read_scan(s)
+
+
+def test_a_binary_triangle_ply_is_mapped_and_reads_as_pymeshlab_reads_it(tmp_path, monkeypatch) -> None:
+    """Dense scans come as binary PLY: plyfile maps them (no copy in pymeshlab); the scan is the same either way,
+    and PLY files plyfile cannot map as triangles (text, polygons) still load through pymeshlab."""
+    import lgi.evaluation.compare as compare
+
+    p = saved(tmp_path / "b.ply", True)
+    mapped = read_scan(p, "mm")
+    assert compare._triangle_ply(p) is not None
+    monkeypatch.setattr(compare, "_triangle_ply", lambda path: None)  # pymeshlab's reading of the same file
+    general = read_scan(p, "mm")
+    monkeypatch.undo()
+    assert np.array_equal(mapped.vertices, general.vertices) and np.array_equal(mapped.triangles, general.triangles)
+    assert compare._triangle_ply(saved(tmp_path / "a.ply", False)) is None
+    v, t = grid()
+    quads = tmp_path / "q.ply"
+    quads.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+                      b"property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                      + v[[0, 1, 7, 6]].astype("<f4").tobytes() + bytes([4]) + np.arange(4, dtype="<i4").tobytes())
+    assert compare._triangle_ply(quads) is None and len(read_scan(quads).triangles) == 2
+    # A face naming a vertex the file lacks is refused with the face.
+    bad = tmp_path / "bad.ply"
+    face = np.zeros(1, np.dtype([("n", "u1"), ("v", "<i4", 3)]))
+    face["n"], face["v"] = 3, [0, 1, 9]
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                    b"property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                    + v[:3].astype("<f4").tobytes() + face.tobytes())
+    with pytest.raises(InputError, match="face 0 .* refers to a vertex"):
+        read_scan(bad)

@@ -76,44 +76,9 @@ def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: n
     (N, 3) float64
         Barycentric weights ``(wa, wb, wc)``, non-negative, summing to 1.
     """
-    p, a, b, c = (np.asarray(x, np.float64) for x in (p, a, b, c))
-    ab, ac, ap = b - a, c - a, p - a
-    d1 = np.einsum("ij,ij->i", ab, ap)
-    d2 = np.einsum("ij,ij->i", ac, ap)
-    bp = p - b
-    d3 = np.einsum("ij,ij->i", ab, bp)
-    d4 = np.einsum("ij,ij->i", ac, bp)
-    cp = p - c
-    d5 = np.einsum("ij,ij->i", ab, cp)
-    d6 = np.einsum("ij,ij->i", ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    out = np.empty((p.shape[0], 3))
-    done = np.zeros(p.shape[0], bool)
+    from lgi.dataset._closest import closest_bary_rows
 
-    def put(mask: np.ndarray, w: np.ndarray) -> None:
-        m = mask & ~done
-        out[m] = w[m]
-        done[m] = True
-
-    one = np.ones_like(d1)
-    zero = np.zeros_like(d1)
-    put((d1 <= 0) & (d2 <= 0), np.stack([one, zero, zero], 1))
-    put((d3 >= 0) & (d4 <= d3), np.stack([zero, one, zero], 1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        v = d1 / (d1 - d3)
-        put((vc <= 0) & (d1 >= 0) & (d3 <= 0), np.stack([1 - v, v, zero], 1))
-        put((d6 >= 0) & (d5 <= d6), np.stack([zero, zero, one], 1))
-        w = d2 / (d2 - d6)
-        put((vb <= 0) & (d2 >= 0) & (d6 <= 0), np.stack([1 - w, zero, w], 1))
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        put((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), np.stack([zero, 1 - w, w], 1))
-        denom = 1.0 / (va + vb + vc)
-        v = vb * denom
-        w = vc * denom
-        put(np.ones_like(done), np.stack([1 - v - w, v, w], 1))
-    return out
+    return closest_bary_rows(*(np.ascontiguousarray(x, np.float64).reshape(-1, 3) for x in (p, a, b, c)))
 
 
 class ClosestPointQuery:
@@ -134,20 +99,34 @@ class ClosestPointQuery:
 
     #: Triangles larger than this many median triangles' radii are subdivided into samples.
     SAMPLE_RADIUS = 2.0
-    #: Candidate (point, triangle) pairs tested at once: about 250 bytes each of working arrays.
+    #: Candidate (point, triangle) pairs tested at once: 16 bytes each of the k-d tree's answer.
     PAIRS = 1 << 19
+    #: Triangles whose corners are held at once while the query is built.
+    BLOCK = 1 << 18
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray) -> None:
         self.vertices = np.asarray(vertices, np.float64)
         self.triangles = np.asarray(triangles, np.int64)
-        corners = self.vertices[self.triangles]
-        self._centroids = corners.mean(axis=1)
-        radius = np.linalg.norm(corners - self._centroids[:, None], axis=2).max(axis=1) if len(corners) else \
-            np.zeros(0)
+        # Corners, centroids and radii a block of triangles at a time: whole, a 10-million-triangle scan's corners
+        # alone were 720 MB.
+        n_tri = len(self.triangles)
+        self._centroids = np.empty((n_tri, 3))
+        radius = np.empty(n_tri)
+        for lo in range(0, n_tri, self.BLOCK):
+            corners = self.vertices[self.triangles[lo:lo + self.BLOCK]]
+            self._centroids[lo:lo + self.BLOCK] = corners.mean(axis=1)
+            radius[lo:lo + self.BLOCK] = np.linalg.norm(corners - self._centroids[lo:lo + self.BLOCK, None],
+                                                        axis=2).max(axis=1)
         cap = self.SAMPLE_RADIUS * float(np.median(radius)) if len(radius) else 0.0
         split = np.ones(len(radius), np.int64)
         if cap > 0:
             split = np.maximum(1, np.ceil(radius / cap)).astype(np.int64)
+        # Each sample's triangle (None: the samples are the centroids, in order, as in a scan of even triangles).
+        self._owner: np.ndarray | None = None
+        if (split == 1).all():
+            self._tree = self._kd_tree(self._centroids)
+            self._radius = float(radius.max()) if len(radius) else 0.0
+            return
         samples, owner = [self._centroids[split == 1]], [np.flatnonzero(split == 1)]
         for n in np.unique(split[split > 1]):
             which = np.flatnonzero(split == n)
@@ -157,7 +136,7 @@ class ClosestPointQuery:
             down = (i + j <= n - 2)
             st = np.concatenate([np.stack([i[up] + 1 / 3, j[up] + 1 / 3], 1),
                                  np.stack([i[down] + 2 / 3, j[down] + 2 / 3], 1)]) / n
-            c = corners[which]
+            c = self.vertices[self.triangles[which]]
             pts = c[:, None, 0] + st[None, :, :1] * (c[:, None, 1] - c[:, None, 0]) + \
                 st[None, :, 1:] * (c[:, None, 2] - c[:, None, 0])
             samples.append(pts.reshape(-1, 3))
@@ -165,9 +144,13 @@ class ClosestPointQuery:
         self._owner = np.concatenate(owner)
         # Every point of a triangle is within its radius / n of one of its samples.
         self._radius = float((radius / split).max()) if len(radius) else 0.0
+        self._tree = self._kd_tree(np.concatenate(samples))
+
+    @staticmethod
+    def _kd_tree(samples: np.ndarray):
         from scipy.spatial import cKDTree  # here, not at the top: importing scipy.spatial costs every command 0.3 s
 
-        self._tree = cKDTree(np.concatenate(samples))
+        return cKDTree(samples)
 
     def query(self, points: np.ndarray, k: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Closest surface point of each query point.
@@ -192,7 +175,7 @@ class ClosestPointQuery:
         bary = np.zeros((n, 3))
         dist = np.full(n, np.inf)
         todo = np.arange(n)
-        n_samples = len(self._owner)
+        n_samples = self._tree.n
         k = min(k, n_samples)
         while todo.size:
             unsure = []
@@ -209,20 +192,13 @@ class ClosestPointQuery:
                  rows_out: np.ndarray) -> np.ndarray:
         """The closest of the triangles of the ``k`` samples nearest each of ``p`` (N, 3), written to ``tri``,
         ``bary`` and ``dist`` at ``rows_out``; returns the k-th sample's distance (N,)."""
+        from lgi.dataset._closest import nearest_of_candidates
+
         cd, si = self._tree.query(p, k=k)
         cd = cd.reshape(len(p), -1)
-        ci = self._owner[si.reshape(len(p), -1)]
-        q = np.repeat(p, ci.shape[1], axis=0)
-        t = self.triangles[ci.ravel()]
-        w = closest_point_on_triangles(q, self.vertices[t[:, 0]], self.vertices[t[:, 1]], self.vertices[t[:, 2]])
-        cp = np.einsum("nk,nkd->nd", w, self.vertices[t])
-        d = np.linalg.norm(cp - q, axis=1).reshape(len(p), -1)
-        # Of equally close triangles (a point nearest a shared edge or vertex), the one whose centroid is nearest.
-        tie = d == d.min(axis=1, keepdims=True)
-        centre = np.linalg.norm(self._centroids[ci] - p[:, None], axis=2)
-        best = np.argmin(np.where(tie, centre, np.inf), axis=1)
-        rows = np.arange(len(p))
-        tri[rows_out] = ci[rows, best]
-        bary[rows_out] = w.reshape(len(p), -1, 3)[rows, best]
-        dist[rows_out] = d[rows, best]
+        t, b, d = np.empty(len(p), np.int64), np.empty((len(p), 3)), np.empty(len(p))
+        si = si.reshape(len(p), -1)
+        nearest_of_candidates(p, si if self._owner is None else self._owner[si], self.vertices, self.triangles,
+                              self._centroids, t, b, d)
+        tri[rows_out], bary[rows_out], dist[rows_out] = t, b, d
         return cd[:, -1]

@@ -2,9 +2,11 @@
 
 Distances are point-to-surface, both ways, measured at vertices: every reconstruction vertex to the closest point
 of the scan's triangles, and every scan vertex to the closest point of the reconstruction's triangles (not to the
-nearest vertex). pymeshlab's ``compute_scalar_by_distance_from_another_mesh_per_vertex`` gives the distances (and
-their sign, from the other surface's face normals); the project's :class:`~lgi.dataset.mesh.ClosestPointQuery`
-says *where* the closest point is (its triangle and barycentric coordinates), which decides coverage:
+nearest vertex). The reconstruction's vertices are measured by the project's
+:class:`~lgi.dataset.mesh.ClosestPointQuery` on the scan (exact, signed by the closest triangle's normal); the
+scan's vertices by pymeshlab's ``compute_scalar_by_distance_from_another_mesh_per_vertex``, a block at a time
+(neither holds a dense scan's triangles twice). Where the closest point is (its triangle and barycentric
+coordinates) decides coverage:
 
 * a reconstruction vertex is **covered** when the closest scan point is not on the scan's border (an open edge:
   the scan's outline or one of its holes) and lies within the gate; elsewhere the scan says nothing about it;
@@ -24,11 +26,15 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lgi.errors import InputError
 from lgi.units import MM_PER_CM, check_units
+
+if TYPE_CHECKING:
+    from lgi.dataset.mesh import ClosestPointQuery
 
 #: Scan formats read by pymeshlab (OBJ goes through the project's reader, which names the file and line).
 PYMESHLAB_FORMATS = (".ply", ".stl", ".off")
@@ -84,6 +90,10 @@ def read_scan(path: str | os.PathLike[str], units: str = "cm") -> Scan:
 
         # pymeshlab drops non-finite vertices without a word and allocates what a header declares.
         check_mesh_file(path)
+        triangle_ply = _triangle_ply(path) if suffix == ".ply" else None
+        if triangle_ply is not None:
+            vertices, triangles = triangle_ply
+            return _scan(path, vertices, triangles, to_cm)
         ms = pymeshlab.MeshSet()
         try:
             ms.load_new_mesh(str(path))
@@ -94,14 +104,55 @@ def read_scan(path: str | os.PathLike[str], units: str = "cm") -> Scan:
         triangles = np.asarray(m.face_matrix(), np.int64).reshape(-1, 3)
     else:
         raise InputError(f"unsupported scan format {suffix or '(none)'}: use .obj, .ply, .stl or .off", path=path)
+    return _scan(path, vertices, triangles, to_cm)
+
+
+def _triangle_ply(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """The vertices (V, 3) float64 and triangles (T, 3) int64 of a binary PLY of triangles, read by plyfile
+    through a memory map; None for any other PLY (text, polygons, other elements), which pymeshlab reads. A
+    5-million-vertex scan took pymeshlab 1 GB of its own before lgi's arrays; this way it takes those alone."""
+    import plyfile
+
+    try:
+        with open(path, "rb") as f:
+            data = plyfile.PlyData.read(f, mmap="c", known_list_len={"face": {"vertex_indices": 3,
+                                                                               "vertex_index": 3}})
+            names = [e.name for e in data.elements]
+            if data.text or "vertex" not in names or "face" not in names:
+                return None
+            v, f_ = data["vertex"].data, data["face"].data
+            lists = [n for n in f_.dtype.names if n in ("vertex_indices", "vertex_index")]
+            if not lists or not all(a in v.dtype.names for a in "xyz"):
+                return None
+            vertices = np.empty((len(v), 3))
+            for k, a in enumerate("xyz"):
+                vertices[:, k] = v[a]
+            triangles = np.asarray(f_[lists[0]], np.int64).reshape(-1, 3)
+    except (plyfile.PlyParseError, ValueError, KeyError, TypeError):
+        return None  # not one plyfile maps as triangles: pymeshlab's general reader (and its messages)
+    bad = np.flatnonzero((triangles < 0).any(axis=1) | (triangles >= len(vertices)).any(axis=1))
+    if bad.size:
+        raise InputError(f"face {int(bad[0])} (0-based) refers to a vertex the file does not have (it has "
+                         f"{len(vertices):,}): {triangles[bad[0]].tolist()}", path=path)
+    return vertices, triangles
+
+
+def _scan(path: Path, vertices: np.ndarray, triangles: np.ndarray, to_cm: float) -> Scan:
+    """The scan of ``vertices`` (V, 3) and ``triangles`` (T, 3) as read (file units), checked, in cm, without
+    the vertices no triangle uses."""
     if len(triangles) == 0:
         raise InputError("the scan has no faces (a point cloud cannot be compared as a surface)", path=path)
     if not np.all(np.isfinite(vertices)):
         raise InputError("the scan has non-finite vertex coordinates", path=path)
-    used = np.unique(triangles)
+    mask = np.zeros(len(vertices), bool)
+    mask[triangles] = True
+    used = np.flatnonzero(mask)
+    if len(used) == len(vertices):  # a scanner's mesh: every vertex in a face (no copies of its millions)
+        vertices *= to_cm
+        return Scan(str(path), vertices, triangles, used)
     remap = np.full(len(vertices), -1, np.int64)
     remap[used] = np.arange(len(used))
-    return Scan(str(path), vertices[used] * to_cm, remap[triangles], used.astype(np.int64))
+    return Scan(str(path), vertices[used] * to_cm, remap[triangles], used)
 
 
 def _meshset(*meshes: tuple[np.ndarray, np.ndarray]):
@@ -113,14 +164,18 @@ def _meshset(*meshes: tuple[np.ndarray, np.ndarray]):
     return ms
 
 
-def point_to_surface(points_mesh: tuple[np.ndarray, np.ndarray], surface: tuple[np.ndarray, np.ndarray]
-                     ) -> np.ndarray:
-    """Signed distance from every vertex of one mesh to the surface of another, by pymeshlab.
+#: Points measured by pymeshlab at a time (:func:`point_to_surface`): its own copy of them is a few hundred bytes
+#: each.
+POINTS_BLOCK = 1 << 19
+
+
+def point_to_surface(points: np.ndarray, surface: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Signed distance from points to the surface of a mesh, by pymeshlab, a block of points at a time.
 
     Parameters
     ----------
-    points_mesh : ((N, 3) float, cm; (T, 3) int)
-        The mesh whose vertices are measured (its faces give pymeshlab a mesh; they do not change the result).
+    points : (N, 3) float, cm
+        The points measured (a dense scan's millions of vertices: pymeshlab holds a block of them at once).
     surface : ((M, 3) float, cm; (S, 3) int)
         The surface measured against.
 
@@ -132,50 +187,96 @@ def point_to_surface(points_mesh: tuple[np.ndarray, np.ndarray], surface: tuple[
     """
     import pymeshlab
 
-    ms = _meshset(points_mesh, surface)
-    both = np.concatenate([points_mesh[0], surface[0]])
+    points = np.asarray(points, np.float64)
+    sv = np.asarray(surface[0], np.float64)
+    lo, hi = np.minimum(points.min(0), sv.min(0)), np.maximum(points.max(0), sv.max(0))
     # Beyond maxdist pymeshlab writes a sentinel instead of the distance: make it unreachable.
-    far = 4.0 * float(np.linalg.norm(both.max(0) - both.min(0))) + 1.0
-    ms.compute_scalar_by_distance_from_another_mesh_per_vertex(measuremesh=0, refmesh=1, signeddist=True,
-                                                               maxdist=pymeshlab.PureValue(far))
-    return np.asarray(ms.mesh(0).vertex_scalar_array(), np.float64)
+    far = pymeshlab.PureValue(4.0 * float(np.linalg.norm(hi - lo)) + 1.0)
+    ms = _meshset(surface)
+    out = np.empty(len(points))
+    for start in range(0, len(points), POINTS_BLOCK):
+        ms.add_mesh(pymeshlab.Mesh(np.ascontiguousarray(points[start:start + POINTS_BLOCK])))
+        block = ms.current_mesh_id()  # a deleted mesh's id is not given again
+        ms.compute_scalar_by_distance_from_another_mesh_per_vertex(measuremesh=block, refmesh=0, signeddist=True,
+                                                                   maxdist=far)
+        out[start:start + POINTS_BLOCK] = ms.mesh(block).vertex_scalar_array()
+        ms.delete_current_mesh()
+    return out
 
 
-def border(triangles: np.ndarray, n_vertices: int) -> tuple[np.ndarray, set[tuple[int, int]]]:
-    """The open edges of a triangle mesh (edges of exactly one triangle).
+def signed_distances(points: np.ndarray, surface: tuple[np.ndarray, np.ndarray], query: ClosestPointQuery
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact signed distances from points to a mesh through its closest-point ``query`` (for a dense scan, whose
+    own triangles would cost pymeshlab gigabytes).
 
     Returns
     -------
-    vertex : (V,) bool
-        Vertices on an open edge.
-    edges : set of (int, int)
-        The open edges, as sorted vertex pairs.
+    signed : (N,) float64, cm
+        Positive in front of the closest triangle (along its normal), negative behind, as :func:`point_to_surface`.
+    triangle : (N,) int64
+    bary : (N, 3) float64
+        The closest point, as ``ClosestPointQuery.query`` gives it.
     """
-    t = np.asarray(triangles, np.int64)
-    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    uniq, count = np.unique(e, axis=0, return_counts=True)
-    open_edges = uniq[count == 1]
-    vertex = np.zeros(n_vertices, bool)
-    vertex[open_edges.ravel()] = True
-    return vertex, {(int(a), int(b)) for a, b in open_edges}
+    from lgi.dataset.mesh import triangle_normals
+
+    p = np.asarray(points, np.float64)
+    tri, bary, dist = query.query(p)
+    v, t = np.asarray(surface[0], np.float64), np.asarray(surface[1], np.int64)[tri]
+    closest = np.einsum("nk,nkd->nd", bary, v[t])
+    behind = np.einsum("nd,nd->n", p - closest, triangle_normals(v, t)) < 0
+    return np.where(behind, -dist, dist), tri, bary
+
+
+def edge_keys(a: np.ndarray, b: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(N,) int64: the edge of vertices ``a`` and ``b`` (either order) as one number, ``min * n + max``."""
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    return np.minimum(a, b) * n_vertices + np.maximum(a, b)
+
+
+#: Triangles whose edges are looked at together by :func:`closest_on_border`.
+BORDER_BLOCK = 1 << 20
 
 
 def closest_on_border(triangles: np.ndarray, n_vertices: int, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
     """(N,) bool: whether each closest point (triangle ``tri``, barycentric ``bary`` (N, 3)) lies on the mesh's
-    border: at a border vertex, or on an open edge (the barycentric weight of the opposite corner is zero)."""
-    t = np.asarray(triangles, np.int64)[tri]
-    vertex, edges = border(triangles, n_vertices)
+    border: at a vertex of an open edge (an edge of exactly one triangle), or on an open edge (the barycentric
+    weight of the opposite corner is zero).
+
+    Only the edges that touch the points' closest vertices and edges are counted, a block of triangles at a
+    time: the memory is that of the answer, not of a scan's tens of millions of edges."""
+    t_all = np.asarray(triangles, np.int64)
+    t = t_all[tri]
     # closest_point_on_triangles gives exact 0 and 1 in its edge and vertex regions; 1e-9 absorbs the interior
     # formula's rounding next to them.
+    at_vertex = np.full(len(tri), -1, np.int64)
+    for k in range(3):
+        hit = (at_vertex < 0) & (bary[:, k] >= 1 - 1e-9)
+        at_vertex[hit] = t[hit, k]
+    on_edge = np.full(len(tri), -1, np.int64)
+    for k in range(3):
+        hit = (at_vertex < 0) & (on_edge < 0) & (bary[:, k] <= 1e-9)
+        on_edge[hit] = edge_keys(t[hit, (k + 1) % 3], t[hit, (k + 2) % 3], n_vertices)
+    vertices = np.unique(at_vertex[at_vertex >= 0])
+    edges = np.unique(on_edge[on_edge >= 0])
+    touched = np.zeros(n_vertices, bool)
+    touched[vertices] = True
+    seen = []
+    for lo in range(0, len(t_all), BORDER_BLOCK):
+        block = t_all[lo:lo + BORDER_BLOCK]
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            a, b = block[:, i], block[:, j]
+            keys = edge_keys(a, b, n_vertices)
+            seen.append(keys[touched[a] | touched[b] | np.isin(keys, edges)])
+    keys, count = np.unique(np.concatenate(seen) if seen else np.zeros(0, np.int64), return_counts=True)
+    open_edges = keys[count == 1]
+    border_vertex = np.zeros(n_vertices, bool)
+    border_vertex[open_edges // n_vertices] = True
+    border_vertex[open_edges % n_vertices] = True
     out = np.zeros(len(tri), bool)
-    for k in range(3):
-        out |= (bary[:, k] >= 1 - 1e-9) & vertex[t[:, k]]
-    for k in range(3):
-        on_edge = np.flatnonzero(~out & (bary[:, k] <= 1e-9))
-        a, b = t[on_edge, (k + 1) % 3], t[on_edge, (k + 2) % 3]
-        hit = np.fromiter(((min(x, y), max(x, y)) in edges for x, y in zip(a.tolist(), b.tolist(), strict=True)),
-                          bool, len(on_edge))
-        out[on_edge[hit]] = True
+    v = at_vertex >= 0
+    out[v] = border_vertex[at_vertex[v]]
+    e = on_edge >= 0
+    out[e] = np.isin(on_edge[e], open_edges)
     return out
 
 
@@ -345,20 +446,23 @@ def compare_frame(vertices: np.ndarray, triangles: np.ndarray, scan: Scan, regio
     s_v = apply(transform, scan.vertices)
     s_t = scan.triangles
 
-    # Reconstruction -> scan, at the region's vertices.
+    # Reconstruction -> scan, at the region's vertices: exact, through the scan's closest-point query.
     measured = np.flatnonzero(region)
-    tri, bary, _ = ClosestPointQuery(s_v, s_t).query(v[measured])
-    signed_all = point_to_surface((v, t), (s_v, s_t))
     signed = np.full(len(v), np.nan)
-    signed[measured] = signed_all[measured]
+    signed[measured], tri, bary = signed_distances(v[measured], (s_v, s_t), ClosestPointQuery(s_v, s_t))
     distance = np.abs(signed)
+    near = distance[measured] <= gate
     covered = np.zeros(len(v), bool)
-    covered[measured] = (distance[measured] <= gate) & ~closest_on_border(s_t, len(s_v), tri, bary)
+    covered[measured[near]] = ~closest_on_border(s_t, len(s_v), tri[near], bary[near])
 
-    # Scan -> the region of the reconstruction.
-    tri, bary, _ = ClosestPointQuery(sub_v, sub_t).query(s_v)
-    scan_distance = np.abs(point_to_surface((s_v, s_t), (sub_v, sub_t)))
-    inside = (scan_distance <= gate) & ~closest_on_border(sub_t, len(sub_v), tri, bary)
+    # Scan -> the region of the reconstruction. Which triangle is closest matters only within the gate (whether
+    # that point is on the region's border): a point far from the surface needs thousands of candidate triangles
+    # to be sure of it, and most of a dense scan can be far from a face's region.
+    scan_distance = np.abs(point_to_surface(s_v, (sub_v, sub_t)))
+    near = np.flatnonzero(scan_distance <= gate)
+    tri, bary, _ = ClosestPointQuery(sub_v, sub_t).query(s_v[near])
+    inside = np.zeros(len(s_v), bool)
+    inside[near] = ~closest_on_border(sub_t, len(sub_v), tri, bary)
     return Comparison(distance, signed, covered, region, scan_distance, inside, transform, steps)
 
 
