@@ -634,7 +634,8 @@ def build_parser() -> argparse.ArgumentParser:
                  "OUT_DIR/obj/frame_NNNNN.obj, OUT_DIR/shot.usdc, OUT_DIR/per_frame.png. A run replaces "
                  "the outputs of an earlier one (and removes those it does not write, and an OUT_DIR/review or "
                  "OUT_DIR/compare folder of lgi review or lgi compare, which showed the earlier meshes); other "
-                 "files in OUT_DIR are left alone.",
+                 "files in OUT_DIR are left alone, and a file lgi has no record of writing there "
+                 "(OUT_DIR/.lgi-record.json) is never replaced.",
                  ("lgi reconstruct synth/index --bundles synth/bundles.csv --out synth/recon --obj --smooth 3",),
                  outputs="OUT_DIR/meshes.npz, OUT_DIR/diagnostics.csv, OUT_DIR/per_frame.csv, OUT_DIR/run.json; with "
                          "--obj OUT_DIR/obj/,"

@@ -22,6 +22,7 @@ import pytest
 from lgi.cli import main
 from lgi.io.npz import save_npz
 from lgi.io.obj import write_obj
+from lgi.io.record import RECORD_FILE, read_record
 from tests.checks import THROUGH_MM, bundle_gaps_mm, peak_memory_run
 
 
@@ -717,7 +718,10 @@ def test_rerun_leaves_exactly_what_it_wrote(world: Path, tmp_path: Path, capsys)
     alive.mkdir()
     assert run(base, capsys)[0] == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted(["meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json", alive.name]), names
+    assert names == sorted(["meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json", RECORD_FILE, alive.name]), \
+        names
+    # The record lists exactly what the run left (the earlier --obj and --usd files are gone from it too).
+    assert sorted(read_record(out)[0]) == ["diagnostics.csv", "meshes.npz", "per_frame.csv", "run.json"]
     alive.rmdir()
     # A failed re-run leaves the earlier outputs untouched.
     snap = {p.name: p.read_bytes() for p in out.iterdir()}
@@ -728,12 +732,56 @@ def test_rerun_leaves_exactly_what_it_wrote(world: Path, tmp_path: Path, capsys)
 
 def test_synth_rerun_drops_the_earlier_hmc(tmp_path: Path, capsys) -> None:
     out = tmp_path / "s"
-    assert run(["synth", "--out", str(out), "--vertices", "800", "--frames", "3", "-q"], capsys)[0] == 0
-    (out / "hmc" / "cam0").mkdir(parents=True)  # as an earlier --hmc run leaves it
-    (out / "hmc" / "cam0" / "000000.png").write_bytes(b"x")
+    argv = ["synth", "--out", str(out), "--vertices", "800", "--frames", "2", "-q"]
+    assert run([*argv, "--hmc", "--image-size", "160x120", "--board-views", "3"], capsys)[0] == 0
+    assert (out / "hmc").is_dir()
     (out / "mine.txt").write_text("keep")
-    assert run(["synth", "--out", str(out), "--vertices", "800", "--frames", "3", "-q"], capsys)[0] == 0
+    assert run(argv, capsys)[0] == 0
     assert not (out / "hmc").exists() and (out / "mine.txt").read_text() == "keep"
+
+
+def test_files_lgi_did_not_write_are_never_replaced(world: Path, tmp_path: Path, capsys) -> None:
+    """Judged by lgi's record of what it wrote, not by the names: a user's file named like an output, or an output
+    the user changed, stays; a refusal comes before the work and names the file."""
+    # A folder holding only the user's own index.html is not a review page to replace.
+    page = tmp_path / "page"
+    page.mkdir()
+    (page / "index.html").write_text("<p>my notes</p>")
+    code, _, err = run(["review", str(world / "rec"), "--index", str(world / "idx"), "--out", str(page)], capsys)
+    assert code == 2 and "index.html" in err and "no record" in err, err
+    assert (page / "index.html").read_text() == "<p>my notes</p>"
+    # A reconstruction whose review/ and compare/ hold only the user's files: kept, with a warning, when the run
+    # writes no page and compares no scans.
+    out = tmp_path / "rec"
+    base = ["reconstruct", str(world / "idx"), "--bundles", str(world / "s" / "bundles.csv"), "--out", str(out), "-q"]
+    for sub, name in (("review", "index.html"), ("compare", "summary.csv")):
+        (out / sub).mkdir(parents=True)
+        (out / sub / name).write_text("mine")
+    code, _, err = run([*base[:-1]], capsys)
+    assert code == 0, err
+    assert (out / "review" / "index.html").read_text() == "mine" == (out / "compare" / "summary.csv").read_text()
+    assert "no record" in err and str(out / "review") in err and str(out / "compare") in err, err
+    # ... and a run that would write the page is refused before the work.
+    code, _, err = run([*base, "--review"], capsys)
+    assert code == 2 and "index.html" in err and "no record" in err, err
+    shutil.rmtree(out / "review")
+    shutil.rmtree(out / "compare")
+    # An output the user edited is theirs now: a re-run refuses to replace it, and replaces nothing.
+    before = (out / "per_frame.csv").read_bytes()
+    (out / "per_frame.csv").write_bytes(before + b"# checked by hand\n")
+    meshes = (out / "meshes.npz").stat().st_mtime_ns
+    code, _, err = run(base, capsys)
+    assert code == 2 and "per_frame.csv" in err, err
+    assert (out / "meshes.npz").stat().st_mtime_ns == meshes
+    # The same bytes written back (a copy: another modification time) are lgi's again, by their hash.
+    (out / "per_frame.csv").write_bytes(before)
+    assert run(base, capsys)[0] == 0
+    # A file in an output folder lgi replaces whole (obj/) that the user dropped there.
+    assert run([*base, "--obj"], capsys)[0] == 0
+    frame = sorted((out / "obj").glob("*.obj"))[0]
+    frame.write_text("v 0 0 0\n")
+    code, _, err = run([*base, "--obj"], capsys)
+    assert code == 2 and frame.name in err, err
 
 
 def test_import_over_a_dataset_and_a_dead_temporary(world: Path, tmp_path: Path, capsys) -> None:
@@ -838,7 +886,8 @@ def test_signal_at_a_stage_leaves_nothing(world: Path, long_shot: Path, tmp_path
 def _assert_complete(world: Path, out: Path) -> None:
     """OUT holds a whole reconstruction of the 12-frame shot: its four files, every frame and bundle, and meshes
     through every bundle (measured on the meshes, so a run cut short while writing cannot pass)."""
-    assert sorted(q.name for q in out.iterdir()) == ["diagnostics.csv", "meshes.npz", "per_frame.csv", "run.json"]
+    assert sorted(q.name for q in out.iterdir()) == [RECORD_FILE, "diagnostics.csv", "meshes.npz", "per_frame.csv",
+                                                     "run.json"]
     assert np.load(out / "meshes.npz")["frames"].tolist() == list(range(12))
     assert len(pd.read_csv(out / "per_frame.csv")) == 12
     bundles = pd.read_csv(world / "s" / "bundles.csv")
@@ -889,7 +938,8 @@ def test_sigkill_then_rerun_cleans_up(world: Path, long_shot: Path, tmp_path: Pa
     rerun = ["reconstruct", str(world / "idx"), "--bundles", str(world / "s" / "bundles.csv"), "--out", str(out), "-q"]
     r = subprocess.run([sys.executable, "-m", "lgi", *rerun], cwd=tmp_path, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    assert sorted(q.name for q in out.iterdir()) == ["diagnostics.csv", "meshes.npz", "per_frame.csv", "run.json"]
+    assert sorted(q.name for q in out.iterdir()) == [RECORD_FILE, "diagnostics.csv", "meshes.npz", "per_frame.csv",
+                                                     "run.json"]
 
 
 def _outputs(folder: Path) -> dict[str, bytes]:
@@ -935,7 +985,7 @@ def test_two_runs_into_one_folder_never_leave_a_mixture(world: Path, tmp_path: P
         assert got in (ref["a"], ref["b"]), f"round {r}: a mixture of the two runs"
         if r % 2 == 0:
             assert codes == (0, 2) and got == ref["a"]
-        assert not list(out.glob(".lgi-*")) and not list(out.glob(".*.old-*"))
+        assert [p.name for p in out.glob(".lgi-*")] == [RECORD_FILE] and not list(out.glob(".*.old-*"))
     assert refused >= 10
 
 
@@ -1071,3 +1121,21 @@ def test_signal_inside_a_flow_task_stops_the_local_server(world: Path, long_shot
     assert not out.exists() or not [q for q in out.iterdir()]
     # An interrupted flow's finished chunks wait, keyed to the job, for the same command to resume from them.
     assert all((d / ".resume.json").is_file() for d in tmp_path.glob(".out.chunks-*"))
+
+
+def test_review_refuses_meshes_and_diagnostics_of_different_runs(world: Path, tmp_path: Path, capsys) -> None:
+    """A folder holding one run's meshes and another's diagnostics (a copy by hand, a run cut short) is refused,
+    not drawn as one shot."""
+    for keep in (slice(0, 3), slice(1, None)):  # diagnostics with frames the meshes lack, and the other way
+        rec = tmp_path / f"rec{keep.start}"
+        shutil.copytree(world / "rec", rec)
+        z = dict(np.load(rec / "meshes.npz"))
+        frames = z["frames"]
+        if keep.start == 0:
+            save_npz(rec / "meshes.npz", **{k: (v[keep] if len(v) == len(frames) else v) for k, v in z.items()})
+        else:
+            d = pd.read_csv(rec / "diagnostics.csv")
+            d[d["frame"] != frames[0]].to_csv(rec / "diagnostics.csv", index=False)
+        code, _, err = run(["review", str(rec), "--index", str(world / "idx"), "--out", str(tmp_path / "p")], capsys)
+        assert code == 2 and "diagnostics.csv" in err and "not of the same reconstruction" in err, err
+        assert not (tmp_path / "p").exists()

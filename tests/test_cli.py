@@ -11,6 +11,7 @@ from lgi.capture.bundles import read_bundles
 from lgi.cli import main
 from lgi.dataset.markers import read_layout
 from lgi.dataset.shapes import ShapeDataset
+from lgi.io.record import RECORD_FILE
 from tests.checks import THROUGH_MM, bundle_gaps_mm
 
 
@@ -33,7 +34,7 @@ def test_synth_writes_contract_files(tmp_path: Path) -> None:
     assert truth["vertices"].shape == (12, ds.n_vertices, 3) and truth["vertices"].dtype == np.float32
     b = read_bundles(out / "bundles.csv", layout.names)
     np.testing.assert_allclose(b.positions, layout.evaluate(truth["vertices"].astype(float)), atol=1e-5)
-    assert not list(out.glob(".*")), "staging left behind"
+    assert [p.name for p in out.glob(".*")] == [RECORD_FILE], "staging left behind"
 
 
 def test_bundles_one_frame_per_shape(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ import numpy as np
 
 from lgi.cli import main
 from lgi.export.formats import displacement_map, read_exr, write_exr, write_usd
+from lgi.io.record import RECORD_FILE
 from lgi.synthetic import actor as synth
 
 
@@ -36,7 +37,7 @@ def test_a_long_shot_is_value_clips_that_compose_to_the_single_file(tmp_path: Pa
     write_usd(tmp_path / "one.usdc", verts, a.face_vertices, a.face_offsets, a.uvs, a.face_uvs, frames, clip_frames=0)
     write_usd(tmp_path / "clips.usda", verts, a.face_vertices, a.face_offsets, a.uvs, a.face_uvs, frames,
               clip_frames=7)
-    assert sorted(p.name for p in (tmp_path / "clips.clips").iterdir()) == [
+    assert sorted(p.name for p in (tmp_path / "clips.clips").iterdir()) == [RECORD_FILE,
         "clip_00000.usdc", "clip_00001.usdc", "clip_00002.usdc", "clip_00003.usdc", "manifest.usda"]
     one, clips = (Usd.Stage.Open(str(tmp_path / n)) for n in ("one.usdc", "clips.usda"))
     m1, m2 = (UsdGeom.Mesh(s.GetPrimAtPath("/Face/mesh")) for s in (one, clips))
@@ -80,7 +81,8 @@ def test_export_command(tmp_path: Path, monkeypatch) -> None:
     assert main(["export", str(tmp_path / "r"), "--index", str(tmp_path / "idx"), "--usd", str(tmp_path / "p.usda"),
                  "--exr", str(tmp_path / "exr"), "--exr-size", "32", "-q"]) == 0
     assert (tmp_path / "p.usda").read_text().startswith("#usda")
-    assert sorted(p.name for p in (tmp_path / "exr").iterdir()) == [f"frame_{i:05d}.exr" for i in range(4)]
+    assert sorted(p.name for p in (tmp_path / "exr").iterdir()) == [RECORD_FILE,
+                                                                    *(f"frame_{i:05d}.exr" for i in range(4))]
     assert main(["export", str(tmp_path / "nothing"), "--index", str(tmp_path / "idx"), "--usd", "x.usdc"]) == 2
     # Over USD_CLIP_FRAMES frames: value clips beside the file, from export and from reconstruct --usd alike.
     monkeypatch.setattr(clips, "USD_CLIP_FRAMES", 3)
@@ -92,7 +94,8 @@ def test_export_command(tmp_path: Path, monkeypatch) -> None:
     assert not (tmp_path / "mine_exr").exists()  # refused before any map was written
     assert main(["export", str(tmp_path / "r"), "--index", str(tmp_path / "idx"), "--usd", str(tmp_path / "c.usdc"),
                  "-q"]) == 0
-    assert sorted(p.name for p in (tmp_path / "c.clips").iterdir()) == ["clip_00000.usdc", "clip_00001.usdc",
+    assert sorted(p.name for p in (tmp_path / "c.clips").iterdir()) == [RECORD_FILE, "clip_00000.usdc",
+                                                                          "clip_00001.usdc",
                                                                           "manifest.usda"]
     main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(s / "bundles.csv"), "--out", str(tmp_path / "r"),
           "--usd", "-q"])

@@ -4,10 +4,11 @@ from pathlib import Path
 from lgi.dataset.importing import import_obj_folder
 from lgi.dataset.markers import write_layout
 from lgi.dataset.shapes import ShapeDataset
+from lgi.io.record import RECORD_FILE
 from lgi.synthetic import actor as synth
 
 # Files that describe a run (timings, which stages were cached), not the data: they may differ.
-RUN_ONLY = ("build.json", "report.md")
+RUN_ONLY = ("build.json", "report.md", RECORD_FILE)
 
 
 def _same_tree(a: Path, b: Path) -> bool:

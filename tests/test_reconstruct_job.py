@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 
 from lgi.cli import main
+from lgi.io.record import RECORD_FILE, read_record
 from lgi.jobs.reconstruct import ReconstructOptions
 from lgi.jobs.reconstruct.stages import save_part as _save_part
 
@@ -115,7 +116,9 @@ def test_rerun_replaces_the_jobs_outputs_only(shot: Path) -> None:
     assert main(args) == 0
     assert not (out / "obj").exists() and not (out / "per_frame.png").exists()  # nothing stale from the first run
     assert (out / "notes.txt").read_text() == "mine"  # not the job's: left alone
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+    # No temporaries left; lgi's record lists what this run wrote, and not the user's notes.
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == [RECORD_FILE]
+    assert sorted(read_record(out)[0]) == ["diagnostics.csv", "meshes.npz", "per_frame.csv", "run.json"]
 
 
 @pytest.mark.parametrize("flag,value", [("--smooth", "1002"), ("--jaw-smooth", "1002"), ("--chunk-size", "0"),

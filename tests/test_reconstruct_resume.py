@@ -16,6 +16,7 @@ import pandas as pd
 import pytest
 
 from lgi.cli import main
+from lgi.io.record import RECORD_FILE
 
 FILES = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json")
 # The command line with a checkpoint after every block of 8 frames: a small shot stops between checkpoints.
@@ -89,7 +90,8 @@ def test_a_killed_run_resumes_to_the_same_bits(shot: Path, extra: list[str]) -> 
     if "--obj" in extra:
         assert sorted(p.name for p in (out / "obj").iterdir()) == sorted(p.name for p in (whole / "obj").iterdir())
         assert all(filecmp.cmp(whole / "obj" / f.name, f, shallow=False) for f in (out / "obj").iterdir())
-    assert not list(out.glob(".lgi-*"))  # the stopped run's staging folder was taken over, then published
+    # The stopped run's staging folder was taken over, then published: lgi's record alone is left.
+    assert [p.name for p in out.glob(".lgi-*")] == [RECORD_FILE]
 
 
 def test_an_interrupted_run_resumes_and_another_job_does_not(shot: Path) -> None:
@@ -101,7 +103,7 @@ def test_an_interrupted_run_resumes_and_another_job_does_not(shot: Path) -> None
     said, err = p.communicate(timeout=240)
     assert p.returncode == 0, err
     assert "resumed" not in said
-    assert not list(out.glob(".lgi-*"))
+    assert [p.name for p in out.glob(".lgi-*")] == [RECORD_FILE]
 
 
 def test_a_killed_flow_resumes_from_its_chunks(shot: Path, prefect_api: str, tmp_path: Path) -> None:

@@ -9,10 +9,11 @@ import time
 from pathlib import Path
 
 from lgi.dataset.markers import write_layout
+from lgi.io.record import RECORD_FILE
 from lgi.synthetic import actor as synth
 
 # Files that describe a run (timings, which stages were cached), not the data: they may differ.
-RUN_ONLY = ("build.json", "report.md")
+RUN_ONLY = ("build.json", "report.md", RECORD_FILE)
 
 RUN = """
 import sys

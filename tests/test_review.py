@@ -15,6 +15,7 @@ import pytest
 from _review_checks import SHOW_HOSTILE, check_marker_colours, check_nothing_ran, hostile_page
 
 from lgi.cli import main
+from lgi.io.record import RECORD_FILE
 from lgi.review.pack import blob, decode_codes, dequantise_frames, encode_codes, quantise_frames, quantise_map, unblob
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -134,8 +135,8 @@ def test_method_blendshape_refuses_lgi_only_options(shot, tmp_path, capsys):
 
 def test_review_writes_a_self_contained_page(shot):
     page = shot / "page"
-    assert sorted(p.name for p in page.iterdir()) == ["frames", "index.html", "review_frames.js", "review_meta.js",
-                                                      "viewer.js"]
+    assert sorted(p.name for p in page.iterdir()) == [RECORD_FILE, "frames", "index.html", "review_frames.js",
+                                                      "review_meta.js", "viewer.js"]
     # 20 frames: a block of 16 and one of 4
     assert sorted(p.name for p in (page / "frames").iterdir()) == ["block_00000.html", "block_00001.html",
                                                                     "overview.html"]

@@ -6,8 +6,6 @@ Every writer works on plain arrays and writes atomically (a temporary name, then
 from __future__ import annotations
 
 import os
-import shutil
-from fnmatch import fnmatch
 from pathlib import Path
 
 import numba as nb
@@ -16,7 +14,7 @@ import numpy as np
 from lgi.dataset.mesh import triangulate
 from lgi.export import clips
 from lgi.export.clips import USD_CLIP_CONTENTS, usd_clip_dir
-from lgi.io.atomic import atomic_dir, atomic_file
+from lgi.io.atomic import atomic_dir, atomic_file, remove_recorded
 
 
 def write_usd(
@@ -87,9 +85,7 @@ def write_usd(
         _set_samples(points, extent, frames, vertices)
         with atomic_file(path, suffix=path.suffix or ".usdc") as tmp:
             stage.GetRootLayer().Export(str(tmp))
-        if clip_dir.is_dir() and all(any(fnmatch(e.name, pat) for pat in USD_CLIP_CONTENTS)
-                                     for e in clip_dir.iterdir()):
-            shutil.rmtree(clip_dir, ignore_errors=True)
+        remove_recorded(clip_dir, USD_CLIP_CONTENTS, "earlier USD clip folder")  # clips no longer used
         return path
     from pxr import Gf
 

@@ -22,6 +22,8 @@ from pathlib import Path
 from typing import Any
 
 from lgi.errors import InputError, StorageError
+from lgi.io.record import RECORD_FILE, describe, read_record, record_files, unrecorded, write_record
+from lgi.io.record import TEMP_PREFIX as RECORD_TEMP
 
 # Failures of the machine, not of the data: the same write fails again until space is freed or the file system
 # remounted, so they become one message naming the output instead of a writer's bare "[errno 28]".
@@ -137,7 +139,7 @@ def _fsync_tree(path: Path) -> None:
 def _ours(name: str, owned: tuple[str, ...]) -> bool:
     """An entry an output directory of this kind may hold: one of its ``owned`` names (fnmatch patterns) or a
     temporary of an lgi run."""
-    if any(fnmatch.fnmatchcase(name, pat) for pat in owned):
+    if name == RECORD_FILE or any(fnmatch.fnmatchcase(name, pat) for pat in owned):
         return True
     return name.startswith(".") and any(t in name for t in (".tmp-", ".old-", ".lgi-staging-", ".chunks-"))
 
@@ -172,14 +174,15 @@ def _not_empty(path: str | os.PathLike[str]) -> None:
 
 
 def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Iterable[Any] = (),
-                 owned: tuple[str, ...] | None = None, what: str = "lgi output") -> None:
+                 owned: tuple[str, ...] | None = None, what: str = "lgi output", recorded: bool = True) -> None:
     """Refuse, before any work, an output path that cannot become a ``kind`` ("dir" or "file") output.
 
     Refused: the other kind is there; the nearest existing folder is not writable; the output is one of the
     run's ``inputs`` (files and folders; list the files read inside a folder with :func:`files_in`) or
     contains one (it would be replaced by the output); and, for a directory replaced as a
     whole (``owned`` given: the fnmatch patterns of what ``what`` holds), an existing directory holding anything
-    else (a folder that is not an earlier output of this kind is never wiped).
+    else, or (``recorded``) files its record (:mod:`lgi.io.record`) does not vouch for: a folder that is not an
+    earlier output of this kind is never wiped.
     """
     _not_empty(path)
     p = Path(path)
@@ -211,6 +214,43 @@ def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Ite
             raise InputError(f"the folder exists and holds entries that are not an {what}'s "
                              f"({shown}); lgi replaces this output as a whole, so it will not write here: remove "
                              "them or choose another path", path=p)
+        if recorded and not _legacy_store(p):
+            check_recorded(p, None, f"lgi replaces this {what} as a whole")
+
+
+def check_recorded(folder: Path, names: Iterable[str] | None, why: str) -> None:
+    """Refuse files under the entries ``names`` of ``folder`` (default: all) that lgi has no record of writing
+    there (:func:`lgi.io.record.unrecorded`)."""
+    foreign = unrecorded(folder, names)
+    if foreign:
+        raise InputError(f"holds files that lgi has no record of writing ({describe(foreign, folder)}: not in its "
+                         f"{RECORD_FILE}, or changed since), and {why}: move them away or choose another output "
+                         "folder", path=folder)
+
+
+def remove_recorded(folder: Path, owned: tuple[str, ...], what: str) -> bool:
+    """Remove ``folder``, an output lgi replaces as a whole (the fnmatch patterns ``owned`` of what it holds), if
+    every file in it is one lgi recorded writing there; otherwise leave it and say so. Returns whether it went."""
+    if not folder.is_dir() or folder.is_symlink():
+        return False
+    foreign = unrecorded(folder) or [e for e in folder.iterdir() if not _ours(e.name, owned)]
+    if foreign:
+        logging.getLogger(__name__).warning(
+            "%s is left as it is, though it does not match this run: it holds files that lgi has no record of "
+            "writing there (%s)", folder, describe(foreign, folder))
+        return False
+    shutil.rmtree(folder)
+    return True
+
+
+def _legacy_store(folder: Path) -> bool:
+    """An index or shape dataset folder written before lgi kept records: known by its manifest's format."""
+    if (folder / RECORD_FILE).is_file():
+        return False
+    try:
+        return json.loads((folder / "manifest.json").read_text()).get("format") in STORE_FORMATS
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 #: The manifests' formats of the folders lgi rebuilds as a whole (an index, a shape dataset): nothing else may be
@@ -266,6 +306,7 @@ def atomic_dir(final: str | os.PathLike[str], owned: tuple[str, ...] | None = No
         raise (storage_error(exc, final) or exc) from exc
     try:
         yield tmp
+        write_record(tmp, record_files(tmp, sorted(e.name for e in tmp.iterdir())))
         _fsync_tree(tmp)
     except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -315,16 +356,20 @@ def atomic_file(final: str | os.PathLike[str], suffix: str = "", durable: bool =
     os.replace(tmp, final)
 
 
-def check_contents(out: str | os.PathLike[str], contents: dict[str, tuple[str, ...]] | None) -> None:
+def check_contents(out: str | os.PathLike[str], contents: dict[str, tuple[str, ...]] | None,
+                   owned: tuple[str, ...] = ()) -> None:
     """Refuse an owned directory of ``out`` (name -> the patterns of what it holds) holding anything else: the
-    job replaces it whole (see :func:`job_outputs`)."""
+    job replaces it whole (see :func:`job_outputs`); and any file under the entries ``owned`` of ``out`` that lgi
+    has no record of writing there (the job replaces or removes them)."""
     for name, patterns in (contents or {}).items():
         p = Path(out) / name
         if p.is_symlink():
             # Replaced whole at the commit, it cannot take the link's place (nor should the link's target go).
             raise InputError(f"is a symbolic link (to {os.readlink(p)}), and lgi replaces its {name}/ folder as a "
                              "whole: remove the link, or choose another output folder", path=p)
-        check_output(p, "dir", owned=patterns, what=f"lgi {name}/ folder")
+        check_output(p, "dir", owned=patterns, what=f"lgi {name}/ folder", recorded=False)  # recorded in out
+    if owned and Path(out).is_dir():
+        check_recorded(Path(out), owned, "this run replaces or removes them")
 
 
 #: A staging folder holding this file (a JSON object with the job's ``"key"``) is a stopped run's, to be resumed
@@ -459,7 +504,7 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
     """
     out = Path(out)
     check_output(out, "dir")
-    check_contents(out, contents)
+    check_contents(out, contents, owned)
     with output_lock(out), _staged(out, owned, resume) as stage:
         yield stage
 
@@ -468,7 +513,7 @@ def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
 def _staged(out: Path, owned: tuple[str, ...], resume: str | None) -> Iterator[Path]:
     """:func:`job_outputs` in a folder this process holds (:func:`output_lock`)."""
     adopted = _adopt_stopped(out, resume) if resume else None
-    for prefix in (".lgi-staging-", ".lgi-resuming-", *(f".{name}.old-" for name in owned)):
+    for prefix in (".lgi-staging-", ".lgi-resuming-", RECORD_TEMP, *(f".{name}.old-" for name in owned)):
         sweep(out, prefix)
     stage = None
     try:
@@ -487,6 +532,12 @@ def _staged(out: Path, owned: tuple[str, ...], resume: str | None) -> Iterator[P
         _fsync_tree(stage)
         from lgi._stages import stage as debug_stage
 
+        # The record lists the new files before any is moved in, and the replaced ones until all are: a run
+        # stopped half way through leaves only files the next run knows as lgi's.
+        recorded, _ = read_record(out)
+        kept = {k: v for k, v in recorded.items() if k.split("/", 1)[0] not in owned}
+        new = record_files(stage, sorted(written))
+        write_record(out, {**kept, **new}, previous={k: v for k, v in recorded.items() if k not in kept})
         for k, name in enumerate(owned):
             if k == 1:
                 debug_stage("commit")  # a test holds the run here, its first entry replaced
@@ -503,6 +554,7 @@ def _staged(out: Path, owned: tuple[str, ...], resume: str | None) -> Iterator[P
                 shutil.rmtree(target)
             elif target.exists() or target.is_symlink():
                 target.unlink()
+        write_record(out, {**kept, **new})
         stage.rmdir()
     except BaseException as exc:
         if stage is None:

@@ -248,19 +248,18 @@ def check_outputs(recon_dir: str | Path, options: CompareOptions, pairs: list[tu
     inputs = [recon_dir, o.index, o.pairs, *(s for _, s in pairs)]
     check_output(o.out, "dir", inputs=inputs)
     check_not_in_store(o.out)
-    check_contents(o.out, OUTPUT_CONTENTS)
     for name in OUTPUTS:
         check_output(Path(o.out) / name, "dir" if name == "heatmaps" else "file", inputs=inputs)
+    check_contents(o.out, OUTPUT_CONTENTS, OUTPUTS)  # after: an input there is named as one
 
 
 def remove_outputs(folder: str | Path) -> None:
-    """Remove ``folder`` if it holds only what :func:`compare` writes (a flow re-run without scans: the earlier
-    run's distances were measured on other meshes); a folder holding anything else is left alone."""
-    import shutil
+    """Remove ``folder`` if it holds only what :func:`compare` wrote there (a flow re-run without scans: the
+    earlier run's distances were measured on other meshes); a folder holding anything else is left alone, with a
+    warning."""
+    from lgi.io.atomic import remove_recorded
 
-    p = Path(folder)
-    if p.is_dir() and all(e.name in OUTPUTS for e in p.iterdir()):
-        shutil.rmtree(p)
+    remove_recorded(Path(folder), OUTPUTS, "earlier scan comparison")
 
 
 def heatmap_names(pairs: list[tuple[int, Path]]) -> list[str]:

@@ -23,7 +23,6 @@ import contextlib
 import json
 import logging
 import math
-import shutil
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -35,7 +34,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from lgi.errors import InputError
+from lgi.errors import InputError, cell_text
 from lgi.io.stored import ScratchArray
 from lgi.review.pack import ColourTop
 from lgi.units import MM_PER_CM
@@ -228,7 +227,8 @@ class _Diagnostics:
     ----------
     path : Path
     frames : (F,) int64
-        The shot's frame numbers (rows of other frames are left out).
+        The shot's frame numbers (meshes.npz's): rows of other frames, or a frame without rows, are refused (the
+        two files of different runs).
     markers : list of M str
         The index's markers (a row of another marker is refused).
     block : int
@@ -277,6 +277,11 @@ class _Diagnostics:
                     self.first_fallback = self.first_fallback or str(fb[hit].iloc[0])
                     self.fallbacks += int(hit.sum())
             fi, mi = _rows(d, self._fpos, self._mpos)
+            if (fi < 0).any():
+                # Rows of frames meshes.npz lacks: the two files are of different runs (or one was cut short).
+                bad = d["frame"].iloc[int(np.flatnonzero(fi < 0)[0])]
+                raise InputError(f"has rows of frame {cell_text(bad)}, which meshes.npz does not have: the two files "
+                                 "are not of the same reconstruction (run it again)", path=path)
             ok = (fi >= 0) & (mi >= 0)
             if "constraint" in d:
                 st = np.where(d["constraint"].astype(str).to_numpy() == "ray", "ray", st)
@@ -303,6 +308,11 @@ class _Diagnostics:
             self._last_chunk[np.unique(f // block)] = i
         if not self.status_counts:
             raise InputError("holds no rows (a header alone): not the diagnostics of this reconstruction's frames",
+                             path=path)
+        lacking = np.flatnonzero(self._rows_per_frame == 0)
+        if lacking.size:
+            raise InputError(f"has no rows of frame {int(frames[lacking[0]])} of meshes.npz ({lacking.size} frames "
+                             "without any): the two files are not of the same reconstruction (run it again)",
                              path=path)
 
     def _chunks(self, usecols: list[str] | None = None, nrows: int | None = None) -> Iterator[pd.DataFrame]:
@@ -832,6 +842,6 @@ def collected_warnings() -> Iterator[list[str]]:
 def remove_review(out: str | Path) -> None:
     """Remove ``out/review`` if it is a review folder (a re-run without ``--review``: the old page would show
     another run)."""
-    p = Path(out) / "review"
-    if p.is_dir() and all(e.name in REVIEW_ENTRIES for e in p.iterdir()):
-        shutil.rmtree(p)
+    from lgi.io.atomic import remove_recorded
+
+    remove_recorded(Path(out) / "review", REVIEW_ENTRIES, "earlier review page")

@@ -108,7 +108,7 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
 
     from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
     from lgi.io.arrays import nonfinite_frames
-    from lgi.io.atomic import check_distinct, check_not_in_store, check_output, files_in, job_outputs
+    from lgi.io.atomic import check_contents, check_distinct, check_not_in_store, check_output, files_in, job_outputs
     from lgi.io.npz import load_meshes
     from lgi.progress import progress
     from lgi.retarget.solve import RigSolver, solve_shot
@@ -127,6 +127,7 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
         check_distinct({"--out": out, "--usd": usd})
     check_output(out, "dir", inputs=inputs)
     check_not_in_store(out)
+    check_contents(out, None, OUTPUTS)
     if not src.is_file():
         raise InputError("no meshes.npz (run lgi reconstruct first)", path=recon_dir)
     t0 = time.perf_counter()

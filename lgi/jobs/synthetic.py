@@ -123,7 +123,7 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
 
     o = options
     check_output(out, "dir")
-    check_contents(out, SYNTH_CONTENTS)
+    check_contents(out, SYNTH_CONTENTS, SYNTH_OUTPUTS)
     hmc = o.footage()
     actor = synth.make_actor(o.vertices, synth.ActorVariant.draw(o.actor))
     ds = synth.make_dataset(actor)

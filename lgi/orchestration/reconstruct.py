@@ -339,6 +339,12 @@ def task_runner(dask_address: str | None):
         n = dask_address.partition(":")[2] or "2"
         if not n.isdigit() or not 1 <= int(n) <= 256:
             raise ValueError(f"dask_address {dask_address!r}: local:N takes a number of workers from 1 to 256")
+        import dask
+
+        # A local cluster's workers get this process's Dask configuration. Their statistical profiler (for the
+        # dashboard, which nobody reads here) keeps an hour of samples: it grew each worker of a 36,000-frame ICT
+        # take by 1.3x that of 1,000 frames (9,000 frames: 942 MiB with it, 850 without).
+        dask.config.set({"distributed.worker.profile.enabled": False})
         return DaskTaskRunner(cluster_kwargs={"n_workers": int(n), "threads_per_worker": 1, "processes": True})
     return DaskTaskRunner(address=dask_address)
 
