@@ -984,7 +984,7 @@ def test_two_runs_into_one_folder_never_leave_a_mixture(world: Path, tmp_path: P
         got = _outputs(out)
         assert got in (ref["a"], ref["b"]), f"round {r}: a mixture of the two runs"
         if r % 2 == 0:
-            assert codes == (0, 2) and got == ref["a"]
+            assert codes == (0, 2) and got == ref["a"], (r, codes, err_a[-800:], err_b[-800:])
         assert [p.name for p in out.glob(".lgi-*")] == [RECORD_FILE] and not list(out.glob(".*.old-*"))
     assert refused >= 10
 

@@ -401,10 +401,18 @@ def _adopt_stopped(out: Path, key: str) -> Path | None:
 
 
 #: The lock file of an output folder a run is writing into (:func:`output_lock`); it holds the run's pid.
-LOCK_FILE = ".lgi-lock"
+#: The lock of output folder ``OUT`` is ``.OUT.lgi-lock`` beside it (not inside: a run killed before its first
+#: output then leaves nothing under the output's name).
+LOCK_SUFFIX = ".lgi-lock"
 # The folders this process holds the lock of, and how many times (a job inside a command that locked its folder).
 _HELD: dict[Path, int] = {}
 _HELD_LOCK = threading.Lock()
+
+
+def lock_path(out: str | os.PathLike[str]) -> Path:
+    """The lock file of output folder ``out`` (its path resolved): ``.NAME.lgi-lock`` beside it."""
+    key = _resolved(out)
+    return key.parent / f".{key.name}{LOCK_SUFFIX}"
 
 
 @contextlib.contextmanager
@@ -413,9 +421,9 @@ def output_lock(out: str | os.PathLike[str]) -> Iterator[None]:
     into one ``--out`` never leave a mixture of their outputs. A second run is refused at once (an
     :class:`~lgi.errors.InputError`, exit 2) naming the holder's pid.
 
-    An OS lock (``flock``) on :data:`LOCK_FILE` in ``out``, released by the kernel if the process dies; the file
-    goes when the run ends. Re-entrant in one process (a command that locks its folder runs jobs that lock it
-    too). A folder this made for the lock and left empty is removed.
+    An OS lock (``flock``) on :func:`lock_path` beside ``out``, released by the kernel if the process dies; the
+    file goes when the run ends (a killed run's is taken over by the next). Re-entrant in one process (a command
+    that locks its folder runs jobs that lock it too).
     """
     import fcntl
 
@@ -435,13 +443,12 @@ def output_lock(out: str | os.PathLike[str]) -> Iterator[None]:
             with _HELD_LOCK:
                 _HELD[key] -= 1
         return
-    check_output(out, "dir")  # a file there, a folder that cannot be made: said before the folder is made
-    created = not out.exists()
+    check_output(out, "dir")  # a file there, a folder that cannot be made: said before any folder is made
+    lock = lock_path(out)
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        lock.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise (storage_error(exc, out) or exc) from exc
-    lock = out / LOCK_FILE
     while True:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
@@ -479,9 +486,6 @@ def output_lock(out: str | os.PathLike[str]) -> Iterator[None]:
         with contextlib.suppress(OSError):
             lock.unlink()  # before the release: a run waiting on this file then locks a new one
         os.close(fd)
-        if created:
-            with contextlib.suppress(OSError):
-                out.rmdir()
 
 
 @contextlib.contextmanager
@@ -515,9 +519,10 @@ def _staged(out: Path, owned: tuple[str, ...], resume: str | None) -> Iterator[P
     adopted = _adopt_stopped(out, resume) if resume else None
     for prefix in (".lgi-staging-", ".lgi-resuming-", RECORD_TEMP, *(f".{name}.old-" for name in owned)):
         sweep(out, prefix)
-    stage = None
+    stage, created = None, not out.exists()
     try:
         try:
+            out.mkdir(parents=True, exist_ok=True)
             stage = make_temp_dir(out, ".lgi-staging-")
             if adopted is not None:
                 stage.rmdir()
@@ -570,6 +575,9 @@ def _staged(out: Path, owned: tuple[str, ...], resume: str | None) -> Iterator[P
                 logging.getLogger(__name__).warning(
                     "stopped: what was written waits in %s for the same command to go on from (the next run of "
                     "another job into %s removes it)", stage, out)
+        if created:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # made for this run's outputs, and left empty: nothing under the output's name
         if full is not None and full is not exc:
             raise full from exc
         raise
