@@ -53,37 +53,11 @@ def main() -> None:
             run(w, a.vertices, a.frames, a.scans)
 
 
-def subdivided(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One midpoint subdivision: a vertex at each edge's middle, each triangle split in four (the surface is
-    unchanged, the vertex count about four times)."""
-    t = np.asarray(triangles, np.int64)
-    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    uniq, inverse = np.unique(e, axis=0, return_inverse=True)
-    mid = (len(vertices) + inverse.reshape(3, -1)).T  # (T, 3): the middles of edges 01, 12, 20
-    v = np.concatenate([vertices, 0.5 * (vertices[uniq[:, 0]] + vertices[uniq[:, 1]])])
-    a, b, c = t.T
-    ab, bc, ca = mid.T
-    return v, np.concatenate([np.stack(x, 1) for x in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
-
-
-def write_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
-    """A binary little-endian PLY, as scanners write them (float32 vertices, uchar-counted int32 faces)."""
-    face = np.zeros(len(triangles), np.dtype([("n", "u1"), ("v", "<i4", 3)]))
-    face["n"], face["v"] = 3, triangles
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
-        f.write((f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\nproperty float x\n"
-                 f"property float y\nproperty float z\nelement face {len(triangles)}\n"
-                 "property list uchar int vertex_indices\nend_header\n").encode())
-        f.write(np.ascontiguousarray(vertices, "<f4").tobytes())
-        f.write(face.tobytes())
-
-
 def dense(w: Path, vertices: int, frames: int, sizes: list[int]) -> str:
     """The dense-scan table: ``lgi compare`` of the LGI frame against its remeshed frame subdivided to about each
     of ``sizes`` vertices, as a whole process."""
     from lgi.dataset.shapes import ShapeDataset
-    from lgi.evaluation.compare import remeshed_scan
+    from lgi.evaluation.compare import remeshed_scan, subdivided, write_ply
     from lgi.jobs.index import build
     from lgi.jobs.reconstruct import reconstruct
     from lgi.jobs.synthetic import SynthOptions, write_synthetic

@@ -523,6 +523,43 @@ def remeshed_scan(vertices: np.ndarray, triangles: np.ndarray, edge: float,
     return w[used], remap[g]
 
 
+def subdivided(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A denser scan of the same surface, for tests and benchmarks: one midpoint subdivision (a vertex at each
+    edge's middle, each triangle split in four; the vertex count about four times).
+
+    Parameters
+    ----------
+    vertices : (V, 3) float; triangles : (T, 3) int
+
+    Returns
+    -------
+    vertices : (V + E, 3) float64
+    triangles : (4 T, 3) int64
+    """
+    t = np.asarray(triangles, np.int64)
+    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    uniq, inverse = np.unique(e, axis=0, return_inverse=True)
+    mid = (len(vertices) + inverse.reshape(3, -1)).T  # (T, 3): the middles of edges 01, 12, 20
+    v = np.concatenate([vertices, 0.5 * (vertices[uniq[:, 0]] + vertices[uniq[:, 1]])])
+    a, b, c = t.T
+    ab, bc, ca = mid.T
+    return v, np.concatenate([np.stack(x, 1) for x in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+
+
+def write_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    """Write a scan as a binary little-endian PLY, as scanners do (float32 vertices (V, 3), uchar-counted int32
+    triangles (T, 3)), for tests and benchmarks."""
+    face = np.zeros(len(triangles), np.dtype([("n", "u1"), ("v", "<i4", 3)]))
+    face["n"], face["v"] = 3, triangles
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as f:
+        f.write((f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\nproperty float x\n"
+                 f"property float y\nproperty float z\nelement face {len(triangles)}\n"
+                 "property list uchar int vertex_indices\nend_header\n").encode())
+        f.write(np.ascontiguousarray(vertices, "<f4").tobytes())
+        f.write(face.tobytes())
+
+
 def frame_fingerprint(vertices: np.ndarray) -> str:
     """SHA-256 of a frame's vertices as ``meshes.npz`` stores them (float32, little-endian): ``lgi review --scans``
     checks with it that the distances were measured on the frames it shows."""
