@@ -2,7 +2,8 @@
 
 With ``LGI_DEBUG_STAGES`` naming a folder, a command creates the empty file ``FOLDER/<stage>`` as it enters each
 stage: ``start`` (before the command line's modules are imported), ``solve`` (a reconstruction's solve begins),
-``write`` (its outputs are being written), ``commit`` (a job's outputs are replacing an earlier run's, the first of
+``write`` (its outputs are being written), ``read`` (a job reading a reconstruction holds it against commits,
+:func:`lgi.io.atomic.reading`), ``commit`` (a job's outputs are replacing an earlier run's, the first of
 them replaced) and ``shutdown`` (the command has returned its status; the interpreter is about to exit). A test
 then sends its signal once the stage it means to interrupt has begun, instead of guessing a delay that a loaded
 machine turns wrong.

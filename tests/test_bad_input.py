@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -987,6 +988,83 @@ def test_two_runs_into_one_folder_never_leave_a_mixture(world: Path, tmp_path: P
             assert codes == (0, 2) and got == ref["a"], (r, codes, err_a[-800:], err_b[-800:])
         assert [p.name for p in out.glob(".lgi-*")] == [RECORD_FILE] and not list(out.glob(".*.old-*"))
     assert refused >= 10
+
+
+def test_a_deployment_run_never_replaces_a_file_lgi_did_not_write(world: Path, tmp_path: Path, prefect_harness,
+                                                                  monkeypatch) -> None:
+    """The reconstruct-shot flow run as a deployment's run would be (its output resolved under the data root), into
+    a folder where the user keeps a per_frame.csv of their own: refused before the work, naming the file, which
+    stays as it was."""
+    from prefect.variables import Variable
+
+    import lgi.orchestration.deploy as deploy
+    from lgi.errors import InputError
+    from lgi.orchestration.reconstruct import reconstruct_shot
+
+    root = tmp_path / "root"
+    out = root / "shots" / "recon"
+    out.mkdir(parents=True)
+    (out / "per_frame.csv").write_text("frame,note\n0,mine\n")
+    Variable.set(deploy.DATA_ROOT_VARIABLE, str(root), overwrite=True)
+    monkeypatch.setattr(deploy, "in_deployment", lambda: True)
+    try:
+        with pytest.raises(InputError, match=r"no record of writing \(per_frame\.csv"):
+            reconstruct_shot(str(world / "idx"), str(world / "s" / "bundles.csv"), "shots/recon")
+    finally:
+        Variable.unset(deploy.DATA_ROOT_VARIABLE)
+    assert sorted(p.name for p in out.iterdir()) == ["per_frame.csv"]
+    assert (out / "per_frame.csv").read_text() == "frame,note\n0,mine\n"
+
+
+def _page_frames(said: str) -> int:
+    return int(re.search(r"review page of (\d+) frames", said).group(1))
+
+
+def test_readers_never_see_a_commit_half_done(world: Path, tmp_path: Path) -> None:
+    """``lgi review`` of an OUT that another run is replacing: a reader started inside the commit waits for it and
+    shows the new run whole; a reader already reading holds the commit back until it is done, and shows the old
+    run whole. Without the lock the first reader met 12 frames of meshes with 8 of diagnostics."""
+    short = tmp_path / "short.csv"
+    d = pd.read_csv(world / "s" / "bundles.csv")
+    d[d.frame < 8].to_csv(short, index=False)
+    out = tmp_path / "out"
+    full = ["reconstruct", str(world / "idx"), "--bundles", str(world / "s" / "bundles.csv"), "--out", str(out), "-q"]
+    assert main(["reconstruct", str(world / "idx"), "--bundles", str(short), "--out", str(out), "-q"]) == 0
+
+    def review(name: str, stages: Path | None = None, hold: str | None = None) -> subprocess.Popen:
+        return _spawn(["review", str(out), "--index", str(world / "idx"), "--out", str(tmp_path / name)], tmp_path,
+                      stages, hold)
+
+    # A reader started while the run is held inside its commit (its meshes replaced, its tables not yet).
+    sa, sr = tmp_path / "stages_a", tmp_path / "stages_r"
+    a = _spawn(full, tmp_path, sa, "commit:5")
+    deadline = time.monotonic() + 120
+    while not (sa / "commit").exists() and a.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert (sa / "commit").exists(), a.communicate()[1][-800:]
+    r = review("page_a", sr)
+    (said, err), (_, err_a) = r.communicate(timeout=300), a.communicate(timeout=300)
+    assert a.returncode == 0, err_a[-800:]
+    assert r.returncode == 0, err[-800:]
+    # The reader began to read after the commit's last write (the record, inside the lock), not during the hold.
+    assert (sr / "read").stat().st_mtime_ns >= (out / RECORD_FILE).stat().st_mtime_ns and "waiting" in err
+    assert _page_frames(said) == 12
+
+    # A reader holding OUT (held 5 s as it reads) while a run commits into it.
+    assert main(["reconstruct", str(world / "idx"), "--bundles", str(short), "--out", str(out), "-q"]) == 0
+    sr2, sb = tmp_path / "stages_r2", tmp_path / "stages_b"
+    r = review("page_b", sr2, "read:5")
+    while not (sr2 / "read").exists() and r.poll() is None and time.monotonic() < deadline + 120:
+        time.sleep(0.02)
+    b = _spawn(full, tmp_path, sb)
+    (said, err), (_, err_b) = r.communicate(timeout=300), b.communicate(timeout=300)
+    assert r.returncode == 0 and b.returncode == 0, (err[-800:], err_b[-800:])
+    # The run's commit began after the reader had written its page (all of it inside its hold on OUT).
+    page = max(f.stat().st_mtime_ns for f in (tmp_path / "page_b").rglob("*") if f.is_file())
+    assert (sb / "commit").stat().st_mtime_ns >= page and "waiting" in err_b
+    assert _page_frames(said) == 8
+    with np.load(out / "meshes.npz") as z:
+        assert len(z["frames"]) == 12  # the run committed once the reader was done
 
 
 def test_closed_pipe_is_quiet(world: Path, tmp_path: Path, capsys) -> None:

@@ -17,13 +17,15 @@ import shutil
 import tempfile
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from lgi.errors import InputError, StorageError
 from lgi.io.record import RECORD_FILE, describe, read_record, record_files, unrecorded, write_record
 from lgi.io.record import TEMP_PREFIX as RECORD_TEMP
+
+F = TypeVar("F", bound=Callable[..., Any])
 
 # Failures of the machine, not of the data: the same write fails again until space is freed or the file system
 # remounted, so they become one message naming the output instead of a writer's bare "[errno 28]".
@@ -488,6 +490,117 @@ def output_lock(out: str | os.PathLike[str]) -> Iterator[None]:
         os.close(fd)
 
 
+# The folders this process reads (:func:`reading`): the open descriptor holding the shared lock, and how many
+# readers in this process share it.
+_READ: dict[Path, list[int]] = {}
+#: How often a reader or a commit kept waiting on the other says so (s).
+WAIT_NOTE_S = 30.0
+
+
+def _flock_dir(fd: int, mode: int, folder: Path, waiting: str) -> bool:
+    """Take ``mode`` (``fcntl.LOCK_SH`` or ``LOCK_EX``) on the open folder ``fd``, waiting as long as it takes and
+    saying so every :data:`WAIT_NOTE_S`; False (with a warning) where the file system cannot lock folders."""
+    import fcntl
+
+    log = logging.getLogger(__name__)
+    start = time.monotonic()
+    noted = 0.0
+    while True:
+        try:
+            fcntl.flock(fd, mode | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            waited = time.monotonic() - start
+            if waited >= noted:
+                log.warning("%s (%s): waiting, %.0f s so far", waiting, folder, waited)
+                noted += WAIT_NOTE_S
+            time.sleep(0.05)
+        except OSError as exc:  # NFS, for one, cannot lock a folder
+            log.warning("%s cannot be locked (%s): readers are not kept from a run's commit there", folder, exc)
+            return False
+
+
+@contextlib.contextmanager
+def reading(folder: str | os.PathLike[str]) -> Iterator[None]:
+    """Read the output folder ``folder`` (a reconstruction) as one run's outputs: a run committing into it
+    waits until the readers are done, and a reader waits for a commit under way, so no reader sees one run's
+    meshes with another's tables. A shared ``flock`` on the folder itself (its entries are replaced, never the
+    folder): nothing is written beside it. A folder that does not exist or cannot be opened is left to the
+    reader's own checks to name."""
+    import fcntl
+
+    key = _resolved(folder)
+    with _HELD_LOCK:
+        mine = _READ.get(key)
+        if mine is not None:
+            mine[1] += 1
+    if mine is None:
+        try:
+            fd = os.open(key, os.O_RDONLY | os.O_DIRECTORY)
+        except OSError:
+            yield
+            return
+        if not _flock_dir(fd, fcntl.LOCK_SH, key, "another lgi run is replacing the outputs being read"):
+            os.close(fd)
+            yield
+            return
+        with _HELD_LOCK:
+            _READ[key] = [fd, 1]
+        from lgi._stages import stage as debug_stage
+
+        debug_stage("read")  # a test holds the reader here, its folder locked
+    try:
+        yield
+    finally:
+        with _HELD_LOCK:
+            entry = _READ[key]
+            entry[1] -= 1
+            if entry[1] == 0:
+                del _READ[key]
+                os.close(entry[0])
+
+
+def reads(param: str) -> Callable[[F], F]:
+    """A job that reads the output folder passed as its argument ``param`` runs :func:`reading` it."""
+    import functools
+    import inspect
+
+    def wrap(fn: F) -> F:
+        sig = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def run(*args: Any, **kwargs: Any) -> Any:
+            with reading(sig.bind_partial(*args, **kwargs).arguments[param]):
+                return fn(*args, **kwargs)
+
+        return run  # type: ignore[return-value]
+
+    return wrap
+
+
+@contextlib.contextmanager
+def _committing(out: Path) -> Iterator[None]:
+    """Hold ``out`` against its readers (:func:`reading`) while a commit replaces its entries: the readers in other
+    processes finish first, and new ones wait for the commit. A folder this process reads itself keeps its
+    shared lock after."""
+    import fcntl
+
+    key = _resolved(out)
+    with _HELD_LOCK:
+        mine = _READ.get(key)
+    fd = mine[0] if mine is not None else os.open(key, os.O_RDONLY | os.O_DIRECTORY)
+    locked = False
+    try:
+        locked = _flock_dir(fd, fcntl.LOCK_EX, key, "lgi is reading the outputs this run replaces")
+        yield
+    finally:
+        if mine is not None:
+            if locked:
+                fcntl.flock(fd, fcntl.LOCK_SH)
+        else:
+            os.close(fd)
+
+
 @contextlib.contextmanager
 def job_outputs(out: str | os.PathLike[str], owned: tuple[str, ...],
                 contents: dict[str, tuple[str, ...]] | None = None, resume: str | None = None) -> Iterator[Path]:
@@ -535,31 +648,8 @@ def _staged(out: Path, owned: tuple[str, ...], resume: str | None) -> Iterator[P
         if unknown:
             raise RuntimeError(f"job wrote outputs it does not declare: {sorted(unknown)}")
         _fsync_tree(stage)
-        from lgi._stages import stage as debug_stage
-
-        # The record lists the new files before any is moved in, and the replaced ones until all are: a run
-        # stopped half way through leaves only files the next run knows as lgi's.
-        recorded, _ = read_record(out)
-        kept = {k: v for k, v in recorded.items() if k.split("/", 1)[0] not in owned}
-        new = record_files(stage, sorted(written))
-        write_record(out, {**kept, **new}, previous={k: v for k, v in recorded.items() if k not in kept})
-        for k, name in enumerate(owned):
-            if k == 1:
-                debug_stage("commit")  # a test holds the run here, its first entry replaced
-            entry, target = stage / name, out / name
-            if name in written:
-                if target.is_dir() and not target.is_symlink():
-                    old = make_temp_dir(out, f".{name}.old-")
-                    os.replace(target, old / name)
-                    os.replace(entry, target)
-                    shutil.rmtree(old, ignore_errors=True)
-                else:
-                    os.replace(entry, target)
-            elif target.is_dir() and not target.is_symlink():
-                shutil.rmtree(target)
-            elif target.exists() or target.is_symlink():
-                target.unlink()
-        write_record(out, {**kept, **new})
+        with _committing(out):
+            _commit(out, stage, owned, written)
         stage.rmdir()
     except BaseException as exc:
         if stage is None:
@@ -581,6 +671,35 @@ def _staged(out: Path, owned: tuple[str, ...], resume: str | None) -> Iterator[P
         if full is not None and full is not exc:
             raise full from exc
         raise
+
+
+def _commit(out: Path, stage: Path, owned: tuple[str, ...], written: set[str]) -> None:
+    """Replace the ``owned`` entries of ``out`` with those ``written`` in ``stage``; remove the others."""
+    from lgi._stages import stage as debug_stage
+
+    # The record lists the new files before any is moved in, and the replaced ones until all are: a run
+    # stopped half way through leaves only files the next run knows as lgi's.
+    recorded, _ = read_record(out)
+    kept = {k: v for k, v in recorded.items() if k.split("/", 1)[0] not in owned}
+    new = record_files(stage, sorted(written))
+    write_record(out, {**kept, **new}, previous={k: v for k, v in recorded.items() if k not in kept})
+    for k, name in enumerate(owned):
+        if k == 1:
+            debug_stage("commit")  # a test holds the run here, its first entry replaced
+        entry, target = stage / name, out / name
+        if name in written:
+            if target.is_dir() and not target.is_symlink():
+                old = make_temp_dir(out, f".{name}.old-")
+                os.replace(target, old / name)
+                os.replace(entry, target)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(entry, target)
+        elif target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        elif target.exists() or target.is_symlink():
+            target.unlink()
+    write_record(out, {**kept, **new})
 
 
 def _written(exc: BaseException, stage: Path, out: Path) -> Path:

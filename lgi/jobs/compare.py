@@ -31,6 +31,7 @@ import numpy as np
 import pandas as pd
 
 from lgi.errors import InputError
+from lgi.io.atomic import reads
 from lgi.jobs import options_from_dict
 from lgi.units import MM_PER_CM
 
@@ -278,6 +279,7 @@ def heatmap_names(pairs: list[tuple[int, Path]]) -> list[str]:
     return names
 
 
+@reads("recon_dir")
 def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
     """``lgi compare``: each (frame, scan) pair measured; with ``options.out``, the tables and heat maps written
     there (all at the end, atomically: nothing on failure). Returns the summary (:func:`compare_report`)."""

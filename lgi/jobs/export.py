@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
+from lgi.io.atomic import reads
 
 #: What a displacement map folder holds: a folder holding anything else is not replaced by one.
 EXR_ENTRIES = ("frame_*.exr",)
@@ -42,6 +43,7 @@ class ExportOptions:
         return asdict(self)
 
 
+@reads("recon_dir")
 def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
            show_progress: bool = False) -> dict[str, Any]:
     """``lgi export``: write ``recon_dir/meshes.npz`` as USD and/or EXR maps (each output atomic; the USD is

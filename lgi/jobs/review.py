@@ -35,6 +35,7 @@ import numpy as np
 import pandas as pd
 
 from lgi.errors import InputError, cell_text
+from lgi.io.atomic import reads
 from lgi.io.stored import ScratchArray
 from lgi.review.pack import ColourTop
 from lgi.units import MM_PER_CM
@@ -503,6 +504,7 @@ def _curve(key: str, label: str, unit: str, values: np.ndarray, **extra: Any) ->
     return {"key": key, "label": label, "unit": unit, "values": blob(np.asarray(values, np.float32)), **extra}
 
 
+@reads("recon_dir")
 def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, options: ReviewOptions | None = None,
            summary: dict[str, Any] | None = None, warnings: list[str] | None = None) -> dict[str, Any]:
     """Write the review page of a reconstruction into ``out``; returns what it wrote (paths, sizes, maps).

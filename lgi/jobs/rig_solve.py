@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
+from lgi.io.atomic import reads
 from lgi.retarget.solve import JAW_CURVES, load_rig, playback  # noqa: F401 - the job's names for its callers
 
 log = logging.getLogger(__name__)
@@ -99,6 +100,7 @@ def read_curves(out: str | Path, controls: list[str]) -> np.ndarray:
     return t.pivot(index="frame", columns="control", values="value")[list(controls)].to_numpy(np.float64)
 
 
+@reads("recon_dir")
 def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, options: RigSolveOptions | None = None,
               usd: str | Path | None = None, rig_usd: str | Path | None = None,
               show_progress: bool = False) -> dict[str, Any]:
