@@ -361,6 +361,11 @@ def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list
 #: cores never wait.
 FINISHING = 2
 CHOOSING = 2
+#: The same on Dask, where a submitted task holds no thread here: enough to keep a cluster of that many workers busy.
+#: Every task submitted and every future held keeps its state on the scheduler and its result on a worker until
+#: released: all of a 36,000-frame ICT take's 1,200 tasks at once grew each worker by 150 kB per task.
+DASK_FINISHING = 32
+DASK_CHOOSING = 8
 
 
 def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work: str, out: str,
@@ -373,6 +378,7 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
 
     work_dir = Path(work)
     futures, parts = [], []
+    choosing, finishing = (CHOOSING, FINISHING) if keep else (DASK_CHOOSING, DASK_FINISHING)
     # BLAS limits are process-wide: a chunk task leaving its one-thread limit would give the tasks still running
     # on the other threads a multithreaded BLAS that fights numba for the cores (lgi.threads). One limit for the
     # whole chunk work keeps every task at one BLAS thread.
@@ -384,10 +390,11 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
         n_frames = bounds[-1][1]
 
         def choose(k: int) -> None:
-            # The chain of choices, each continuing from the last: on this process's threads at most CHOOSING
-            # submitted and unfinished (each holds a thread waiting for the one before).
-            if keep and k >= CHOOSING:
-                _result(futures[k - CHOOSING])
+            # The chain of choices, each continuing from the last: at most ``choosing`` submitted and unfinished
+            # (on this process's threads each holds a thread waiting for the one before). A finished task's future
+            # gives way to its result, the file's name, which releases the task on the runner.
+            if k >= choosing:
+                futures[k - choosing] = _result(futures[k - choosing])
             lo, hi = bounds[k]
             chosen = work_dir / f"choice_{lo:06d}.npz"
             # A chunk a stopped run of this job chose (its file is whole or absent) is not chosen again.
@@ -399,16 +406,16 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
             return [k for k, (c0, c1) in enumerate(bounds) if c1 > a and c0 < b]
 
         # Each chunk is finished as soon as the choices its windows read are made (Shot.needs), while the chain
-        # goes on choosing: the two overlap as in lgi reconstruct's two-thread schedule. On this process's
-        # threads (keep) the work is handed out a little ahead of need, not all at once: every task submitted
-        # holds a thread, and a 9,000-frame ICT take's 300 threads peaked at 5 GB.
+        # goes on choosing: the two overlap as in lgi reconstruct's two-thread schedule. The work is handed out a
+        # little ahead of need, not all at once: on this process's threads every task submitted holds a thread (a
+        # 9,000-frame ICT take's 300 threads peaked at 5 GB), and on Dask its state (DASK_FINISHING).
         for i, (lo, hi) in enumerate(bounds):
             want = needed(i)
-            upto = len(bounds) if not keep else min(len(bounds), want[-1] + 1 + CHOOSING)
+            upto = min(len(bounds), want[-1] + 1 + choosing)
             while len(futures) < upto:
                 choose(len(futures))
-            if keep and i >= FINISHING:
-                _result(parts[i - FINISHING])
+            if i >= finishing:
+                parts[i - finishing] = _result(parts[i - finishing])
             part = work_dir / f"part_{lo:06d}.npz"
             parts.append(str(part) if part.is_file() else finish_chunk.submit(
                 index_dir, bundles, options, [futures[k] for k in want], lo, hi, str(part), bounds[want[0]][0],
