@@ -238,7 +238,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from lgi.jobs.export import ExportOptions, export, export_report
 
-    opts = ExportOptions(usd=args.usd, exr=args.exr, exr_size=args.exr_size, fps=args.fps)
+    opts = ExportOptions(usd=args.usd, exr=args.exr, exr_size=args.exr_size, fps=args.fps, dcc=args.dcc,
+                         up_axis=args.up_axis, units=args.units)
     for line in export_report(export(args.recon_dir, args.index, opts, show_progress=not args.quiet), opts):
         print(line)
     return 0
@@ -267,7 +268,8 @@ def cmd_rig_generate(args: argparse.Namespace) -> int:
     from lgi.jobs.rig import RigGenerateOptions, generate_rig, rig_generate_report
 
     opts = RigGenerateOptions(correctives=args.correctives, transfer=args.transfer, controls=args.controls,
-                              coverage_mm=args.coverage, fit_mm=args.fit)
+                              coverage_mm=args.coverage, fit_mm=args.fit, dcc=args.dcc, up_axis=args.up_axis,
+                              units=args.units)
     for line in rig_generate_report(generate_rig(args.template, args.index, args.out, opts, usd=args.usd,
                                                  show_progress=not args.quiet)):
         print(line)
@@ -410,6 +412,18 @@ def _command(sub: argparse._SubParsersAction, name: str, help: str, description:
              example: tuple[str, ...], outputs: str | None = None) -> argparse.ArgumentParser:
     return sub.add_parser(name, help=help, description=description, epilog=_epilog(outputs, example),
                           formatter_class=_Formatter)
+
+
+def _convention_flags(g) -> None:
+    """The scene convention of a USD or EXR output (:class:`lgi.export.convention.Convention`)."""
+    from lgi.export.convention import DCC_PRESETS
+
+    presets = "; ".join(f"{k}: {u} up, {m}" for k, (u, m) in DCC_PRESETS.items())
+    g.add_argument("--dcc", choices=tuple(DCC_PRESETS), help=f"the target's convention ({presets}); --up-axis and "
+                   "--units given beside it take precedence")
+    g.add_argument("--up-axis", choices=("Y", "Z"), help="the up axis of the written geometry (default Y, lgi's; Z "
+                   "turns the face +90 degrees about X: it looks along -Y)")
+    g.add_argument("--units", choices=("cm", "m"), help="the unit of the written coordinates (default cm, lgi's)")
 
 
 def _quiet(g: argparse._ActionsContainer) -> None:
@@ -821,6 +835,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--usd", default=None, metavar="RIG.usda",
                    help="also write the rig as UsdSkel: blend shapes and, with a jaw-rigged index, a jaw joint "
                         "(default: none)")
+    _convention_flags(g)
     _quiet(g)
     s.set_defaults(func=cmd_rig_generate)
 
@@ -930,10 +945,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     # ---------------------------------------------------------------------------------------------------- export
     s = _command(sub, "export", "export a reconstruction as USD and/or OpenEXR displacement maps",
-                 "Write RECON_DIR/meshes.npz as an animated USD mesh (time samples, face-varying UVs, cm with "
-                 "metersPerUnit 0.01) and/or per-frame displacement maps in UV space (OpenEXR, float32, RGB = xyz "
-                 "displacement, cm).",
-                 ("lgi export synth/recon --index synth/index --usd shot.usda --exr maps",),
+                 "Write RECON_DIR/meshes.npz as an animated USD mesh (time samples, face-varying UVs; by default "
+                 "cm with metersPerUnit 0.01, Y up) and/or per-frame displacement maps in UV space (OpenEXR, "
+                 "float32, RGB = xyz displacement; the header names the units, up axis, neutral and frame). "
+                 "--dcc, --up-axis and --units write the geometry in a DCC's own convention and say so in the "
+                 "files.",
+                 ("lgi export synth/recon --index synth/index --usd shot.usda --exr maps",
+                  "lgi export synth/recon --index synth/index --usd shot.usdc --dcc blender"),
                  outputs="--usd FILE (animated mesh) and/or --exr DIR/frame_NNNNN.exr (one displacement map per "
                          "frame).")
     g = s.add_argument_group("inputs")
@@ -948,6 +966,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--exr", metavar="DIR", help="displacement maps: one frame_NNNNN.exr per frame")
     g.add_argument("--exr-size", type=int, default=512, metavar="N",
                    help="map width and height, texels (default %(default)s)")
+    _convention_flags(g)
     _quiet(g)
     s.set_defaults(func=cmd_export)
 

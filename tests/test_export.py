@@ -1,6 +1,7 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from lgi.cli import main
 from lgi.export.formats import displacement_map, read_exr, write_exr, write_usd
@@ -126,3 +127,46 @@ def test_usd_200_frames_of_ict(tmp_path: Path, ict_dir: Path) -> None:
     assert len(pts.GetTimeSamples()) == 200
     for f in (0, 77, 199):
         np.testing.assert_array_equal(np.asarray(pts.Get(float(f))), verts[f])
+
+
+def test_export_in_each_dccs_convention(tmp_path: Path) -> None:
+    """--dcc blender (Z up, m) and --up-axis/--units: the points are lgi's turned +90 degrees about X and scaled,
+    the stage says so, and the EXR maps' headers name the units, axis, neutral and frame. The default export is
+    lgi's own convention, stated in the same header attributes."""
+    import hashlib
+
+    import OpenEXR
+    from pxr import Usd, UsdGeom
+
+    s = tmp_path / "s"
+    main(["synth", "--out", str(s), "--vertices", "2500", "--frames", "3", "-q"])
+    main(["build", str(s / "dataset"), "--markers", str(s / "markers.csv"), "--out", str(tmp_path / "idx"), "-q"])
+    main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(s / "bundles.csv"), "--out", str(tmp_path / "r"),
+          "-q"])
+    cm = np.load(tmp_path / "r" / "meshes.npz")["vertices"].astype(np.float64)
+    base = ["export", str(tmp_path / "r"), "--index", str(tmp_path / "idx"), "--exr-size", "32", "-q"]
+    for name, flags, up, mpu in (("lgi", [], "Y", 0.01), ("blender", ["--dcc", "blender"], "Z", 1.0),
+                                 ("houdini", ["--dcc", "houdini"], "Y", 1.0), ("zcm", ["--up-axis", "Z"], "Z", 0.01),
+                                 ("blender_cm", ["--dcc", "blender", "--units", "cm"], "Z", 0.01)):
+        assert main([*base, *flags, "--usd", str(tmp_path / f"{name}.usdc"), "--exr", str(tmp_path / name)]) == 0
+        stage = Usd.Stage.Open(str(tmp_path / f"{name}.usdc"))
+        assert (UsdGeom.GetStageUpAxis(stage), UsdGeom.GetStageMetersPerUnit(stage)) == (up, mpu), name
+        want = cm * (0.01 / mpu)
+        if up == "Z":
+            want = np.stack([want[..., 0], -want[..., 2], want[..., 1]], axis=-1)
+        pts = UsdGeom.Mesh(stage.GetPrimAtPath("/Face/mesh")).GetPointsAttr()
+        got = np.stack([np.asarray(pts.Get(float(f)), np.float64) for f in range(3)])
+        assert np.abs(got - want).max() * mpu * 1000 < 1e-3, name  # within a micrometre, in metres
+        h = OpenEXR.File(str(tmp_path / name / "frame_00002.exr")).header()
+        assert (h["lgi:units"], h["lgi:upAxis"], h["lgi:frame"]) == ("cm" if mpu == 0.01 else "m", up, 2), name
+        neutral = np.load(tmp_path / "idx" / "index.npz")["neutral"]
+        assert h["lgi:neutral"] == "idx"
+        assert h["lgi:neutralSha256"] == hashlib.sha256(np.ascontiguousarray(neutral, "<f4").tobytes()).hexdigest()
+        assert float(h["framesPerSecond"]) == 30.0
+    # The maps turn and scale with the geometry: Blender's green is lgi's -z, in metres.
+    lgi_map, bl_map = read_exr(tmp_path / "lgi" / "frame_00001.exr"), read_exr(tmp_path / "blender" / "frame_00001.exr")
+    np.testing.assert_allclose(bl_map[..., 1], -lgi_map[..., 2] / 100, atol=1e-9)
+    np.testing.assert_allclose(bl_map[..., 2], lgi_map[..., 1] / 100, atol=1e-9)
+    with pytest.raises(SystemExit) as e:
+        main([*base, "--dcc", "modo", "--usd", str(tmp_path / "x.usdc")])
+    assert e.value.code == 2

@@ -322,6 +322,40 @@ def test_usd_animation_plays_the_jaw_joint(jaw_rig) -> None:
     assert list(layer_anim.GetJointsAttr().Get()) == ["root", "root/jaw"]
 
 
+def test_a_rig_in_blenders_convention_plays_the_same_face(jaw_rig) -> None:
+    """The jaw rig's USD written Z up in metres (--dcc blender): rig-solve checks it against the rig dataset and
+    animates it, and UsdSkel's bake is the rig's playback turned +90 degrees about X and in metres, to 1e-6 m:
+    the joint's bind, rest and animated transforms turn with the geometry."""
+    from pxr import Usd, UsdGeom
+
+    from lgi.export.convention import Convention
+    from lgi.export.formats import write_usd_rig
+    from lgi.export.rig_anim import usd_playback, validate_usd
+    from lgi.jobs.rig_solve import JAW_CURVES, playback, read_curves
+    from lgi.solve.jaw import JawRig
+
+    r, d, ds = jaw_rig["rig"], jaw_rig["dir"], jaw_rig["ds"]
+    blender = Convention.of("blender")
+    write_usd_rig(d / "rig_z.usdc", ds.neutral, ds.face_vertices, ds.face_offsets, ds.names, ds.deltas,
+                  [None] * len(A.CONTROLS) + list(PAIRS), jaw_rig=JawRig(ds.jaw_pivot, ds.jaw_weights),
+                  convention=blender)
+    jaw = np.c_[np.linspace(0.0, 18.0, 6), np.linspace(-4, 4, 6), np.linspace(2, -2, 6), np.linspace(0, 0.2, 6)]
+    w, jaw = jaw_shot(r, 6, 11, jaw)
+    recon = write_recon(d / "usd_z", np.stack([r.evaluate(x, t) for x, t in zip(w, jaw, strict=True)]))
+    out, anim = d / "usd_z_out", d / "anim_z" / "shot.usda"
+    assert main(["rig-solve", str(recon), "--rig", str(d / "rig"), "--out", str(out), "--usd", str(anim),
+                 "--rig-usd", str(d / "rig_z.usdc"), "-q"]) == 0
+    stage = Usd.Stage.Open(str(anim))
+    assert (UsdGeom.GetStageUpAxis(stage), UsdGeom.GetStageMetersPerUnit(stage)) == ("Z", 1.0)
+    curves = np.c_[read_curves(out, r.controls), read_curves(out, list(JAW_CURVES))]
+    baked = usd_playback(anim, list(range(len(w))))
+    assert np.abs(baked - blender.points(playback(r, curves), np.float64)).max() <= 1e-6
+    assert validate_usd(anim) == []
+    # The rig in lgi's convention still checks and animates beside it.
+    assert main(["rig-solve", str(recon), "--rig", str(d / "rig"), "--out", str(d / "usd_y_out"), "--usd",
+                 str(d / "anim_y" / "shot.usda"), "--rig-usd", str(d / "rig.usda"), "-q"]) == 0
+
+
 def test_jaw_rig_bad_input_and_older_rigs(jaw_rig, rig, tmp_path, capsys) -> None:
     """--jaw fixed without the reconstruction's jaw, or with a rig without a jaw joint, and a rig USD with a single
     joint for a rig with a jaw joint are refused, naming the file; a rig without a jaw joint (an earlier

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -14,6 +15,7 @@ import numpy as np
 from lgi.dataset.mesh import triangulate
 from lgi.export import clips
 from lgi.export.clips import USD_CLIP_CONTENTS, usd_clip_dir
+from lgi.export.convention import Convention
 from lgi.io.atomic import atomic_dir, atomic_file, remove_recorded
 
 
@@ -26,7 +28,7 @@ def write_usd(
     face_uvs: np.ndarray | None = None,
     frames: np.ndarray | None = None,
     fps: float = 30.0,
-    units_per_meter: float = 100.0,
+    convention: Convention | None = None,
     prim: str = "/Face/mesh",
     clip_frames: int | None = None,
 ) -> Path:
@@ -49,17 +51,17 @@ def write_usd(
         Time codes (default 0..F-1).
     fps : float
         Time codes per second.
-    units_per_meter : float
-        100 for centimetres (``metersPerUnit`` 0.01).
+    convention : Convention, optional
+        The up axis and units the points are written in and the stage says (default lgi's: Y up, cm).
     clip_frames : int, optional
         Frames per value clip (0: always one file; default :data:`~lgi.export.clips.USD_CLIP_FRAMES`).
     """
     from pxr import Sdf, Usd, UsdGeom, Vt
 
     frames = np.arange(len(vertices)) if frames is None else np.asarray(frames)
+    convention = convention or Convention()
     stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0 / units_per_meter)
+    _stage_convention(stage, convention)
     stage.SetStartTimeCode(float(frames[0]))
     stage.SetEndTimeCode(float(frames[-1]))
     stage.SetTimeCodesPerSecond(float(fps))
@@ -82,7 +84,7 @@ def write_usd(
     clip_dir = usd_clip_dir(path)
     clip_frames = clips.USD_CLIP_FRAMES if clip_frames is None else clip_frames
     if clip_frames <= 0 or len(frames) <= clip_frames:
-        _set_samples(points, extent, frames, vertices)
+        _set_samples(points, extent, frames, vertices, convention)
         with atomic_file(path, suffix=path.suffix or ".usdc") as tmp:
             stage.GetRootLayer().Export(str(tmp))
         remove_recorded(clip_dir, USD_CLIP_CONTENTS, "earlier USD clip folder")  # clips no longer used
@@ -99,7 +101,7 @@ def write_usd(
             clip = Usd.Stage.CreateInMemory()
             clip_mesh = UsdGeom.Mesh.Define(clip, prim)
             _set_samples(clip_mesh.CreatePointsAttr(), clip_mesh.CreateExtentAttr(), frames[lo:hi],
-                         _rows(vertices, lo, hi))
+                         _rows(vertices, lo, hi), convention)
             clip.GetRootLayer().Export(str(tmp_dir / name))
             del clip, clip_mesh
         # The manifest names the attributes the clips animate (USD would otherwise open every clip to learn it).
@@ -127,13 +129,34 @@ def _rows(vertices, lo: int, hi: int, block: int = 32):
         yield from vertices[a:min(a + block, hi)]
 
 
-def _set_samples(points, extent, frames: np.ndarray, vertices) -> None:
-    """One time sample per frame of ``vertices`` (F, V, 3) cm on a mesh's ``points`` and ``extent`` attributes."""
+def _stage_convention(stage, convention: Convention) -> None:
+    from pxr import UsdGeom
+
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if convention.up == "Y" else UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, convention.meters_per_unit)
+
+
+def stage_convention(stage) -> Convention:
+    """The convention a USD stage's metadata states (lgi's writers state one of :class:`Convention`'s)."""
+    from pxr import UsdGeom
+
+    up, mpu = UsdGeom.GetStageUpAxis(stage), UsdGeom.GetStageMetersPerUnit(stage)
+    units = [u for u in ("cm", "m") if abs(Convention("Y", u).meters_per_unit - mpu) < 1e-9]
+    if up not in ("Y", "Z") or not units:
+        raise ValueError(f"a stage with upAxis {up} and metersPerUnit {mpu} is not in a convention lgi writes")
+    return Convention(str(up), units[0])
+
+
+def _set_samples(points, extent, frames: np.ndarray, vertices, convention: Convention) -> None:
+    """One time sample per frame of ``vertices`` (F, V, 3) cm on a mesh's ``points`` and ``extent`` attributes,
+    in ``convention``."""
     from pxr import Usd, Vt
 
     for f, v in zip(frames, vertices, strict=True):
         # Frame by frame, so that a shot read by frame range (lgi.io.npz.npz_member) is never read whole; USD's
         # buffers take aligned float32 only.
+        if not convention.native:
+            v = convention.points(v)
         v = np.require(v, np.float32, ["C_CONTIGUOUS", "ALIGNED"])
         points.Set(Vt.Vec3fArray.FromNumpy(v), Usd.TimeCode(float(f)))
         extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([v.min(0), v.max(0)])), Usd.TimeCode(float(f)))
@@ -201,13 +224,38 @@ def displacement_map(
     return _rasterize(uv[keep], vals, int(size))
 
 
-def write_exr(path: str | os.PathLike[str], image: np.ndarray) -> Path:
-    """Write an (H, W, 3) float32 image as an OpenEXR RGB file (ZIP compression), atomically."""
+def exr_header(convention: Convention, neutral_name: str, neutral: np.ndarray, fps: float) -> dict[str, Any]:
+    """The header attributes of lgi's displacement maps (:func:`write_exr`; each map adds its ``lgi:frame``).
+
+    ``lgi:content`` says what the pixels are; ``lgi:units`` (``cm`` or ``m``) and ``lgi:upAxis`` (``Y`` or ``Z``)
+    the convention of the displacement vectors (RGB = x, y, z); ``lgi:neutral`` names the neutral they are
+    measured from (the index's folder name) and ``lgi:neutralSha256`` is the SHA-256 of that neutral's vertex
+    positions as little-endian float32 (V, 3), cm, Y up, the index's own; ``framesPerSecond`` (the standard
+    rational attribute) the shot's rate.
+
+    Parameters
+    ----------
+    neutral : (V, 3) float, cm
+    fps : float, frames per second
+    """
+    import hashlib
+    from fractions import Fraction
+
+    digest = hashlib.sha256(np.ascontiguousarray(neutral, "<f4").tobytes()).hexdigest()
+    return {"lgi:content": "displacement of the reconstructed face from the neutral, per texel of its UV layout "
+                           "(RGB = x, y, z)",
+            "lgi:units": convention.units, "lgi:upAxis": convention.up, "lgi:neutral": neutral_name,
+            "lgi:neutralSha256": digest, "framesPerSecond": Fraction(fps).limit_denominator(1001)}
+
+
+def write_exr(path: str | os.PathLike[str], image: np.ndarray, attributes: dict[str, Any] | None = None) -> Path:
+    """Write an (H, W, 3) float32 image as an OpenEXR RGB file (ZIP compression), atomically, with the header
+    ``attributes`` (strings, ints, floats, fractions) beside the required ones."""
     import OpenEXR
 
     path = Path(path)
     pixels = np.ascontiguousarray(np.asarray(image, np.float32))  # strided views are written wrongly
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **(attributes or {})}
     with atomic_file(path, suffix=".exr") as tmp:
         OpenEXR.File(header, {"RGB": pixels}).write(str(tmp))
     return path
@@ -239,7 +287,7 @@ def write_usd_rig(
     combinations: list[tuple[str, ...] | None],
     uvs: np.ndarray | None = None,
     face_uvs: np.ndarray | None = None,
-    units_per_meter: float = 100.0,
+    convention: Convention | None = None,
     jaw_rig=None,
     jaw_parameters: np.ndarray | None = None,
 ) -> Path:
@@ -272,13 +320,17 @@ def write_usd_rig(
         Pivot (3,) cm and weights (V,).
     jaw_parameters : (K, 4) float, optional
         Each shape's jaw pose (metadata for a DCC that drives the joint from a control).
+    convention : Convention, optional
+        The up axis and units of the geometry, the joints and the stage (default lgi's: Y up, cm). The jaw
+        poses in ``lgi:jaw`` stay lgi's parameters (degrees, cm), whatever the convention.
     """
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
-    neutral = np.asarray(neutral, np.float32)
+    convention = convention or Convention()
+    neutral = convention.points(neutral)
+    deltas = convention.points(deltas)
     stage = Usd.Stage.CreateInMemory()
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0 / units_per_meter)
+    _stage_convention(stage, convention)
     root = UsdSkel.Root.Define(stage, "/Rig")
     stage.SetDefaultPrim(root.GetPrim())
     skel = UsdSkel.Skeleton.Define(stage, "/Rig/Skel")
@@ -294,7 +346,7 @@ def write_usd_rig(
         skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
         # blend-shape weights only; the joint stays at rest
     else:
-        pivot = np.asarray(jaw_rig.pivot, np.float64)
+        pivot = convention.points(jaw_rig.pivot, np.float64)
         at_hinge = Gf.Matrix4d(1.0).SetTranslate(Gf.Vec3d(*pivot.tolist()))
         joints = Vt.TokenArray(["root", "root/jaw"])
         skel.CreateJointsAttr(joints)

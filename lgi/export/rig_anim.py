@@ -70,7 +70,7 @@ def check_rig_usd(path: str | os.PathLike[str], names: list[str], neutral: np.nd
     """
     from pxr import Usd, UsdGeom, UsdSkel
 
-    from lgi.export.formats import usd_name
+    from lgi.export.formats import stage_convention, usd_name
 
     p = Path(path)
     if not p.is_file():
@@ -79,6 +79,13 @@ def check_rig_usd(path: str | os.PathLike[str], names: list[str], neutral: np.nd
         stage = Usd.Stage.Open(str(p))
     except Exception as exc:  # noqa: BLE001 - pxr raises its own Tf errors for unreadable files
         raise InputError(f"not a readable USD file ({exc})", path=p) from None
+    try:
+        conv = stage_convention(stage)
+    except ValueError as exc:
+        raise InputError(str(exc), path=p) from None
+    # The dataset's geometry as the USD holds it (its up axis and units), compared in centimetres.
+    neutral = conv.points(neutral, np.float64)
+    tol = tol_cm * conv.scale
     mesh = stage.GetPrimAtPath(MESH_PATH)
     anim = UsdSkel.Animation(stage.GetPrimAtPath(ANIM_PATH))
     if not mesh or not anim:
@@ -93,20 +100,21 @@ def check_rig_usd(path: str | os.PathLike[str], names: list[str], neutral: np.nd
     if points.shape != np.shape(neutral):
         raise InputError(f"its mesh has {len(points)} points, the rig dataset {len(neutral)} vertices", path=p)
     off = float(np.abs(points - neutral).max(initial=0.0))
-    if off > tol_cm:
-        raise InputError(f"its neutral is {off * 10:.3g} mm from the rig dataset's: the USD belongs to another rig",
-                         path=p)
-    _check_joints(stage, p, mesh, jaw, len(neutral), tol_cm)
+    if off > tol:
+        raise InputError(f"its neutral is {off / conv.scale * 10:.3g} mm from the rig dataset's: the USD belongs to "
+                         "another rig", path=p)
+    _check_joints(stage, p, mesh, jaw, len(neutral), tol, conv)
     targets = UsdSkel.BindingAPI(mesh).GetBlendShapeTargetsRel().GetTargets()
     for i, t in enumerate(targets):
         o = np.asarray(UsdSkel.BlendShape(stage.GetPrimAtPath(t)).GetOffsetsAttr().Get(), np.float64)
-        if o.shape != np.shape(deltas[i]) or float(np.abs(o - deltas[i]).max(initial=0.0)) > tol_cm:
+        if o.shape != np.shape(deltas[i]) or float(np.abs(o - conv.points(deltas[i], np.float64)).max(
+                initial=0.0)) > tol:
             raise InputError(f"blend shape {tokens[i]!r} differs from the rig dataset's shape {names[i]!r}: the USD "
                              "belongs to another rig", path=p)
 
 
-def _check_joints(stage, p: Path, mesh, jaw, n_vertices: int, tol_cm: float) -> None:
-    """The skeleton part of :func:`check_rig_usd`."""
+def _check_joints(stage, p: Path, mesh, jaw, n_vertices: int, tol: float, conv) -> None:
+    """The skeleton part of :func:`check_rig_usd` (``tol`` in the stage's units, ``conv`` its convention)."""
     from pxr import UsdSkel
 
     skel = UsdSkel.Skeleton(stage.GetPrimAtPath("/Rig/Skel"))
@@ -125,7 +133,7 @@ def _check_joints(stage, p: Path, mesh, jaw, n_vertices: int, tol_cm: float) -> 
                          "rig-generate --usd", path=p)
     bind = skel.GetBindTransformsAttr().Get()
     at = np.asarray(bind[1].ExtractTranslation(), np.float64) if bind is not None and len(bind) == 2 else None
-    if at is None or float(np.abs(at - jaw.pivot).max()) > tol_cm:
+    if at is None or float(np.abs(at - conv.points(jaw.pivot, np.float64)).max()) > tol:
         raise InputError("its jaw joint is not bound at the rig dataset's jaw pivot: the USD belongs to another rig",
                          path=p)
     binding = UsdSkel.BindingAPI(mesh)
@@ -152,6 +160,8 @@ def write_rig_animation(path: str | os.PathLike[str], rig_usd: str | os.PathLike
     """
     from pxr import Sdf, Usd, UsdGeom, Vt
 
+    from lgi.export.formats import stage_convention
+
     path = Path(path)
     weights = np.asarray(weights, np.float32)
     frames = np.arange(len(weights)) if frames is None else np.asarray(frames)
@@ -169,6 +179,10 @@ def write_rig_animation(path: str | os.PathLike[str], rig_usd: str | os.PathLike
     rig_stage = Usd.Stage.Open(str(rig_usd))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.GetStageUpAxis(rig_stage))
     UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.GetStageMetersPerUnit(rig_stage))
+    try:
+        convention = stage_convention(rig_stage)
+    except ValueError as exc:
+        raise InputError(str(exc), path=rig_usd) from None
     stage.SetStartTimeCode(float(frames[0]))
     stage.SetEndTimeCode(float(frames[-1]))
     stage.SetTimeCodesPerSecond(float(fps))
@@ -186,7 +200,9 @@ def write_rig_animation(path: str | os.PathLike[str], rig_usd: str | os.PathLike
         if not trans_attr or not rot_attr:
             raise InputError(f"the rig USD's {ANIM_PATH} has no joint translations and rotations (no jaw joint)",
                              path=rig_usd)
+        # The joint moves in the rig's convention (lgi's jaw parameters are about lgi's axes, in cm).
         trans, quat = jaw_joint_transform(jaw, pivot)
+        trans, quat = convention.points(trans, np.float64), convention.quaternions(quat)
         for f, t, q in zip(frames, trans, quat, strict=True):
             # The root (the head) stays at rest: lgi's meshes are in the head's frame (its motion removed).
             trans_attr.Set(Vt.Vec3fArray([Gf.Vec3f(0.0), Gf.Vec3f(*t.tolist())]), Usd.TimeCode(float(f)))

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
+from lgi.export.convention import Convention
 from lgi.io.atomic import reads
 
 #: What a displacement map folder holds: a folder holding anything else is not replaced by one.
@@ -19,12 +20,16 @@ EXR_ENTRIES = ("frame_*.exr",)
 @dataclass(frozen=True)
 class ExportOptions:
     """Options of ``lgi export``: ``usd`` file (.usdc/.usda) and/or ``exr`` directory (one map per frame of
-    ``exr_size`` squared texels), USD time codes per second ``fps``."""
+    ``exr_size`` squared texels), USD time codes per second ``fps``; the scene convention of both (``dcc``
+    preset, ``up_axis`` and ``units`` over it: :class:`lgi.export.convention.Convention`)."""
 
     usd: str | None = None
     exr: str | None = None
     exr_size: int = 512
     fps: float = 30.0
+    dcc: str | None = None
+    up_axis: str | None = None
+    units: str | None = None
 
     def __post_init__(self) -> None:
         for flag, path in (("--usd", self.usd), ("--exr", self.exr)):
@@ -38,6 +43,11 @@ class ExportOptions:
             raise InputError(f"--fps must be a positive number, not {self.fps!r}")
         if self.usd and Path(self.usd).suffix.lower() not in (".usd", ".usda", ".usdc"):
             raise InputError("--usd takes a .usd, .usda or .usdc file name", path=self.usd)
+        self.convention  # noqa: B018 - checks the values
+
+    @property
+    def convention(self) -> Convention:
+        return Convention.of(self.dcc, self.up_axis, self.units)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -49,7 +59,7 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     """``lgi export``: write ``recon_dir/meshes.npz`` as USD and/or EXR maps (each output atomic; the USD is
     written last, so none appears if the maps fail)."""
     from lgi.export import clips
-    from lgi.export.formats import displacement_map, write_exr, write_usd
+    from lgi.export.formats import displacement_map, exr_header, write_exr, write_usd
     from lgi.index.build import LGIIndex
     from lgi.io.arrays import nonfinite_frames
     from lgi.io.atomic import atomic_dir, check_distinct, check_not_in_store, check_output
@@ -86,24 +96,29 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
         if "uvs" not in a:
             raise InputError("the mesh has no texture coordinates: no displacement maps", path=index_dir)
         x0 = np.asarray(a["neutral"], np.float64)
+        conv = o.convention
+        header = exr_header(conv, Path(index_dir).resolve().name, x0, o.fps)
         with atomic_dir(o.exr, EXR_ENTRIES, "lgi displacement map folder") as tmp:
             for f, v in progress(list(zip(frames, vertices, strict=True)), "displacement maps",
                                  disable=not show_progress):
-                img, _ = displacement_map(v - x0, a["face_vertices"], a["face_offsets"], a["uvs"], a["face_uvs"],
-                                          o.exr_size)
-                write_exr(tmp / f"frame_{int(f):05d}.exr", img)
+                d = v - x0
+                img, _ = displacement_map(d if conv.native else conv.points(d, np.float64), a["face_vertices"],
+                                          a["face_offsets"], a["uvs"], a["face_uvs"], o.exr_size)
+                write_exr(tmp / f"frame_{int(f):05d}.exr", img, {**header, "lgi:frame": int(f)})
         s["exr"] = str(Path(o.exr).resolve())
     if o.usd:
         write_usd(o.usd, vertices, a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"),
-                  frames, fps=o.fps)
+                  frames, fps=o.fps, convention=o.convention)
         s["usd"] = str(Path(o.usd).resolve())
     return s
 
 
 def export_report(s: dict[str, Any], options: ExportOptions) -> list[str]:
     lines = []
+    c = options.convention
     if "exr" in s:
-        lines.append(f"displacement maps: {s['exr']} ({s['frames']} x {options.exr_size}^2 RGB float32, cm)")
+        lines.append(f"displacement maps: {s['exr']} ({s['frames']} x {options.exr_size}^2 RGB float32, {c.units}, "
+                     f"{c.up} up)")
     if "usd" in s:
-        lines.append(f"USD: {s['usd']} ({s['frames']} time samples at {options.fps:g} fps)")
+        lines.append(f"USD: {s['usd']} ({s['frames']} time samples at {options.fps:g} fps, {c.units}, {c.up} up)")
     return lines

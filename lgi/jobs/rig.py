@@ -38,6 +38,9 @@ class RigGenerateOptions:
         transferred (:class:`~lgi.retarget.template.TemplateTransfer`).
     fit_mm : float
         The transferred bundles are fitted as measurements with this noise (mm); 0 interpolates them exactly.
+    dcc, up_axis, units : str or None
+        The up axis and units of the USD rig (:class:`lgi.export.convention.Convention`; default lgi's, Y up
+        and cm). The rig dataset stays lgi's.
     """
 
     correctives: str | None = None
@@ -45,11 +48,23 @@ class RigGenerateOptions:
     controls: str | None = None
     coverage_mm: float = 2.0
     fit_mm: float = 0.5
+    dcc: str | None = None
+    up_axis: str | None = None
+    units: str | None = None
+
+    @property
+    def convention(self):
+        """The scene convention of the rig's USD (``dcc`` preset, ``up_axis`` and ``units`` over it)."""
+        from lgi.export.convention import Convention
+
+        return Convention.of(self.dcc, self.up_axis, self.units)
 
     def __post_init__(self) -> None:
         import math
 
         from lgi.retarget.template import TRANSFERS
+
+        self.convention  # noqa: B018 - checks the values
 
         if self.transfer not in TRANSFERS:
             raise InputError(f"--transfer {self.transfer!r}: use one of {', '.join(TRANSFERS)}")
@@ -167,7 +182,7 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
         try:
             write_usd_rig(usd, neutral, ds.face_vertices, ds.face_offsets, names, deltas,
                           [None] * len(controls) + list(correctives), ds.uvs, ds.face_uvs, jaw_rig=jaw,
-                          jaw_parameters=rig.jaw)
+                          jaw_parameters=rig.jaw, convention=o.convention)
         except BaseException:
             if not existed:  # a run that fails leaves nothing of itself behind
                 import shutil
