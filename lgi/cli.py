@@ -100,7 +100,8 @@ def _reconstruct_options(args: argparse.Namespace):
     return ReconstructOptions(temporal_weight=args.temporal_weight, spatial_weight=args.spatial_weight,
                               smooth=args.smooth, jaw_smooth=args.jaw_smooth, noise=args.noise, method=args.method,
                               jaw=args.jaw, max_gap=args.max_gap, bilateral=args.bilateral, obj=args.obj,
-                              usd=args.usd, plot=args.plot, fps=args.fps, chunk_size=args.chunk_size,
+                              usd=args.usd, plot=args.plot, fps=args.fps, dcc=args.dcc, up_axis=args.up_axis,
+                              units=args.units, chunk_size=args.chunk_size,
                               observations=args.observations, calib=args.calib, contours=args.contours,
                               far_field=args.far_field)
 
@@ -414,16 +415,16 @@ def _command(sub: argparse._SubParsersAction, name: str, help: str, description:
                           formatter_class=_Formatter)
 
 
-def _convention_flags(g) -> None:
+def _convention_flags(g, what: str = "the written geometry") -> None:
     """The scene convention of a USD or EXR output (:class:`lgi.export.convention.Convention`)."""
     from lgi.export.convention import DCC_PRESETS
 
     presets = "; ".join(f"{k}: {u} up, {m}" for k, (u, m) in DCC_PRESETS.items())
-    g.add_argument("--dcc", choices=tuple(DCC_PRESETS), help=f"the target's convention ({presets}); --up-axis and "
-                   "--units given beside it take precedence")
-    g.add_argument("--up-axis", choices=("Y", "Z"), help="the up axis of the written geometry (default Y, lgi's; Z "
-                   "turns the face +90 degrees about X: it looks along -Y)")
-    g.add_argument("--units", choices=("cm", "m"), help="the unit of the written coordinates (default cm, lgi's)")
+    g.add_argument("--dcc", choices=tuple(DCC_PRESETS), help=f"the convention of {what} for a DCC ({presets}); "
+                   "--up-axis and --units given beside it take precedence")
+    g.add_argument("--up-axis", choices=("Y", "Z"), help=f"the up axis of {what} (default Y, lgi's; Z turns the "
+                   "face +90 degrees about X: it looks along -Y)")
+    g.add_argument("--units", choices=("cm", "m"), help=f"the unit of {what}'s coordinates (default cm, lgi's)")
 
 
 def _quiet(g: argparse._ActionsContainer) -> None:
@@ -667,6 +668,7 @@ def build_parser() -> argparse.ArgumentParser:
                    f"shot of over {USD_CLIP_FRAMES} frames keeps them in value clips, OUT_DIR/shot.clips/)")
     g.add_argument("--fps", type=float, default=30.0, metavar="F",
                    help="USD time codes per second (default %(default)s)")
+    _convention_flags(g, "shot.usdc")
     g.add_argument("--plot", action="store_true", help="also write OUT_DIR/per_frame.png")
     g.add_argument("--review", action="store_true",
                    help="also write the shot's review page into OUT_DIR/review (index.html; see lgi review)")

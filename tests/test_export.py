@@ -167,6 +167,13 @@ def test_export_in_each_dccs_convention(tmp_path: Path) -> None:
     lgi_map, bl_map = read_exr(tmp_path / "lgi" / "frame_00001.exr"), read_exr(tmp_path / "blender" / "frame_00001.exr")
     np.testing.assert_allclose(bl_map[..., 1], -lgi_map[..., 2] / 100, atol=1e-9)
     np.testing.assert_allclose(bl_map[..., 2], lgi_map[..., 1] / 100, atol=1e-9)
+    # reconstruct --usd writes the same file in the same convention.
+    assert main(["reconstruct", str(tmp_path / "idx"), "--bundles", str(s / "bundles.csv"), "--out",
+                 str(tmp_path / "r2"), "--usd", "--dcc", "blender", "-q"]) == 0
+    one, two = (Usd.Stage.Open(str(f)) for f in (tmp_path / "blender.usdc", tmp_path / "r2" / "shot.usdc"))
+    assert UsdGeom.GetStageUpAxis(two) == "Z" and UsdGeom.GetStageMetersPerUnit(two) == 1.0
+    p1, p2 = (UsdGeom.Mesh(x.GetPrimAtPath("/Face/mesh")).GetPointsAttr() for x in (one, two))
+    assert all(np.array_equal(np.asarray(p1.Get(float(f))), np.asarray(p2.Get(float(f)))) for f in range(3))
     with pytest.raises(SystemExit) as e:
         main([*base, "--dcc", "modo", "--usd", str(tmp_path / "x.usdc")])
     assert e.value.code == 2

@@ -55,6 +55,13 @@ class ReconstructOptions:
         the bundles projected, missing or bridged.
     fps : float
         USD time codes per second.
+    dcc : str or None
+        Write ``shot.usdc`` in a DCC's convention (maya, houdini, blender, unreal:
+        :class:`lgi.export.convention.Convention`; default lgi's, Y up and cm). The other outputs stay lgi's.
+    up_axis : str or None
+        The up axis of ``shot.usdc``, Y or Z, over ``dcc``'s.
+    units : str or None
+        The units of ``shot.usdc``, cm or m, over ``dcc``'s.
     chunk_size : int
         Frames per task when the job runs as a flow (scheduling only: results do not depend on it).
     observations : str or None
@@ -86,6 +93,9 @@ class ReconstructOptions:
     usd: bool = False
     plot: bool = False
     fps: float = 30.0
+    dcc: str | None = None
+    up_axis: str | None = None
+    units: str | None = None
     chunk_size: int = 60
     observations: str | None = None
     calib: str | None = None
@@ -132,6 +142,14 @@ class ReconstructOptions:
                                   "--observations too")
         self.bilateral_sigmas()
         self.far_field_cm()
+        self.convention  # noqa: B018 - checks the values
+
+    @property
+    def convention(self):
+        """The scene convention of ``shot.usdc``."""
+        from lgi.export.convention import Convention
+
+        return Convention.of(self.dcc, self.up_axis, self.units)
 
     def bilateral_sigmas(self) -> tuple[float, float, float | None] | None:
         """(sigma_frames, sigma_cm, sigma_space_cm or None) of ``bilateral``, or None."""

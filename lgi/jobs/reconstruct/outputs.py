@@ -344,7 +344,7 @@ class ReconstructionWriter:
             a = self.arrays
             write_usd(self.stage / "shot.usdc", npz_member(self.stage / "meshes.npz", "vertices"),
                       a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"), self.frames,
-                      fps=self.options.fps)
+                      fps=self.options.fps, convention=self.options.convention)
         self.closed = True
 
     def abandon(self) -> None:
