@@ -247,6 +247,11 @@ def _opening_or_reason(r: np.ndarray, t_mean: np.ndarray) -> str | None:
     return None
 
 
+#: Smallest singular value (cm of opening motion per cm of pivot or slide) of a direction the openings observe
+#: (:func:`_solve_pivot`).
+PIVOT_OBSERVABLE = 1e-3
+
+
 def _solve_pivot(rotations: list[np.ndarray], translations: list[np.ndarray], centroid: np.ndarray,
                  joint: bool) -> np.ndarray:
     """Hinge (3,) cm from openings ``x' = R_k x + t_k``: least squares of ``(I - R_k) p + f_k z = t_k``.
@@ -255,6 +260,12 @@ def _solve_pivot(rotations: list[np.ndarray], translations: list[np.ndarray], ce
     openings of different sizes about one axis); otherwise the pivot is the rotations' fixed point. The
     component along the hinge axis is not observable from rotations about it: solving for the offset
     from the jaw vertices' centroid with the minimum-norm solution puts the pivot in their mid-plane.
+
+    Openings about axes a hair apart (any real hinge, or a hair of noise on the shapes) make that component
+    barely observable instead of not at all: an exact least-squares solution then slides the pivot metres
+    along the axis to explain micrometres (ICT with 0.1 um of noise on its openings: 23 cm; 1 um: 1 m). So
+    directions whose singular value is below :data:`PIVOT_OBSERVABLE` (1 cm of pivot moving the openings by
+    under 10 um) are taken as unobservable, like the exact axis.
     """
     n = len(rotations)
     a = np.zeros((3 * n, 3 + n))
@@ -264,7 +275,9 @@ def _solve_pivot(rotations: list[np.ndarray], translations: list[np.ndarray], ce
         a[3 * k + 2, 3 + k] = 1.0
         b[3 * k:3 * k + 3] = t - (np.eye(3) - r) @ centroid
     cols = a if joint else a[:, :3]
-    return centroid + np.linalg.lstsq(cols, b, rcond=None)[0][:3]
+    u, sv, vt = np.linalg.svd(cols, full_matrices=False)
+    keep = sv > PIVOT_OBSERVABLE
+    return centroid + (vt[keep].T @ ((u[:, keep].T @ b) / sv[keep]))[:3]
 
 
 def _hinge_rms(rest: np.ndarray, moved: np.ndarray, params: np.ndarray, pivot: np.ndarray) -> float:
