@@ -164,6 +164,46 @@ def _euler(r: np.ndarray) -> tuple[float, float, float]:
     return float(np.degrees(op)), float(np.degrees(yaw)), float(np.degrees(roll))
 
 
+def hinge_parameters(axis: np.ndarray, point: np.ndarray, angles_deg: np.ndarray, pivot: np.ndarray,
+                     tol_cm: float = 1e-3) -> np.ndarray:
+    """lgi's jaw parameters (the ``--jaw`` CSV's) of a jaw that turns about a known hinge.
+
+    The hinge is the line through ``point`` along ``axis``; a frame turns the jaw by its angle about it
+    (right-handed about ``axis``). lgi's parameters describe the same motion about the rig's ``pivot``:
+    ``R = Ry(yaw) Rz(roll) Rx(open)``, then a slide ``forward`` along +z, so the rotation is the hinge's and the
+    slide takes up where the hinge crosses the rig's pivot. ``lgi rig`` puts the pivot on the hinge it fits, in
+    the jaw's mid-plane, so that a hinge a hair off the x axis gives a tiny yaw and roll and no slide.
+
+    Parameters
+    ----------
+    axis : (3,) float, the hinge's direction in the index's frame (normalised here)
+    point : (3,) float, cm: any point of the hinge
+    angles_deg : (F,) float, degrees
+    pivot : (3,) float, cm: the rig's pivot (``jaw_rig.npz`` ``pivot``, printed by ``lgi rig``)
+    tol_cm : float
+        The motion must be a rotation about ``pivot`` and a slide along z to this; a hinge that passes elsewhere
+        would move the pivot across, which the rig cannot.
+
+    Returns
+    -------
+    (F, 4) float64: open, yaw, roll (degrees), forward (cm)
+    """
+    from scipy.spatial.transform import Rotation
+
+    a = np.asarray(axis, np.float64).reshape(3)
+    a = a / np.linalg.norm(a)
+    angles = np.atleast_1d(np.asarray(angles_deg, np.float64))
+    rot = Rotation.from_rotvec(np.radians(angles)[:, None] * a).as_matrix()
+    off = np.asarray(point, np.float64).reshape(3) - np.asarray(pivot, np.float64).reshape(3)
+    slide = off - rot @ off  # (F, 3): the motion's translation about the pivot
+    worst = float(np.abs(slide[:, :2]).max(initial=0.0))
+    if worst > tol_cm:
+        raise ValueError(f"the hinge passes {np.linalg.norm(off - (off @ a) * a):.3g} cm from the rig's pivot: "
+                         f"its motion moves the pivot by up to {worst:.3g} cm across z, which the rig's parameters "
+                         "cannot give")
+    return np.array([[*_euler(r), t[2]] for r, t in zip(rot, slide, strict=True)])
+
+
 def _two_sizes_about_one_axis(rotations: list[np.ndarray], angles: np.ndarray) -> bool:
     """Whether two rotations share an axis (within ~8 degrees) but differ in angle by more than 10 %."""
     axes = []
