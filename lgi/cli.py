@@ -421,7 +421,8 @@ def _convention_flags(g, what: str = "the written geometry") -> None:
 
     presets = "; ".join(f"{k}: {u} up, {m}" for k, (u, m) in DCC_PRESETS.items())
     g.add_argument("--dcc", choices=tuple(DCC_PRESETS), help=f"the convention of {what} for a DCC ({presets}); "
-                   "--up-axis and --units given beside it take precedence")
+                   "--up-axis and --units given beside it take precedence. In Blender's, a USD file NAME.usd* comes "
+                   "with NAME.blender.py, the script that imports it with its frame rate and correctives")
     g.add_argument("--up-axis", choices=("Y", "Z"), help=f"the up axis of {what} (default Y, lgi's; Z turns the "
                    "face +90 degrees about X: it looks along -Y)")
     g.add_argument("--units", choices=("cm", "m"), help=f"the unit of {what}'s coordinates (default cm, lgi's)")

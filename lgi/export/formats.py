@@ -147,6 +147,13 @@ def stage_convention(stage) -> Convention:
     return Convention(str(up), units[0])
 
 
+def usd_convention(path: str | os.PathLike[str]) -> Convention:
+    """The convention of the USD file ``path`` (:func:`stage_convention`)."""
+    from pxr import Usd
+
+    return stage_convention(Usd.Stage.Open(str(path)))
+
+
 def _set_samples(points, extent, frames: np.ndarray, vertices, convention: Convention) -> None:
     """One time sample per frame of ``vertices`` (F, V, 3) cm on a mesh's ``points`` and ``extent`` attributes,
     in ``convention``."""

@@ -59,6 +59,7 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     """``lgi export``: write ``recon_dir/meshes.npz`` as USD and/or EXR maps (each output atomic; the USD is
     written last, so none appears if the maps fail)."""
     from lgi.export import clips
+    from lgi.export.blender import for_blender, script_path, write_blender_script
     from lgi.export.formats import displacement_map, exr_header, write_exr, write_usd
     from lgi.index.build import LGIIndex
     from lgi.io.arrays import nonfinite_frames
@@ -67,10 +68,13 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
     from lgi.progress import progress
 
     o = options
-    check_distinct({"--usd": o.usd, "--exr": o.exr})
+    script = script_path(o.usd) if o.usd and for_blender(o.convention) else None
+    check_distinct({"--usd": o.usd, "--exr": o.exr, "the Blender script": script})
     if o.usd:
         check_output(o.usd, "file", inputs=[recon_dir, index_dir])
         check_not_in_store(o.usd, "--usd")
+    if script:
+        check_output(script, "file", inputs=[recon_dir, index_dir])
     if o.exr:
         check_output(o.exr, "dir", inputs=[recon_dir, index_dir], owned=EXR_ENTRIES, what="lgi displacement map folder")
         check_not_in_store(o.exr, "--exr")
@@ -110,6 +114,8 @@ def export(recon_dir: str | Path, index_dir: str | Path, options: ExportOptions,
         write_usd(o.usd, vertices, a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"),
                   frames, fps=o.fps, convention=o.convention)
         s["usd"] = str(Path(o.usd).resolve())
+        if script:
+            s["blender_script"] = str(write_blender_script(o.usd, o.fps, int(frames[0]), int(frames[-1])).resolve())
     return s
 
 
@@ -121,4 +127,6 @@ def export_report(s: dict[str, Any], options: ExportOptions) -> list[str]:
                      f"{c.up} up)")
     if "usd" in s:
         lines.append(f"USD: {s['usd']} ({s['frames']} time samples at {options.fps:g} fps, {c.units}, {c.up} up)")
+    if "blender_script" in s:
+        lines.append(f"Blender: run {s['blender_script']} in Blender to import it with its frame rate")
     return lines

@@ -82,6 +82,7 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
     """Generate the actor's rig; returns a summary (:func:`rig_generate_report`)."""
     from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
     from lgi.dataset.shapes import ShapeDataset, ShapeMeta
+    from lgi.export.blender import for_blender, script_path, write_blender_script
     from lgi.index.build import ENTRIES as INDEX_ENTRIES
     from lgi.index.build import LGIIndex
     from lgi.io.atomic import check_output, files_in
@@ -101,6 +102,8 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
         if Path(usd).suffix not in (".usd", ".usda", ".usdc"):
             raise InputError("the rig's USD file must end in .usd, .usda or .usdc", path=usd)
         check_output(usd, "file", inputs=[*inputs, out])
+        if for_blender(o.convention):
+            check_output(script_path(usd), "file", inputs=[*inputs, out])
         if Path(out).resolve() in Path(usd).resolve().parents:
             raise InputError("the rig's USD file cannot be inside the rig's dataset directory (which is replaced "
                              "whole)", path=usd)
@@ -183,6 +186,11 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
             write_usd_rig(usd, neutral, ds.face_vertices, ds.face_offsets, names, deltas,
                           [None] * len(controls) + list(correctives), ds.uvs, ds.face_uvs, jaw_rig=jaw,
                           jaw_parameters=rig.jaw, convention=o.convention)
+            if for_blender(o.convention):
+                from lgi.export.formats import usd_name
+
+                script = write_blender_script(usd, 30.0, 0, 0, {usd_name("+".join(c)): [usd_name(n) for n in c]
+                                                                for c in correctives})
         except BaseException:
             if not existed:  # a run that fails leaves nothing of itself behind
                 import shutil
@@ -191,6 +199,7 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
             raise
     corr = np.linalg.norm(rig.corrective_deltas, axis=2).max(axis=1) * 10 if correctives else np.zeros(0)
     return {"path": str(Path(out).resolve()), "usd": None if usd is None else str(Path(usd).resolve()),
+            "blender_script": str(script.resolve()) if usd is not None and for_blender(o.convention) else None,
             "controls": len(controls), "correctives": ["+".join(p) for p in correctives],
             "controls_outside": [c for c, d in zip(controls, rig.projection_mm, strict=False) if d > o.coverage_mm],
             "corrective_max_mm": corr.tolist(), "residual_max_mm": float(rig.residual_mm.max(initial=0.0)),
@@ -217,5 +226,6 @@ def rig_generate_report(s: dict[str, Any]) -> list[str]:
     if s["correctives"]:
         top = sorted(zip(s["corrective_max_mm"], s["correctives"], strict=True), reverse=True)[:5]
         lines.append("largest correctives (max mm): " + ", ".join(f"{n} {m:.2f}" for m, n in top))
-    lines.append(f"dataset: {s['path']}" + (f"  usd: {s['usd']}" if s["usd"] else ""))
+    lines.append(f"dataset: {s['path']}" + (f"  usd: {s['usd']}" if s["usd"] else "")
+                 + (f"  Blender: run {s['blender_script']}" if s.get("blender_script") else ""))
     return lines

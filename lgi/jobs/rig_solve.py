@@ -109,6 +109,8 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
     import pandas as pd
 
     from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
+    from lgi.export.blender import for_blender, script_path, usd_correctives, write_blender_script
+    from lgi.export.formats import usd_convention
     from lgi.io.arrays import nonfinite_frames
     from lgi.io.atomic import check_contents, check_distinct, check_not_in_store, check_output, files_in, job_outputs
     from lgi.io.npz import load_meshes
@@ -125,8 +127,9 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
             raise InputError("--usd needs --rig-usd (the rig's USD from lgi rig-generate --usd): the animation is "
                              "bound to it", path=usd)
         check_output(usd, "file", inputs=inputs)
+        check_output(script_path(usd), "file", inputs=inputs)  # written when the rig is in Blender's convention
         check_not_in_store(usd, "--usd")
-        check_distinct({"--out": out, "--usd": usd})
+        check_distinct({"--out": out, "--usd": usd, "the Blender script": script_path(usd)})
     check_output(out, "dir", inputs=inputs)
     check_not_in_store(out)
     check_contents(out, None, OUTPUTS)
@@ -221,6 +224,9 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
             write_rig_animation(usd, rig_usd, rig.all_weights(curves[:, :k]), frames, o.fps,
                                 jaw=None if rig.jaw is None else curves[:, k:], pivot=None if rig.jaw is None else
                                 rig.jaw.pivot)
+            if for_blender(usd_convention(rig_usd)):
+                summary["blender_script"] = str(write_blender_script(
+                    usd, o.fps, int(frames[0]), int(frames[-1]), usd_correctives(rig)).resolve())
     return summary
 
 
@@ -352,4 +358,5 @@ def rig_solve_report(s: dict[str, Any]) -> list[str]:
                 f"{s['jaw']['range']['jaw_open_deg'][1]:.1f} deg"
                 + ("" if "from_reconstruction_rms" not in s["jaw"] else
                    f", {s['jaw']['from_reconstruction_rms']['jaw_open_deg']:.3f} deg RMS from the reconstruction's")]),
-            f"outputs: {s['out']}" + (f"  usd: {s['usd']}" if s["usd"] else "")]
+            f"outputs: {s['out']}" + (f"  usd: {s['usd']}" if s["usd"] else "")
+            + (f"  Blender: run {s['blender_script']}" if s.get("blender_script") else "")]

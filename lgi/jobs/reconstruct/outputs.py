@@ -24,7 +24,7 @@ from lgi.jobs.reconstruct.rays import CONSTRAINED
 log = logging.getLogger(__name__)
 
 OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json", "per_frame.png", "shot.usdc", "shot.clips",
-           "obj", "bundles_constrained.parquet")
+           "obj", "bundles_constrained.parquet", "shot.blender.py")
 #: What the output folders hold (anything else there is someone else's: the run refuses to replace it).
 OUTPUT_CONTENTS = {"obj": ("frame_*.obj", "*.mtl"), "shot.clips": USD_CLIP_CONTENTS}
 
@@ -345,6 +345,12 @@ class ReconstructionWriter:
             write_usd(self.stage / "shot.usdc", npz_member(self.stage / "meshes.npz", "vertices"),
                       a["face_vertices"], a["face_offsets"], a.get("uvs"), a.get("face_uvs"), self.frames,
                       fps=self.options.fps, convention=self.options.convention)
+            from lgi.export.blender import for_blender, write_blender_script
+
+            if for_blender(self.options.convention):
+                # Named by its place after the commit (the staging folder's parent is the output folder).
+                write_blender_script(self.stage.parent / "shot.usdc", self.options.fps, int(self.frames[0]),
+                                     int(self.frames[-1]), path=self.stage / "shot.blender.py")
         self.closed = True
 
     def abandon(self) -> None:
