@@ -31,6 +31,9 @@ def main():
     arm = [o for o in bpy.data.objects if o.type == "ARMATURE"]
     report = {"fps": scene.render.fps / scene.render.fps_base, "range": [scene.frame_start, scene.frame_end],
               "scale": list(mesh.matrix_world.to_scale()), "frames": {}}
+    if arm and arm[0].animation_data and arm[0].animation_data.action:
+        report["bone_curves"] = sorted({fc.data_path.split('"')[1] for fc in arm[0].animation_data.action.fcurves
+                                        if fc.data_path.startswith("pose.bones")})
     for f in frames:
         scene.frame_set(f)
         dg = bpy.context.evaluated_depsgraph_get()

@@ -96,6 +96,26 @@ def test_generated_controls_beat_the_naive_transfer(setup) -> None:
     assert np.linalg.norm(u[k], axis=1).max() < 0.3 * np.linalg.norm(rig.shapes[k] - x0, axis=1).max()
 
 
+def test_correctives_that_move_nothing_are_left_out(setup, tmp_path: Path) -> None:
+    """Brow and jaw move apart on the synthetic face: their correctives are zero, so they are left out of the rig
+    dataset and its USD, and the run says which; the jaw-and-pucker corrective stays."""
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdSkel
+
+    d = setup["dir"]
+    r = run("rig-generate", "--template", str(d / "template"), "--index", str(d / "index"), "--out",
+            str(tmp_path / "rig"), "--correctives", "jaw_open+brow_raise_L,jaw_open+brow_raise_R,jaw_open+pucker",
+            "--usd", str(tmp_path / "rig.usdc"))
+    assert r.returncode == 0, r.stderr
+    assert "2 correctives left out: jaw_open+brow_raise_L, jaw_open+brow_raise_R" in r.stderr
+    assert "13 controls, 1 correctives" in r.stdout
+    ds = ShapeDataset.load(tmp_path / "rig", verify=True)
+    assert ds.names[13:] == ["jaw_open+pucker"]
+    stage = Usd.Stage.Open(str(tmp_path / "rig.usdc"))
+    mesh = stage.GetPrimAtPath("/Rig/Face")
+    assert len(UsdSkel.BindingAPI(mesh).GetBlendShapesAttr().Get()) == 14
+
+
 def test_a_combination_outside_the_actors_dataset_takes_the_templates_corrective(setup, caplog) -> None:
     """smile_L+cheek_puff deepens the nasolabial fold beyond any shape of the actor's dataset: its bundles lie
     outside their clouds, so its corrective is the template's (transferred), and a warning says so; the jaw

@@ -34,7 +34,8 @@ def for_blender(convention: Convention) -> bool:
 _TEMPLATE = '''"""Import {name} into Blender as lgi wrote it: Scripting > Open this file > Run Script, or
     blender --python {script}
 The file is imported with scale 1 (it is in metres, Z up), the scene's frame rate set to {fps:g} fps and its range
-to the file's frames ({first}-{last}), and each corrective shape key driven by the product of its controls'."""
+to the file's frames ({first}-{last}), a bone that never moves left unkeyed, and each corrective shape key driven by
+the product of its controls'."""
 
 import os
 
@@ -61,6 +62,13 @@ def main():
     scene.render.fps_base = scene.render.fps / FPS
     scene.frame_start, scene.frame_end = FIRST, LAST
     for ob in set(bpy.data.objects) - before:
+        action = ob.animation_data.action if ob.type == "ARMATURE" and ob.animation_data else None
+        if action is not None:
+            # The importer keys every bone on every frame; a bone that never moves (the head's root) keeps none.
+            for fc in [fc for fc in action.fcurves if fc.data_path.startswith("pose.bones")]:
+                values = [k.co[1] for k in fc.keyframe_points]
+                if values and max(values) - min(values) == 0.0:
+                    action.fcurves.remove(fc)
         keys = ob.data.shape_keys if ob.type == "MESH" else None
         if keys is None:
             continue

@@ -203,10 +203,15 @@ def write_rig_animation(path: str | os.PathLike[str], rig_usd: str | os.PathLike
         # The joint moves in the rig's convention (lgi's jaw parameters are about lgi's axes, in cm).
         trans, quat = jaw_joint_transform(jaw, pivot)
         trans, quat = convention.points(trans, np.float64), convention.quaternions(quat)
+        # Only the jaw is animated: the root (the head) stays at its rest transform, unkeyed (lgi's meshes are in
+        # the head's frame, its motion removed), so a DCC keys one bone, not two.
+        over.GetAttribute("joints").Set(Vt.TokenArray(["root/jaw"]))
+        scales = over.GetAttribute("scales")
+        if scales:
+            scales.Set(Vt.Vec3hArray([Gf.Vec3h(1.0)]))
         for f, t, q in zip(frames, trans, quat, strict=True):
-            # The root (the head) stays at rest: lgi's meshes are in the head's frame (its motion removed).
-            trans_attr.Set(Vt.Vec3fArray([Gf.Vec3f(0.0), Gf.Vec3f(*t.tolist())]), Usd.TimeCode(float(f)))
-            rot_attr.Set(Vt.QuatfArray([Gf.Quatf(1.0), Gf.Quatf(*q.tolist())]), Usd.TimeCode(float(f)))
+            trans_attr.Set(Vt.Vec3fArray([Gf.Vec3f(*t.tolist())]), Usd.TimeCode(float(f)))
+            rot_attr.Set(Vt.QuatfArray([Gf.Quatf(*q.tolist())]), Usd.TimeCode(float(f)))
     del stage
     layer.subLayerPaths[0] = ref
     with atomic_file(path, suffix=path.suffix or ".usda") as tmp:

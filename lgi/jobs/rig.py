@@ -19,6 +19,10 @@ from lgi.errors import InputError
 log = logging.getLogger(__name__)
 
 
+#: A corrective whose largest displacement is under this (mm) is left out of the rig.
+ZERO_CORRECTIVE_MM = 1e-3
+
+
 @dataclass(frozen=True)
 class RigGenerateOptions:
     """Options of ``lgi rig-generate``.
@@ -165,6 +169,20 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
                    **({} if combo is None else {
                        "combination": combo, "template": from_template, "driver": "product of the controls' weights",
                        "corrective_from": rig.corrective_source[i - len(controls)]})}))
+    # A corrective that moves nothing (the sum of its controls is already the shape) would be one more target
+    # and one more curve in every DCC for nothing: it is left out, and said so.
+    size_mm = np.linalg.norm(rig.corrective_deltas, axis=2).max(axis=1) * 10 if correctives else np.zeros(0)
+    keep_c = size_mm >= ZERO_CORRECTIVE_MM
+    if not keep_c.all():
+        log.warning("%d corrective%s left out: %s move%s no vertex by %g mm or more (the sum of the controls is "
+                    "already the shape)", int((~keep_c).sum()), "s" if (~keep_c).sum() > 1 else "",
+                    ", ".join("+".join(c) for c, k in zip(correctives, keep_c, strict=True) if not k),
+                    "" if (~keep_c).sum() > 1 else "s", ZERO_CORRECTIVE_MM)
+        keep = np.r_[np.ones(len(controls), bool), keep_c]
+        names = [n for n, k in zip(names, keep, strict=True) if k]
+        meta = [m for m, k in zip(meta, keep, strict=True) if k]
+        deltas = deltas[keep]
+        correctives = [c for c, k in zip(correctives, keep_c, strict=True) if k]
     uvs = faces.get("uvs") if "uvs" in faces else None
     face_uvs = faces.get("face_uvs") if "face_uvs" in faces else None
     ds = ShapeDataset(neutral=neutral, deltas=deltas, names=names, face_vertices=np.asarray(faces["face_vertices"]),
@@ -185,7 +203,9 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
         try:
             write_usd_rig(usd, neutral, ds.face_vertices, ds.face_offsets, names, deltas,
                           [None] * len(controls) + list(correctives), ds.uvs, ds.face_uvs, jaw_rig=jaw,
-                          jaw_parameters=rig.jaw, convention=o.convention)
+                          jaw_parameters=None if rig.jaw is None else rig.jaw[np.r_[np.ones(len(controls), bool),
+                                                                                      keep_c]],
+                          convention=o.convention)
             if for_blender(o.convention):
                 from lgi.export.formats import usd_name
 
@@ -197,14 +217,15 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
 
                 shutil.rmtree(out, ignore_errors=True)
             raise
-    corr = np.linalg.norm(rig.corrective_deltas, axis=2).max(axis=1) * 10 if correctives else np.zeros(0)
+    sources = [src for src, k in zip(rig.corrective_source, keep_c, strict=True) if k]
     return {"path": str(Path(out).resolve()), "usd": None if usd is None else str(Path(usd).resolve()),
             "blender_script": str(script.resolve()) if usd is not None and for_blender(o.convention) else None,
             "controls": len(controls), "correctives": ["+".join(p) for p in correctives],
             "controls_outside": [c for c, d in zip(controls, rig.projection_mm, strict=False) if d > o.coverage_mm],
-            "corrective_max_mm": corr.tolist(), "residual_max_mm": float(rig.residual_mm.max(initial=0.0)),
-            "correctives_from_template": [n for n, src in zip(("+".join(p) for p in correctives),
-                                                              rig.corrective_source, strict=True) if src == "template"],
+            "corrective_max_mm": size_mm[keep_c].tolist(), "correctives_left_out": int((~keep_c).sum()),
+            "residual_max_mm": float(rig.residual_mm.max(initial=0.0)),
+            "correctives_from_template": [n for n, src in zip(("+".join(p) for p in correctives), sources, strict=True)
+                                          if src == "template"],
             "jaw": transfer.rig is not None, "transfer": o.transfer, "fit_mm": o.fit_mm,
             "seconds": time.perf_counter() - t0}
 
@@ -219,6 +240,9 @@ def rig_generate_report(s: dict[str, Any]) -> list[str]:
         lines.append(f"{len(s['controls_outside'])} of {s['controls']} controls lie over the coverage distance outside "
                      "the actor's dataset (they come out short of the template's motion): "
                      + ", ".join(s["controls_outside"]))
+    if s.get("correctives_left_out"):
+        lines.append(f"{s['correctives_left_out']} corrective(s) left out: they move no vertex by "
+                     f"{ZERO_CORRECTIVE_MM:g} mm or more")
     if s["correctives_from_template"]:
         lines.append(f"{len(s['correctives_from_template'])} of {len(s['correctives'])} correctives are the "
                      "template's, transferred (the actor's dataset does not cover them): "
