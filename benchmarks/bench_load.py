@@ -5,9 +5,9 @@ machine and beside busy processes, as lgi sets its threads and with every thread
 
 Material, built once in ``--work`` through the command line: the synthetic actor at 20,000 vertices with a
 ``--frames`` performance and its head-mounted camera footage (``lgi synth --hmc``), the cameras calibrated from its
-board views (``lgi calibrate``), its index with the jaw rig, the shot reconstructed, the actor's rig from the
-default actor's template (``bench_rig_solve.py``'s, through ``lgi rig-generate --correctives auto``), and one scan
-(the shot's middle frame as OBJ, mm).
+board views (``lgi calibrate``), its index with the jaw rig, the shot reconstructed, the actor's rig from
+``lgi synth --template``'s template (``lgi rig-generate --correctives auto``), and one scan (the shot's middle frame
+as OBJ, mm).
 
 Each job is a whole process; its time per frame is the process's wall time over the frames it handles (one for
 ``compare``'s single scan), so the start-up is in it, under load as it is quiet. Four conditions: quiet or
@@ -36,11 +36,10 @@ BUSY = "while True:\n    pass\n"
 
 def build(work: Path, frames: int) -> dict[str, Path]:
     """The material (reused when there)."""
-    from bench_rig_solve import make_template
-
     s = work / "s"
     if not (s / "hmc" / "cam0").is_dir():
-        lgi_timed("synth", "--out", str(s), "--vertices", "20000", "--frames", str(frames), "--hmc", "-q")
+        lgi_timed("synth", "--out", str(s), "--vertices", "20000", "--frames", str(frames), "--hmc", "--template",
+                  "-q")
     m = {"s": s, "calib": work / "calib.json", "idx": work / "idx", "rec": work / "rec", "rig": work / "rig",
          "scan": work / "scan.obj"}
     if not m["calib"].is_file():
@@ -52,8 +51,7 @@ def build(work: Path, frames: int) -> dict[str, Path]:
     if not m["rec"].is_dir():
         lgi_timed("reconstruct", str(m["idx"]), "--bundles", str(s / "bundles.csv"), "--out", str(m["rec"]), "-q")
     if not m["rig"].is_dir():
-        make_template(m["idx"], work / "template", 20000)
-        lgi_timed("rig-generate", "--template", str(work / "template"), "--index", str(m["idx"]), "--out",
+        lgi_timed("rig-generate", "--template", str(s / "template"), "--index", str(m["idx"]), "--out",
                   str(m["rig"]), "--correctives", "auto", "-q")
     if not m["scan"].is_file():
         from lgi.index.build import LGIIndex

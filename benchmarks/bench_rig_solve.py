@@ -2,10 +2,11 @@
 
     python benchmarks/bench_rig_solve.py [--work DIR] [--vertices 20000] [--frames 300] [--actor 1] [--doc docs/rigs.md]
 
-Setup, all through the command line: ``lgi synth --actor 1`` (a 300-frame performance of synthetic actor 1, its
-dataset, markers, true jaw rig and truth), ``lgi build`` with its jaw rig, the actor's rig from the default actor's
-template (its 13 controls and its own combination shapes of the pairs ``--correctives auto`` picks, as
-``bench_rig.py``) with ``lgi rig-generate --correctives auto --usd``, the shot with ``lgi reconstruct``, then
+Setup, all through the command line: ``lgi synth --actor 1 --template`` (a 300-frame performance of synthetic
+actor 1, its dataset, markers, true jaw rig and truth, and the default actor's template rig on the same mesh: its 13
+controls and its combination shapes of the 24 pairs that most differ from the sum of their parts), ``lgi build``
+with its jaw rig, the actor's rig with ``lgi rig-generate --correctives auto --usd`` (the template's combinations),
+the shot with ``lgi reconstruct``, then
 ``lgi rig-solve`` with the default smoothing, with ``--smooth 0`` (each frame on its own) and with ``--jaw fixed`` (the
 rig's jaw joint held at the reconstruction's jaw instead of fitted with the weights). A second shot adds
 0.2 mm of Gaussian noise per coordinate to the bundles (a tracker's jitter) before ``lgi reconstruct`` (its
@@ -42,34 +43,16 @@ def lgi(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "lgi", *args, "-q"], check=True, cwd=ROOT)
 
 
-def make_template(index_dir: Path, out: Path, n_vertices: int) -> None:
-    """The default actor's 13 controls and its own combination shapes of the auto pairs (``bench_rig.py``)."""
-    from lgi.index.build import LGIIndex
-    from lgi.retarget.template import TemplateTransfer, parse_correctives
-    from lgi.solve.solver import LGISolver
-    from lgi.synthetic import actor as A
-
-    controls = list(A.CONTROLS)
-    eye = np.eye(len(controls))
-    tmpl = A.make_actor(n_vertices)
-    linear = A.make_dataset(tmpl, controls, eye)
-    pairs = parse_correctives("auto", TemplateTransfer(linear, LGISolver(LGIIndex.load(index_dir))), controls)
-    combos = np.stack([sum(eye[A.C[c]] for c in p) for p in pairs])
-    A.make_dataset(tmpl, [*controls, *("+".join(p) for p in pairs)], np.vstack([eye, combos])).save(out)
-
-
 def prepare(work: Path, n_vertices: int, frames: int, actor: int) -> None:
-    if not (work / "synth").is_dir():
-        lgi("synth", "--actor", str(actor), "--frames", str(frames), "--vertices", str(n_vertices), "--out",
-            str(work / "synth"))
     s = work / "synth"
+    if not (s / "template").is_dir():
+        lgi("synth", "--actor", str(actor), "--frames", str(frames), "--vertices", str(n_vertices), "--template",
+            "--out", str(s))
     if not (work / "index").is_dir():
         lgi("build", str(s / "dataset"), "--markers", str(s / "markers.csv"), "--jaw-rig", str(s / "jaw_rig.npz"),
             "--out", str(work / "index"))
-    if not (work / "template").is_dir():
-        make_template(work / "index", work / "template", n_vertices)
     if not (work / "rig").is_dir():
-        lgi("rig-generate", "--template", str(work / "template"), "--index", str(work / "index"), "--out",
+        lgi("rig-generate", "--template", str(s / "template"), "--index", str(work / "index"), "--out",
             str(work / "rig"), "--correctives", "auto", "--usd", str(work / "rig.usda"))
     if not (work / "recon").is_dir():
         lgi("reconstruct", str(work / "index"), "--bundles", str(s / "bundles.csv"), "--out", str(work / "recon"))

@@ -49,7 +49,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     opts = SynthOptions(vertices=args.vertices, frames=args.frames, seed=args.seed, hmc=args.hmc, lens=args.lens,
                         image_size=args.image_size, dot_noise=args.dot_noise, board_views=args.board_views,
                         rig_flex=args.rig_flex, contour_noise=args.contour_noise, actor=args.actor,
-                        slip=args.slip)
+                        slip=args.slip, template=args.template)
     for line in synth_report(write_synthetic(args.out, opts, show_progress=not args.quiet), opts):
         print(line)
     return 0
@@ -495,7 +495,7 @@ def build_parser() -> argparse.ArgumentParser:
                  ("lgi synth --out synth --vertices 20000 --frames 240 --seed 1",),
                  outputs="DIR/dataset/, DIR/markers.csv, DIR/bundles.csv, DIR/jaw_rig.npz, DIR/truth.npz; with --hmc, "
                          "DIR/hmc/ (cam0/, cam1/, calib/, the true cameras, helmet dots, true 2D dots, "
-                         "lip_contours.csv).")
+                         "lip_contours.csv); with --template, DIR/template/.")
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="DIR", help="folder to write")
     _quiet(g)
@@ -508,6 +508,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--actor", type=int, default=0, metavar="SEED",
                    help="another actor: proportions and expression details drawn from SEED, same mesh topology "
                         "(default %(default)s: the default actor)")
+    g.add_argument("--template", action="store_true",
+                   help="also write DIR/template: a template rig for lgi rig-generate on this mesh, the default "
+                        "actor's 13 named controls and its combination shapes (a+b, the pairs that are not the sum "
+                        "of their parts: up to 24)")
     g = s.add_argument_group("head-mounted camera footage")
     g.add_argument("--hmc", action="store_true",
                    help="also render head-mounted camera footage into DIR/hmc (frames, board views, true cameras, "
@@ -813,10 +817,13 @@ def build_parser() -> argparse.ArgumentParser:
                          "corrective, combination), each with its metadata; with --usd, the UsdSkel rig.")
     g = s.add_argument_group("inputs")
     g.add_argument("--template", required=True, metavar="TEMPLATE_DATASET",
-                   help="the template rig: a shape dataset on the actor's mesh topology")
+                   help="the template rig: a shape dataset on the actor's mesh topology (lgi synth --template writes "
+                        "one for the synthetic mesh; lgi import of a rig's OBJ shapes, ICT FaceKit's for one, for "
+                        "an actor on that mesh)")
     g.add_argument("--index", required=True, metavar="INDEX_DIR", help="the actor's LGI index")
     g.add_argument("--controls", default=None, metavar="PATTERN",
-                   help="template shapes to use as controls (shell patterns; default: every name without '+')")
+                   help="template shapes to use as controls (shell patterns; default: every name without '+' that is "
+                        "not an in-between (NAME_50 beside NAME, or tagged inbetween) or a combination (tagged so))")
     g.add_argument("--correctives", default=None, metavar="PAIRS|auto",
                    help="combinations a+b[+c] (comma-separated) or 'auto' (the template's combination shapes, or "
                         "else up to 24 pairs moving the same markers); the template's combination shape (its parts "

@@ -96,6 +96,31 @@ def test_generated_controls_beat_the_naive_transfer(setup) -> None:
     assert np.linalg.norm(u[k], axis=1).max() < 0.3 * np.linalg.norm(rig.shapes[k] - x0, axis=1).max()
 
 
+def test_a_template_from_the_command_line(setup, tmp_path: Path) -> None:
+    """``lgi synth --template`` writes the default actor's 13 named controls and 24 combination shapes on the mesh;
+    rig-generate takes them (auto: the template's combinations) with no --controls. Given the actor's own
+    47-shape dataset as the template, the default controls leave out its in-betweens (``_50``) and its tagged
+    combinations (``smile_LR``): the 13 extremes."""
+    from lgi.synthetic.actor import TEMPLATE_PAIRS
+
+    d = setup["dir"]
+    assert main(["synth", "--out", str(tmp_path / "s"), "--vertices", str(N_VERTICES), "--frames", "2",
+                 "--template", "-q"]) == 0
+    template = ShapeDataset.load(tmp_path / "s" / "template", verify=True)
+    assert template.names[:13] == list(A.CONTROLS) and len(template.names) == 13 + TEMPLATE_PAIRS
+    assert all(n.count("+") == 1 for n in template.names[13:])
+    r = run("rig-generate", "--template", str(tmp_path / "s" / "template"), "--index", str(d / "index"), "--out",
+            str(tmp_path / "rig"), "--correctives", "auto", "-q")
+    assert r.returncode == 0, r.stderr
+    rig = ShapeDataset.load(tmp_path / "rig")
+    assert rig.names[:13] == list(A.CONTROLS) and set(rig.names[13:]) <= set(template.names[13:])
+    assert len(rig.names) > 13 + TEMPLATE_PAIRS // 2  # the template's combinations, less any that move nothing
+    r = run("rig-generate", "--template", str(d / "actor" / "dataset"), "--index", str(d / "index"), "--out",
+            str(tmp_path / "rig47"), "-q")
+    assert r.returncode == 0, r.stderr
+    assert ShapeDataset.load(tmp_path / "rig47").names == list(A.CONTROLS)
+
+
 def test_correctives_that_move_nothing_are_left_out(setup, tmp_path: Path) -> None:
     """Brow and jaw move apart on the synthetic face: their correctives are zero, so they are left out of the rig
     dataset and its USD, and the run says which; the jaw-and-pucker corrective stays."""

@@ -115,7 +115,12 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
     template = ShapeDataset.load(template_dir)
     index = LGIIndex.load(index_dir)
     transfer = TemplateTransfer(template, LGISolver(index), o.transfer, o.coverage_mm, o.fit_mm)
-    controls = select_controls(template.names, o.controls)
+    controls = select_controls(template.names, o.controls, [m.tags for m in template.shape_meta])
+    if not o.controls:
+        skipped = [n for n in template.names if "+" not in n and n not in controls]
+        if skipped:
+            log.info("template shapes that are in-betweens or combinations, not controls (name them in --controls "
+                     "to use them): %s", ", ".join(skipped))
     if not controls:
         raise InputError(f"no template shape is a control (patterns {o.controls!r}; shapes whose name has '+' "
                          "are combinations)", path=template_dir)

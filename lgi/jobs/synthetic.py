@@ -18,9 +18,10 @@ from lgi.errors import InputError
 from lgi.units import MM_PER_CM
 
 #: What ``lgi synth`` writes into its output directory (an earlier run's ``hmc/`` goes when --hmc is not given).
-SYNTH_OUTPUTS = ("dataset", "markers.csv", "bundles.csv", "jaw_rig.npz", "truth.npz", "hmc")
+SYNTH_OUTPUTS = ("dataset", "markers.csv", "bundles.csv", "jaw_rig.npz", "truth.npz", "hmc", "template")
 #: What the output folders hold (anything else there is someone else's: the run refuses to replace it).
 SYNTH_CONTENTS = {"dataset": ("manifest.json", "mesh.npz", "deltas.npy"),
+                  "template": ("manifest.json", "mesh.npz", "deltas.npy"),
                   "hmc": ("cam0", "cam1", "calib", "*.json", "*.csv", "*.npz")}
 
 
@@ -47,7 +48,8 @@ _HMC_ONLY = ("lens", "image_size", "dot_noise", "board_views", "rig_flex", "cont
 class SynthOptions:
     """Options of ``lgi synth`` (see its ``--help``): mesh size, performance length and seed, and with ``hmc``
     the head-mounted camera footage's lens, image size, dot noise (px), board views, rig flex (deg), the pixel
-    noise of the lip contours it traces (px) and how the helmet slips on the head (``smooth`` or ``jolts``)."""
+    noise of the lip contours it traces (px) and how the helmet slips on the head (``smooth`` or ``jolts``);
+    ``template``: also the template rig of :func:`lgi.synthetic.actor.template_dataset`."""
 
     vertices: int = 20000
     frames: int = 240
@@ -61,6 +63,7 @@ class SynthOptions:
     contour_noise: float = 0.0
     actor: int = 0
     slip: str = "smooth"
+    template: bool = False
 
     def __post_init__(self) -> None:
         for name, least, most in (("vertices", 1, 2_000_000), ("frames", 1, 1_000_000), ("seed", 0, 2**32 - 1),
@@ -142,12 +145,14 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
         save_npz(stage / "truth.npz", vertices=truth, activations=acts.astype(np.float32),
                  controls=np.asarray(synth.CONTROLS), jaw=actor.jaw_parameters(acts).astype(np.float32),
                  frames=np.arange(o.frames))
+        if o.template:
+            synth.template_dataset(o.vertices).save(stage / "template")
         if hmc is not None:
             from lgi.synthetic.hmc import write_footage
 
             footage = write_footage(stage / "hmc", actor, layout, acts, seed=o.seed, show_progress=show_progress,
                                     **hmc)
-    names = ["dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz"]
+    names = ["dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz", *(["template"] if o.template else [])]
     if hmc:
         names += ["hmc/cam0", "hmc/cam1", "hmc/calib", "hmc/cameras_true.json", "hmc/helmet.csv", "hmc/truth.npz",
                   "hmc/lip_contours.csv"]

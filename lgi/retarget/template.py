@@ -414,12 +414,26 @@ def template_combinations(names: list[str], controls: list[str]) -> list[tuple[s
     return out
 
 
-def select_controls(names: list[str], pattern: str | None) -> list[str]:
+def in_between_or_combination(name: str, names: list[str], tags: list[str] | None = None) -> bool:
+    """Whether a template shape is an in-between (tagged so, or ``NAME_<digits>`` beside a shape ``NAME``) or a
+    combination (tagged so): not a control unless asked for by name."""
+    tags = tags or []
+    if "inbetween" in tags or "combination" in tags:
+        return True
+    base, _, level = name.rpartition("_")
+    return level.isdigit() and base in names
+
+
+def select_controls(names: list[str], pattern: str | None, tags: list[list[str]] | None = None) -> list[str]:
     """Template shapes used as controls: not combinations (``+`` in the name), matching ``pattern`` (shell
-    patterns, comma-separated) when given."""
+    patterns, comma-separated) when given; by default (no pattern) not in-betweens or combinations either
+    (:func:`in_between_or_combination`; ``tags``: each shape's metadata tags)."""
     pats = [p.strip() for p in (pattern or "").split(",") if p.strip()]
     unmatched = [p for p in pats if not any("+" not in n and fnmatch.fnmatchcase(n, p) for n in names)]
     if unmatched:
         raise InputError(f"--controls: {', '.join(map(repr, unmatched))} matches no template shape (have "
                          f"{', '.join(n for n in names if '+' not in n)[:300]})")
-    return [n for n in names if "+" not in n and (not pats or any(fnmatch.fnmatchcase(n, p) for p in pats))]
+    if pats:
+        return [n for n in names if "+" not in n and any(fnmatch.fnmatchcase(n, p) for p in pats)]
+    tags = tags or [[] for _ in names]
+    return [n for n, t in zip(names, tags, strict=True) if "+" not in n and not in_between_or_combination(n, names, t)]

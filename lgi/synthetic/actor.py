@@ -459,6 +459,35 @@ def make_dataset(actor: SyntheticActor, names: list[str] | None = None,
     )
 
 
+#: Template correctives (:func:`template_dataset`): combinations whose shape differs from the sum of their controls'
+#: by at least this much (mm), the largest first, at most TEMPLATE_PAIRS of them.
+TEMPLATE_CORRECTIVE_MM = 0.1
+TEMPLATE_PAIRS = 24
+
+
+def template_dataset(n_vertices: int) -> ShapeDataset:
+    """A template rig on the synthetic mesh of ``n_vertices``: the default actor's 13 controls (each at full
+    activation, no in-betweens) and its combination shapes ``a+b`` of the pairs whose shape is not the sum of
+    the two (a corrective of at least :data:`TEMPLATE_CORRECTIVE_MM`, the largest :data:`TEMPLATE_PAIRS`; no
+    two jaw controls), for ``lgi rig-generate --template`` on an actor of the same topology."""
+    actor = make_actor(n_vertices)
+    eye = np.eye(len(CONTROLS))
+    x0 = actor.neutral.astype(np.float64)
+    single = {c: actor.evaluate(eye[C[c]]).astype(np.float64) - x0 for c in CONTROLS}
+    sizes = []
+    for i, a in enumerate(CONTROLS):
+        for b in CONTROLS[i + 1:]:
+            if a.startswith("jaw_") and b.startswith("jaw_"):
+                continue
+            both = actor.evaluate(eye[C[a]] + eye[C[b]]).astype(np.float64) - x0
+            size = float(np.linalg.norm(both - single[a] - single[b], axis=1).max()) * 10
+            if size >= TEMPLATE_CORRECTIVE_MM:
+                sizes.append((size, a, b))
+    pairs = [(a, b) for _, a, b in sorted(sizes, reverse=True)[:TEMPLATE_PAIRS]]
+    combos = [eye[C[a]] + eye[C[b]] for a, b in pairs]
+    return make_dataset(actor, [*CONTROLS, *(f"{a}+{b}" for a, b in pairs)], np.vstack([eye, *combos]))
+
+
 def random_performance(n_frames: int, seed: int = 0, fps: float = 30.0) -> np.ndarray:
     """(F, C) float64 smooth random activations in [0, 1]: sparse overlapping expression events.
 
