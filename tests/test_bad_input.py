@@ -1217,3 +1217,43 @@ def test_review_refuses_meshes_and_diagnostics_of_different_runs(world: Path, tm
         code, _, err = run(["review", str(rec), "--index", str(world / "idx"), "--out", str(tmp_path / "p")], capsys)
         assert code == 2 and "diagnostics.csv" in err and "not of the same reconstruction" in err, err
         assert not (tmp_path / "p").exists()
+
+
+def test_threads_reading_one_folder_share_its_lock(tmp_path: Path) -> None:
+    """Two threads of one process read one folder at once (a flow's review and export tasks): the folder stays
+    locked against another process's commit until the last of them is done, whichever took the lock first."""
+    import threading
+
+    from lgi.io.atomic import reading
+
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    probe = [sys.executable, "-c", "import fcntl, os, sys\nfd = os.open(sys.argv[1], os.O_RDONLY | os.O_DIRECTORY)\n"
+             "try:\n    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)\nexcept BlockingIOError:\n    sys.exit(1)\n",
+             str(folder)]
+
+    def locked() -> bool:
+        return subprocess.run(probe).returncode == 1
+
+    start, first_done, second_done = threading.Barrier(2), threading.Event(), threading.Event()
+
+    def reader(done: threading.Event, hold: threading.Event) -> None:
+        with reading(folder):
+            start.wait()
+            hold.wait(30)
+        done.set()
+
+    release_first, release_second = threading.Event(), threading.Event()
+    threads = [threading.Thread(target=reader, args=(first_done, release_first)),
+               threading.Thread(target=reader, args=(second_done, release_second))]
+    for t in threads:
+        t.start()
+    time.sleep(0.3)
+    assert locked()
+    release_first.set()
+    assert first_done.wait(10)
+    assert locked()  # the other thread still reads
+    release_second.set()
+    for t in threads:
+        t.join(10)
+    assert not locked()

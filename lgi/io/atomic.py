@@ -545,7 +545,13 @@ def reading(folder: str | os.PathLike[str]) -> Iterator[None]:
             yield
             return
         with _HELD_LOCK:
-            _READ[key] = [fd, 1]
+            mine = _READ.get(key)  # another thread of this process may have taken it meanwhile
+            if mine is None:
+                _READ[key] = [fd, 1]
+            else:
+                mine[1] += 1
+        if mine is not None:
+            os.close(fd)
         from lgi._stages import stage as debug_stage
 
         debug_stage("read")  # a test holds the reader here, its folder locked
