@@ -143,6 +143,33 @@ def test_ict_hinge_with_two_openings(ict_dir: Path) -> None:
     assert params.shape == (len(names), 4)
 
 
+def test_ict_hinge_a_hair_off_x_keeps_its_pivot_between_the_lower_teeth(ict_dir: Path) -> None:
+    """ICT with a jaw that turns as a true hinge 2.5e-4 rad off the file's x axis (25 and 12.5 degree openings of
+    ICT's own jaw weights, 0.1 um of noise as a file's rounding gives): the pivot is on the hinge, within 2 cm of
+    the lower teeth's mid-plane (before: 23 cm to kilometres along the axis)."""
+    from scipy.spatial.transform import Rotation
+
+    from lgi.dataset.importing import import_obj_folder
+
+    ds = import_obj_folder(ict_dir, include="jaw*", rigid_vertices="none", show_progress=False)
+    x0, tri = ds.neutral.astype(np.float64), ds.triangles
+    teeth = np.arange(19247, 21451)  # ICT's lower teeth
+    ref, _ = fit_rig(x0, np.asarray(ds.deltas, np.float64)[[ds.index("jawOpen")]], teeth, tri, names=["jawOpen"])
+    axis = Rotation.from_rotvec([0.0, 2e-4, 1.5e-4]).apply([1.0, 0.0, 0.0])
+    through = ref.pivot + 3.0 * axis
+    w = ref.weights[:, None]
+    rng = np.random.default_rng(5)
+    deltas = np.stack([w * ((x0 - through) @ Rotation.from_rotvec(np.radians(a) * axis).as_matrix().T + through - x0)
+                       for a in (25.0, 12.5)]) + rng.normal(0.0, 1e-5, (2, *x0.shape))
+    rig, params = fit_rig(x0, deltas, teeth, tri, names=["jawOpen", "jawOpen_50"])
+    d = rig.pivot - through
+    along = (rig.pivot - x0[teeth].mean(0)) @ axis
+    print(f"ICT hinge 2.5e-4 rad off x: pivot {np.linalg.norm(d - (d @ axis) * axis) * 10:.2e} mm off the hinge, "
+          f"{along * 10:.2e} mm from the lower teeth's mid-plane")
+    assert abs(along) < 2.0 and np.linalg.norm(d - (d @ axis) * axis) < 1e-2  # cm
+    assert np.abs(params[:, 0] - [25.0, 12.5]).max() < 0.01 and np.abs(params[:, 3]).max() < 1e-3
+
+
 def test_translations_only_are_refused(actor, tmp_path: Path, capsys) -> None:
     x0, w = actor.neutral, actor.jaw_weights
     names = ["jawForward", "jawLeft"]
