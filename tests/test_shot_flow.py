@@ -34,9 +34,8 @@ def test_shot_flow_thread_and_dask_agree(prefect_harness, shot: Path, monkeypatc
     assert (shot / "thread" / "per_frame.png").stat().st_size > 5000
     assert len(pd.read_csv(shot / "thread" / "per_frame.csv")) == 40
     assert not list(shot.glob(".thread.chunks*"))
-    # The narrowest windows on Dask (one chunk choosing, one finishing): the three chunks' futures are released
-    # as the run goes, and the result is the same.
-    monkeypatch.setattr(orchestration, "DASK_CHOOSING", 1)
+    # The narrowest window on Dask (one chunk finishing at a time, beside the chain's one choosing): the result is
+    # the same.
     monkeypatch.setattr(orchestration, "DASK_FINISHING", 1)
     reconstruct_shot(out=str(shot / "dask"), dask_address="local:2", **args)  # a deployment's parameter
     for name in ("meshes.npz", "diagnostics.csv", "per_frame.csv", "shot.usdc"):

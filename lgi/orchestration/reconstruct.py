@@ -229,14 +229,13 @@ def reconstruct_shot(
         if scan_pairs:
             check_scan_frames(scan_pairs, job.prepared_shot(index_dir, bundles, opts).frames, scan_opts)
         runner = task_runner(dask_address)
-        bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]
         # One working folder per run: two runs into the same OUT never touch each other's chunk files. A stopped run's
         # folder (its process gone) is this run's when it was the same job in the same chunks: the chunks it finished
         # are not done again; any other is removed.
         work = _chunk_folder(Path(out), f"{job.resume_key(index_dir, bundles, opts)}:{chunk_size}")
         # What a stopped run of this job left (both passes' chunks, with markers on rays), for the report.
         kept = {"chosen": len(list(work.rglob("choice_*.npz"))), "finished": len(list(work.rglob("part_*.npz"))),
-                "chunks": len(bounds)}
+                "chunks": len(chunk_bounds(n, chunk_size))}
         # One progress artifact per shot (keyed by OUT, so `prefect artifact ls` lists it), updated by both passes.
         progress_key = artifact_key("shot-progress", out)
 
@@ -245,10 +244,10 @@ def reconstruct_shot(
             if runner is None:
                 # Prefect's threads in this process: the flow's own task runner, and the finished chunks handed to
                 # the writer in memory.
-                return chunk_work(index_dir, bundles_file, options, bounds, str(folder), into, keep=True,
+                return chunk_work(index_dir, bundles_file, options, n, chunk_size, str(folder), into, keep=True,
                                   progress_key=progress_key)
-            return reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles_file, options, bounds,
-                                                                       str(folder), into, progress_key)
+            return reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles_file, options, n,
+                                                                       chunk_size, str(folder), into, progress_key)
 
         try:
             if opts.observations:
@@ -353,10 +352,10 @@ def task_runner(dask_address: str | None):
 
 
 @flow(name="reconstruct-chunks")
-def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work: str,
+def reconstruct_chunks(index_dir: str, bundles: str, options: dict, n_frames: int, chunk_size: int, work: str,
                        out: str, progress_key: str | None = None) -> dict:
     """:func:`chunk_work` on the task runner this subflow was given (Dask), the chunks passed as files."""
-    return chunk_work(index_dir, bundles, options, bounds, work, out, progress_key=progress_key)
+    return chunk_work(index_dir, bundles, options, n_frames, chunk_size, work, out, progress_key=progress_key)
 
 
 #: On the flow's own threads, chunks submitted to be finished and not yet finished, and the same of the chain of
@@ -364,74 +363,55 @@ def reconstruct_chunks(index_dir: str, bundles: str, options: dict, bounds: list
 #: cores never wait.
 FINISHING = 2
 CHOOSING = 2
-#: The same on Dask, where a submitted task holds no thread here: enough to keep a cluster of that many workers busy.
-#: Every task submitted and every future held keeps its state on the scheduler and its result on a worker until
-#: released: all of a 36,000-frame ICT take's 1,200 tasks at once grew each worker by 150 kB per task.
+#: On Dask, chunks submitted to be finished and not yet finished: enough to keep a cluster of that many workers
+#: busy. Every task submitted keeps its state on the scheduler and its result on a worker until released.
 DASK_FINISHING = 32
-DASK_CHOOSING = 8
+#: Dask's priority of the chain of choices over the chunks waiting to be finished: the chain is the shot's
+#: critical path, and each link is submitted only when the one before has ended.
+CHAIN_PRIORITY = 1
 
 
-def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work: str, out: str,
+def chunk_bounds(n_frames: int, chunk_size: int) -> list[tuple[int, int]]:
+    """The chunks' frame ranges, ``[(lo, hi), ...]``: ``chunk_size`` frames each, the last one shorter."""
+    return [(lo, min(lo + chunk_size, n_frames)) for lo in range(0, n_frames, chunk_size)]
+
+
+def chunk_work(index_dir: str, bundles: str, options: dict, n_frames: int, chunk_size: int, work: str, out: str,
                keep: bool = False, progress_key: str | None = None) -> dict:
     """The chunk work of :func:`reconstruct_shot`, on the task runner of the flow that calls it: frames chosen
     in chunks chained one after another, then finished in chunks mapped over the runner, then written.
-    ``keep``: the finished chunks stay in memory for the writer (every task in this process). ``progress_key``:
-    the key of the progress artifact (default: one made from ``out``)."""
+    ``keep``: the flow's own threads, the finished chunks kept in memory for the writer; otherwise Dask, every
+    chunk passed as a file. ``progress_key``: the key of the progress artifact (default: one made from ``out``)."""
     from threadpoolctl import threadpool_limits
 
+    bounds = chunk_bounds(n_frames, chunk_size)
     work_dir = Path(work)
-    futures, parts = [], []
-    choosing, finishing = (CHOOSING, FINISHING) if keep else (DASK_CHOOSING, DASK_FINISHING)
+    opts = job.ReconstructOptions.from_json(options)
+
+    def needed(i: int) -> list[int]:
+        a, b = job.chunk_needs(opts, n_frames, *bounds[i])
+        return [k for k, (c0, c1) in enumerate(bounds) if c1 > a and c0 < b]
+
     # BLAS limits are process-wide: a chunk task leaving its one-thread limit would give the tasks still running
     # on the other threads a multithreaded BLAS that fights numba for the cores (lgi.threads). One limit for the
     # whole chunk work keeps every task at one BLAS thread.
     blas = threadpool_limits(limits=1, user_api="blas")
+    running: set = set()  # the tasks submitted and not yet taken
     try:
         progress = create_progress_artifact(progress=0.0, key=progress_key or artifact_key("shot-progress", out),
-                                            description=f"{bounds[-1][1]} frames chosen, in {len(bounds)} chunks")
-        opts = job.ReconstructOptions.from_json(options)
-        n_frames = bounds[-1][1]
+                                            description=f"{n_frames} frames chosen, in {len(bounds)} chunks")
 
-        def choose(k: int) -> None:
-            # The chain of choices, each continuing from the last: at most ``choosing`` submitted and unfinished
-            # (on this process's threads each holds a thread waiting for the one before). A finished task's future
-            # gives way to its result, the file's name, which releases the task on the runner.
-            if k >= choosing:
-                futures[k - choosing] = _result(futures[k - choosing])
-            lo, hi = bounds[k]
-            chosen = work_dir / f"choice_{lo:06d}.npz"
-            # A chunk a stopped run of this job chose (its file is whole or absent) is not chosen again.
-            futures.append(str(chosen) if chosen.is_file() else choose_chunk.submit(
-                index_dir, bundles, options, lo, hi, str(chosen), futures[-1] if futures else None))
+        def chosen(k: int) -> None:
+            update_progress_artifact(progress, progress=100.0 * (k + 1) / len(bounds))
 
-        def needed(i: int) -> list[int]:
-            a, b = job.chunk_needs(opts, n_frames, *bounds[i])
-            return [k for k, (c0, c1) in enumerate(bounds) if c1 > a and c0 < b]
-
-        # Each chunk is finished as soon as the choices its windows read are made (Shot.needs), while the chain
-        # goes on choosing: the two overlap as in lgi reconstruct's two-thread schedule. The work is handed out a
-        # little ahead of need, not all at once: on this process's threads every task submitted holds a thread (a
-        # 9,000-frame ICT take's 300 threads peaked at 5 GB), and on Dask its state (DASK_FINISHING).
-        for i, (lo, hi) in enumerate(bounds):
-            want = needed(i)
-            upto = min(len(bounds), want[-1] + 1 + choosing)
-            while len(futures) < upto:
-                choose(len(futures))
-            if i >= finishing:
-                parts[i - finishing] = _result(parts[i - finishing])
-            part = work_dir / f"part_{lo:06d}.npz"
-            parts.append(str(part) if part.is_file() else finish_chunk.submit(
-                index_dir, bundles, options, [futures[k] for k in want], lo, hi, str(part), bounds[want[0]][0],
-                keep))
-        for k, fut in enumerate(futures):
-            _result(fut)
-            update_progress_artifact(progress, progress=100.0 * (k + 1) / len(futures))
-        return write_shot(index_dir, bundles, options, [_result(p) for p in parts], out)
+        run = _on_threads if keep else _on_dask
+        parts = run(index_dir, bundles, options, bounds, work_dir, needed, chosen, running)
+        return write_shot(index_dir, bundles, options, parts, out)
     except BaseException:
         # Interrupted (or a chunk failed): the tasks already submitted keep running on the task runner, so stop
         # them at their next start and let the running ones end before their folder goes.
         (work_dir / _STOP).touch()
-        for fut in [f for f in (*futures, *parts) if not isinstance(f, str)]:
+        for fut in list(running):
             try:
                 fut.wait(timeout=120)
             except BaseException:  # noqa: BLE001 - a second Ctrl-C or a failed task: stop waiting, clean up
@@ -439,6 +419,103 @@ def chunk_work(index_dir: str, bundles: str, options: dict, bounds: list[tuple[i
         raise
     finally:
         blas.restore_original_limits()
+
+
+def _on_threads(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work_dir: Path,
+                needed, chosen, running: set) -> list:
+    """The chunks on the flow's own threads: each task handed the futures it reads, a few ahead of need. Returns
+    the finished chunks, in order (in memory)."""
+    futures, parts = [], []
+
+    def submit(fut) -> object:
+        running.add(fut)
+        return fut
+
+    def take(fut):
+        running.discard(fut)
+        return _result(fut)
+
+    def choose(k: int) -> None:
+        # The chain of choices, each continuing from the last: at most CHOOSING submitted and unfinished (each
+        # holds a thread waiting for the one before). A finished task's future gives way to its result.
+        if k >= CHOOSING:
+            futures[k - CHOOSING] = take(futures[k - CHOOSING])
+        lo, hi = bounds[k]
+        path = work_dir / f"choice_{lo:06d}.npz"
+        # A chunk a stopped run of this job chose (its file is whole or absent) is not chosen again.
+        futures.append(str(path) if path.is_file() else submit(choose_chunk.submit(
+            index_dir, bundles, options, lo, hi, str(path), futures[-1] if futures else None)))
+
+    # Each chunk is finished as soon as the choices its windows read are made (Shot.needs), while the chain goes
+    # on choosing: the two overlap as in lgi reconstruct's two-thread schedule. The work is handed out a little
+    # ahead of need, not all at once: every task submitted holds a thread (a 9,000-frame ICT take's 300 threads
+    # peaked at 5 GB).
+    for i, (lo, hi) in enumerate(bounds):
+        want = needed(i)
+        while len(futures) < min(len(bounds), want[-1] + 1 + CHOOSING):
+            choose(len(futures))
+        if i >= FINISHING:
+            parts[i - FINISHING] = take(parts[i - FINISHING])
+        part = work_dir / f"part_{lo:06d}.npz"
+        parts.append(str(part) if part.is_file() else submit(finish_chunk.submit(
+            index_dir, bundles, options, [futures[k] for k in want], lo, hi, str(part), bounds[want[0]][0], True)))
+    for k, fut in enumerate(futures):
+        take(fut)
+        chosen(k)
+    return [take(p) for p in parts]
+
+
+def _on_dask(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int, int]], work_dir: Path,
+             needed, chosen, running: set) -> list[str]:
+    """The chunks on Dask: each task submitted once the files it reads are written, and handed their names, never
+    a future. (A future passed as a task's parameter ties the tasks into one graph, which the scheduler kept
+    whole: its tasks, and the workers' memory, grew with the shot.) Returns the finished chunks' files, in order."""
+    import dask
+    from prefect.futures import as_completed
+
+    n = len(bounds)
+    choices: list[str | None] = [None] * n
+    parts: list[str | None] = [None] * n
+    link, k = None, 0  # the chain's task in flight, and the chunk it chooses
+    finishing: dict = {}  # chunk -> its task in flight
+    i = 0  # the next chunk to finish
+    while link is not None or finishing or k < n or i < n:
+        if link is not None and link.wrapped_future.done():
+            running.discard(link)
+            choices[k - 1] = link.result()
+            chosen(k - 1)
+            link = None
+        while link is None and k < n:
+            lo, hi = bounds[k]
+            path = work_dir / f"choice_{lo:06d}.npz"
+            k += 1
+            if path.is_file():  # a stopped run of this job chose it (its file is whole or absent)
+                choices[k - 1] = str(path)
+                chosen(k - 1)
+                continue
+            with dask.annotate(priority=CHAIN_PRIORITY):
+                link = choose_chunk.submit(index_dir, bundles, options, lo, hi, str(path),
+                                           choices[k - 2] if k > 1 else None)
+            running.add(link)
+        for j in [j for j, fut in finishing.items() if fut.wrapped_future.done()]:
+            running.discard(finishing[j])
+            parts[j] = finishing.pop(j).result()
+        while i < n and len(finishing) < DASK_FINISHING and all(choices[c] for c in needed(i)):
+            want = needed(i)
+            lo, hi = bounds[i]
+            part = work_dir / f"part_{lo:06d}.npz"
+            if part.is_file():
+                parts[i] = str(part)
+            else:
+                finishing[i] = finish_chunk.submit(index_dir, bundles, options, [choices[c] for c in want], lo, hi,
+                                                   str(part), bounds[want[0]][0], False)
+                running.add(finishing[i])
+            i += 1
+        if running:
+            next(as_completed(list(running)))  # the first to end
+        elif i < n:  # a task stopped before its work (_stopped) left a choice unmade
+            raise RuntimeError(f"frames {bounds[i][0]}-{bounds[i][1] - 1}: the choices they read were not made")
+    return parts
 
 
 def _result(fut):
