@@ -1150,6 +1150,25 @@ def test_internal_error_status_through_the_command(world: Path, tmp_path: Path) 
         assert "internal error: KeyError" in r.stderr
 
 
+def test_a_value_error_inside_the_solver_is_a_bug(world: Path, tmp_path: Path) -> None:
+    """numpy's shape errors are ValueErrors: one raised inside the solver is lgi's bug (status 3, "internal
+    error"), not the user's input (status 2), and nothing is written."""
+    plant = ("import sys, lgi.solve.solver as s\n"
+             "def broken(*a, **k):\n"
+             "    raise ValueError('operands could not be broadcast together with shapes (3,) (4,)')\n"
+             "s.LGISolver.stream_from = broken\n"
+             "from lgi._entry import run\n"
+             "sys.argv = ['lgi', *sys.argv[1:]]\n"
+             "run()\n")
+    out = tmp_path / "rec"
+    r = subprocess.run([sys.executable, "-c", plant, "reconstruct", str(world / "idx"), "--bundles",
+                        str(world / "s" / "bundles.csv"), "--out", str(out), "-q"], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=300)
+    assert r.returncode == 3, r.stderr[-2000:]
+    assert "internal error: ValueError: operands could not be broadcast" in r.stderr and "--debug" in r.stderr
+    assert not out.exists() and not list(tmp_path.glob(".rec*"))
+
+
 def test_unpaired_calibration_image_is_reported(tmp_path: Path, caplog) -> None:
     from lgi.capture.calibration import pair_images
 

@@ -27,6 +27,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
 from lgi.dataset.mesh import triangle_areas, vertex_normals
+from lgi.errors import InputError
 
 G0 = np.array([[-1.0, 1, 0, 0], [-1, 0, 1, 0], [-1, 0, 0, 1]])
 
@@ -79,7 +80,7 @@ def _moving_region(triangles: np.ndarray, motion: np.ndarray, threshold: float, 
     _, comp = connected_components(adj, directed=False)
     moving = motion > threshold
     if not moving.any():
-        raise ValueError("no vertex moves more than the motion threshold: nothing to simulate")
+        raise InputError("no vertex moves more than the motion threshold: nothing to simulate")
     main = comp == np.bincount(comp[moving]).argmax()
     region = moving & main
     for _ in range(rings):

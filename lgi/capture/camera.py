@@ -56,11 +56,11 @@ class Camera:
         self.t = np.asarray(self.t, np.float64).reshape(3)
         self.size = (int(self.size[0]), int(self.size[1]))
         if self.model not in MODELS:
-            raise ValueError(f"camera model {self.model!r}: expected one of {MODELS}")
+            raise InputError(f"camera model {self.model!r}: expected one of {MODELS}")
         if self.fisheye and self.dist.size != 4:
-            raise ValueError(f"a fisheye camera has 4 distortion coefficients, not {self.dist.size}")
+            raise InputError(f"a fisheye camera has 4 distortion coefficients, not {self.dist.size}")
         if not self.fisheye and self.dist.size not in (0, 4, 5, 8, 12, 14):
-            raise ValueError(f"{self.dist.size} distortion coefficients: OpenCV takes 4, 5, 8, 12 or 14")
+            raise InputError(f"{self.dist.size} distortion coefficients: OpenCV takes 4, 5, 8, 12 or 14")
 
     @property
     def fisheye(self) -> bool:
@@ -329,7 +329,7 @@ class StereoRig:
             uv = np.asarray(uv, np.float64)
             ok = np.all(np.isfinite(uv), axis=1)
             if ok.sum() < 4:
-                raise ValueError(f"camera {k} sees {int(ok.sum())} helmet markers, at least 4 are needed")
+                raise InputError(f"camera {k} sees {int(ok.sum())} helmet markers, at least 4 are needed")
             rms[k, 0] = np.sqrt(np.mean(np.sum((cam.project(points[ok]) - uv[ok]) ** 2, axis=1)))
             # Pose from undistorted normalised coordinates: the same for every lens model.
             x = cam.normalized(uv[ok])

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from lgi.capture.camera import StereoRig
 from lgi.capture.dots import Dots
 from lgi.dataset.stabilise import rigid_fit
+from lgi.errors import InputError
 
 #: The dot detector's centre error per image coordinate (px, one standard deviation), which sets each bundle's
 #: covariance (:func:`lgi.capture.camera.triangulation_covariance`). Measured on ``lgi synth --hmc`` footage (1280x1024
@@ -195,7 +196,7 @@ class Tracker:
 
         pts = self._stereo_points(dots[0].xy, dots[1].xy)
         if len(pts) < 4:
-            raise ValueError(f"only {len(pts)} dots could be matched between the cameras in the reference frame")
+            raise InputError(f"only {len(pts)} dots could be matched between the cameras in the reference frame")
         R, t, _ = self.fit_layout(pts)
         self.ref_fit = self.layout @ R.T + t
         uv = np.full((len(self.layout), 2, 2), np.nan)

@@ -50,7 +50,7 @@ class MarkerLayout:
     def __post_init__(self) -> None:
         if len(set(self.names)) != len(self.names):
             dup = sorted({n for n in self.names if self.names.count(n) > 1})
-            raise ValueError(f"duplicate marker names: {dup}")
+            raise InputError(f"duplicate marker names: {dup}")
         self.triangles = np.asarray(self.triangles, np.int64)
         self.vertices = np.asarray(self.vertices, np.int64).reshape(-1, 3)
         self.weights = np.asarray(self.weights, np.float64).reshape(-1, 3)

@@ -125,25 +125,25 @@ class ShapeDataset:
     def __post_init__(self) -> None:
         self.neutral = np.asarray(self.neutral, np.float64)
         if (self.jaw_pivot is None) != (self.jaw_weights is None):
-            raise ValueError("a jaw rig needs both its pivot and its weights")
+            raise InputError("a jaw rig needs both its pivot and its weights")
         if self.jaw_pivot is not None:
             self.jaw_pivot = np.asarray(self.jaw_pivot, np.float64).reshape(3)
             self.jaw_weights = np.asarray(self.jaw_weights, np.float64)
             if self.jaw_weights.shape != (len(self.neutral),):
-                raise ValueError(f"jaw weights {self.jaw_weights.shape} for {len(self.neutral)} vertices")
+                raise InputError(f"jaw weights {self.jaw_weights.shape} for {len(self.neutral)} vertices")
         if self.deltas.dtype != np.float32:
             self.deltas = np.asarray(self.deltas, np.float32)
         if self.deltas.ndim != 3 or self.deltas.shape[1:] != self.neutral.shape:
-            raise ValueError(f"deltas shape {self.deltas.shape} does not match neutral {self.neutral.shape}")
+            raise InputError(f"deltas shape {self.deltas.shape} does not match neutral {self.neutral.shape}")
         if len(self.names) != self.deltas.shape[0]:
-            raise ValueError(f"{len(self.names)} names for {self.deltas.shape[0]} shapes")
+            raise InputError(f"{len(self.names)} names for {self.deltas.shape[0]} shapes")
         if len(set(self.names)) != len(self.names):
             dup = sorted({n for n in self.names if self.names.count(n) > 1})
-            raise ValueError(f"duplicate shape names: {dup}")
+            raise InputError(f"duplicate shape names: {dup}")
         if not self.shape_meta:
             self.shape_meta = [ShapeMeta() for _ in self.names]
         if len(self.shape_meta) != len(self.names):
-            raise ValueError("one ShapeMeta per shape is needed")
+            raise InputError("one ShapeMeta per shape is needed")
 
     # ------------------------------------------------------------------ access
     @property

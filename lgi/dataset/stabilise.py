@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lgi.errors import InputError
+
 
 @dataclass
 class RigidFit:
@@ -62,7 +64,7 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     w = np.ones(len(src)) if weights is None else np.asarray(weights, np.float64)
     wsum = w.sum()
     if wsum <= 0:
-        raise ValueError("all weights are zero")
+        raise InputError("all weights are zero")
     cs = (w[:, None] * src).sum(0) / wsum
     cd = (w[:, None] * dst).sum(0) / wsum
     h = ((src - cs) * w[:, None]).T @ (dst - cd)

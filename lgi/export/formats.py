@@ -13,6 +13,7 @@ import numba as nb
 import numpy as np
 
 from lgi.dataset.mesh import triangulate
+from lgi.errors import InputError
 from lgi.export import clips
 from lgi.export.clips import USD_CLIP_CONTENTS, usd_clip_dir
 from lgi.export.convention import Convention
@@ -143,7 +144,7 @@ def stage_convention(stage) -> Convention:
     up, mpu = UsdGeom.GetStageUpAxis(stage), UsdGeom.GetStageMetersPerUnit(stage)
     units = [u for u in ("cm", "m") if abs(Convention("Y", u).meters_per_unit - mpu) < 1e-9]
     if up not in ("Y", "Z") or not units:
-        raise ValueError(f"a stage with upAxis {up} and metersPerUnit {mpu} is not in a convention lgi writes")
+        raise InputError(f"a stage with upAxis {up} and metersPerUnit {mpu} is not in a convention lgi writes")
     return Convention(str(up), units[0])
 
 
@@ -343,7 +344,7 @@ def write_usd_rig(
     skel = UsdSkel.Skeleton.Define(stage, "/Rig/Skel")
     tokens = [usd_name(n) for n in names]
     if len(set(tokens)) != len(tokens):
-        raise ValueError("shape names collide once made valid USD names")
+        raise InputError("shape names collide once made valid USD names")
     anim = UsdSkel.Animation.Define(stage, "/Rig/Skel/Anim")
     anim.CreateBlendShapesAttr(Vt.TokenArray(tokens))
     anim.CreateBlendShapeWeightsAttr(Vt.FloatArray([0.0] * len(tokens)))

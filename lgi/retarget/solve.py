@@ -459,7 +459,7 @@ class RigSolver:
             if fix_jaw:
                 lo[k:] = hi[k:] = z[k:]
         elif fix_jaw or jaw is not None:
-            raise ValueError("jaw parameters given for a rig without a jaw joint")
+            raise InputError("jaw parameters given for a rig without a jaw joint")
         for c, v in (held or {}).items():
             z[c] = lo[c] = hi[c] = v
         tols = np.r_[np.full(k, tol), self.JAW_TOL[:n - k]]
@@ -676,7 +676,7 @@ def solve_shot(solver: RigSolver, meshes: np.ndarray, smooth_frames: float = 4.0
     """
     k = solver.rig.n_controls
     if fix_jaw and jaw is None:
-        raise ValueError("fix_jaw needs the jaw parameters")
+        raise InputError("fix_jaw needs the jaw parameters")
     jc = solver.rig.jaw_controls
     driven = None
     if jc.size and jaw is None:

@@ -177,7 +177,7 @@ class GeneratedRig:
             controls at 1 give the combination exactly
         """
         if self.jaw is None:
-            raise ValueError("the rig was generated without a jaw rig")
+            raise InputError("the rig was generated without a jaw rig")
         k = len(self.controls)
         ctrl = np.stack([rig.unskin(np.asarray(x, np.float64), th) - self.neutral
                          for x, th in zip(self.shapes, self.jaw[:k], strict=True)]) if k else \

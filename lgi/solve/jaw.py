@@ -198,7 +198,7 @@ def hinge_parameters(axis: np.ndarray, point: np.ndarray, angles_deg: np.ndarray
     slide = off - rot @ off  # (F, 3): the motion's translation about the pivot
     worst = float(np.abs(slide[:, :2]).max(initial=0.0))
     if worst > tol_cm:
-        raise ValueError(f"the hinge passes {np.linalg.norm(off - (off @ a) * a):.3g} cm from the rig's pivot: "
+        raise InputError(f"the hinge passes {np.linalg.norm(off - (off @ a) * a):.3g} cm from the rig's pivot: "
                          f"its motion moves the pivot by up to {worst:.3g} cm across z, which the rig's parameters "
                          "cannot give")
     return np.array([[*_euler(r), t[2]] for r, t in zip(rot, slide, strict=True)])

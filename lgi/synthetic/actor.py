@@ -35,6 +35,7 @@ import numpy as np
 
 from lgi.dataset.mesh import triangulate, vertex_normals
 from lgi.dataset.shapes import ShapeDataset, ShapeMeta
+from lgi.errors import InputError
 
 CONTROLS = [
     "jaw_open", "jaw_left", "jaw_right", "jaw_forward",
@@ -313,7 +314,7 @@ def make_actor(n_vertices: int = 20000, variant: ActorVariant | None = None) -> 
     """Build the synthetic actor with at least ``n_vertices`` vertices (deterministic); ``variant``: another
     actor's proportions and expression details (default: the default actor)."""
     if n_vertices < 500:
-        raise ValueError(f"the synthetic actor needs at least 500 vertices, got {n_vertices}")
+        raise InputError(f"the synthetic actor needs at least 500 vertices, got {n_vertices}")
     nu, nv = _grid_size(n_vertices)
     us = np.linspace(0, 1, nu)
     vs = np.linspace(0, 1, nv)

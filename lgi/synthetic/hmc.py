@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from lgi.capture.camera import Camera, StereoRig
+from lgi.errors import InputError
 
 MM_PER_CM = 10.0
 # Dots fixed on the helmet (head frame, mm), beside the face: each on a light plate, seen by both cameras.
@@ -63,7 +64,7 @@ def hmc_rig(model: str = "fisheye", size: tuple[int, int] = (1280, 1024), baseli
         dist = np.array([-0.12, 0.05, 0.0004, -0.0003, -0.01])
         model = "pinhole"
     else:
-        raise ValueError(f"lens model {model!r}: pinhole or fisheye")
+        raise InputError(f"lens model {model!r}: pinhole or fisheye")
     target = np.array([0.0, -5.0, 30.0])
     cams = []
     for sign, k in ((1, 0), (-1, 1)):
@@ -167,7 +168,7 @@ def helmet_slip(n_frames: int, seed: int = 0, slip: str = "smooth", max_deg: flo
     if slip == "smooth":
         return R, t, np.zeros(n_frames, bool)
     if slip != "jolts":
-        raise ValueError(f"unknown slip {slip!r}: {', '.join(SLIPS)}")
+        raise InputError(f"unknown slip {slip!r}: {', '.join(SLIPS)}")
     Rj, tj, jolting = helmet_jolts(n_frames, seed)
     # The jolt moves the helmet on the head, then the slow slip carries both.
     return np.einsum("fij,fjk->fik", R, Rj), np.einsum("fij,fj->fi", R, tj) + t, jolting
