@@ -25,8 +25,8 @@ def cmd_import(args: argparse.Namespace) -> int:
     opts = _import_options(args)
     if args.flow:
         from lgi.jobs.dataset import check_rebuild
+        from lgi.jobs.rebuild import rebuild_report
         from lgi.orchestration.rebuild import rebuild_dataset
-        from lgi.pipeline.stages import rebuild_report
 
         check_rebuild(args.shapes_dir, args.out, opts, args.markers)  # before Prefect starts
 
@@ -151,11 +151,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 def _reconstruct_in(args: argparse.Namespace, opts, scan: dict, scan_opts, inputs: tuple) -> dict:
     """``lgi reconstruct``'s work in the output folder it holds: the reconstruction (plain or the flow), the scans'
     comparison, the review page; returns the summary."""
-    from lgi.jobs.compare import IN_SHOT, check_outputs, checked_pairs
-    from lgi.jobs.reconstruct import check_output, preflight, reconstruct
+    from lgi.jobs import compare as compare_job
+    from lgi.jobs import reconstruct as reconstruct_job
+    from lgi.jobs.compare import IN_SHOT, checked_pairs
+    from lgi.jobs.reconstruct import preflight, reconstruct
 
     if args.flow:
-        check_output(args.out, inputs)
+        reconstruct_job.check_outputs(args.out, inputs)
         preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
         from lgi.orchestration.reconstruct import reconstruct_shot
 
@@ -172,8 +174,8 @@ def _reconstruct_in(args: argparse.Namespace, opts, scan: dict, scan_opts, input
             from lgi.jobs.reconstruct import forget_shots, prepared_shot
 
             pairs = checked_pairs(scan_opts)
-            check_output(args.out, inputs)
-            check_outputs(args.out, scan_opts, pairs)
+            reconstruct_job.check_outputs(args.out, inputs)
+            compare_job.check_outputs(args.out, scan_opts, pairs)
             check_scan_frames(pairs, prepared_shot(args.index_dir, args.bundles, opts).frames, scan_opts)
             forget_shots()  # the reconstruction below prepares its own: two at once would double the memory
         with collected_warnings() as warned:
@@ -1319,9 +1321,6 @@ def _run(args: argparse.Namespace, name: str, debug: bool, interrupted=None) -> 
         if isinstance(exc, OSError):
             where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
             print(f"{name}: error: {where}{exc.strerror or exc}", file=sys.stderr)
-            return 2
-        if isinstance(exc, ValueError):
-            print(f"{name}: error: {exc}", file=sys.stderr)
             return 2
         print(f"{name}: internal error: {type(exc).__name__}: {exc} (a bug in lgi; run with --debug for the "
               "traceback and report it)", file=sys.stderr)

@@ -12,11 +12,18 @@ temporary copies are removed afterwards.
 
 Exit status: 0 when every fault was caught, 1 when one was missed or a test run could not be judged (the tests
 failed to start), 2 when a fault's target text is gone (update the fault).
+
+A run of every fault that catches them all writes ``scripts/mutations-checked.json``: each fault's digest (its
+definition, the file it changes and the test files it runs). The default test suite (tests/test_mutations.py)
+checks every target and runs again, in CI, each fault whose digest no longer matches: a fault's code or tests
+changed since the last whole check.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -28,6 +35,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BAD = "tests/test_bad_input.py"
+#: The digests of the faults at the last run of them all that caught every one.
+RECORD = ROOT / "scripts" / "mutations-checked.json"
 
 
 @dataclass(frozen=True)
@@ -85,11 +94,11 @@ FAULTS = [
           "    return name.startswith(prefix) and pid.isdigit() and not _alive(int(pid))\n", "    return False\n",
           (f"{BAD}::test_sigkill_then_rerun_cleans_up",)),
     Fault("stage-cache-unlocked", "concurrent rebuilds compute the same stage without taking turns",
-          "lgi/pipeline/cache.py", "        with locked(self.root / stage / f\".{key}.lock\"):\n",
+          "lgi/io/cache.py", "        with locked(self.root / stage / f\".{key}.lock\"):\n",
           "        with contextlib.nullcontext():\n",
           ("tests/test_concurrent_rebuild.py",)),
     Fault("cache-never-hits", "a resumed rebuild recomputes the stages that finished",
-          "lgi/pipeline/cache.py", "            if (out / \".complete\").is_file():\n", "            if False:\n",
+          "lgi/io/cache.py", "            if (out / \".complete\").is_file():\n", "            if False:\n",
           ("tests/test_resume.py",)),
     # --- the reconstruction -----------------------------------------------------------------------------------
     Fault("mesh-before-correction", "the mesh is kept from before the correction through the bundles, while the "
@@ -117,8 +126,8 @@ FAULTS = [
           ("tests/test_jaw_temporal.py",)),
     Fault("chunk-boundary-off-by-one", "the reconstruct-shot flow's chunks end one frame early",
           "lgi/orchestration/reconstruct.py",
-          "    bounds = [(lo, min(lo + chunk_size, n)) for lo in range(0, n, chunk_size)]\n",
-          "    bounds = [(lo, min(lo + chunk_size - 1, n)) for lo in range(0, n, chunk_size)]\n",
+          "    return [(lo, min(lo + chunk_size, n_frames)) for lo in range(0, n_frames, chunk_size)]\n",
+          "    return [(lo, min(lo + chunk_size - 1, n_frames)) for lo in range(0, n_frames, chunk_size)]\n",
           ("tests/test_reconstruct_job.py::test_plain_and_flow_agree_with_non_default_options",)),
     Fault("noise-always-exact", "noisy bundles always judged exact (never smoothed and fitted)",
           "lgi/solve/temporal.py",
@@ -159,6 +168,21 @@ def check_targets(faults: list[Fault]) -> list[str]:
         if n != 1:
             stale.append(f"{f.name}: {f.path} holds the target {n} times (expected once): {f.old[:80]!r}")
     return stale
+
+
+def digest(f: Fault) -> str:
+    """SHA-256 of the fault's definition, the file it changes and the test files it runs: what its verdict
+    depends on."""
+    h = hashlib.sha256(repr(f).encode())
+    for rel in (f.path, *sorted({t.split("::")[0] for t in f.tests})):
+        h.update(rel.encode() + b"\0" + (ROOT / rel).read_bytes())
+    return h.hexdigest()
+
+
+def unchecked(faults: list[Fault]) -> list[Fault]:
+    """The faults whose digest differs from the record of the last whole check (or that it lacks)."""
+    record = json.loads(RECORD.read_text()) if RECORD.is_file() else {}
+    return [f for f in faults if record.get(f.name) != digest(f)]
 
 
 def run_fault(f: Fault, base: Path, keep: bool = False) -> tuple[str, float, str]:
@@ -236,6 +260,9 @@ def main(argv: list[str] | None = None) -> int:
         else:
             shutil.rmtree(base, ignore_errors=True)
     caught = results.count("caught")
+    if caught == len(faults) == len(FAULTS):
+        RECORD.write_text(json.dumps({f.name: digest(f) for f in faults}, indent=1) + "\n")
+        print(f"digests of the faults written to {RECORD.relative_to(ROOT)}")
     print(f"{caught} of {len(faults)} faults caught" + ("" if caught == len(faults) else
                                                        f"; missed or not run: {len(faults) - caught}"))
     return 0 if caught == len(faults) else 1

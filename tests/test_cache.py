@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from lgi.cli import main
-from lgi.pipeline import cache as cache_mod
-from lgi.pipeline.cache import StageCache, module_closure
+from lgi.io import cache as cache_mod
+from lgi.io.cache import StageCache, module_closure
 
 
 def test_stage_code_excludes_the_command_line_and_the_benchmarks() -> None:

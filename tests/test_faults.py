@@ -176,7 +176,7 @@ def _cache_ok(cache: Path) -> list[dict]:
     """Every cache entry complete and loadable (its npz and JSON files read), and nothing half-written."""
     import json
 
-    from lgi.pipeline.cache import StageCache
+    from lgi.io.cache import StageCache
 
     entries = StageCache(cache).entries()
     for e in entries:

@@ -220,6 +220,20 @@ def check_output(path: str | os.PathLike[str], kind: str = "dir", *, inputs: Ite
             check_recorded(p, None, f"lgi replaces this {what} as a whole")
 
 
+def check_job_folder(out: str | os.PathLike[str], outputs: tuple[str, ...], contents: dict[str, tuple[str, ...]],
+                     inputs: Iterable[Any] = ()) -> None:
+    """Refuse, before any work, a job's output folder ``out`` that cannot hold its ``outputs`` (entry names; those
+    in ``contents`` are folders, with the patterns of what they hold), or whose outputs would replace one of the
+    run's ``inputs``: :func:`check_output` on the folder and on each entry, :func:`check_not_in_store`, then
+    :func:`check_contents` (after, so that an input there is named as one)."""
+    inputs = list(inputs)
+    check_output(out, "dir", inputs=inputs)
+    check_not_in_store(out)
+    for name in outputs:
+        check_output(Path(out) / name, "dir" if name in contents else "file", inputs=inputs)
+    check_contents(out, contents, outputs)
+
+
 def check_recorded(folder: Path, names: Iterable[str] | None, why: str) -> None:
     """Refuse files under the entries ``names`` of ``folder`` (default: all) that lgi has no record of writing
     there (:func:`lgi.io.record.unrecorded`)."""

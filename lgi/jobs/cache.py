@@ -1,4 +1,4 @@
-"""``lgi cache``: list and trim the stage cache of the dataset rebuild (:class:`lgi.pipeline.cache.StageCache`)."""
+"""``lgi cache``: list and trim the stage cache of the dataset rebuild (:class:`lgi.io.cache.StageCache`)."""
 
 from __future__ import annotations
 
@@ -40,14 +40,14 @@ class PruneOptions:
 
 def list_cache(path: str | Path) -> list[dict[str, Any]]:
     """Every complete stage result (stage, key, bytes, created, used, path), most recently used first."""
-    from lgi.pipeline.cache import StageCache
+    from lgi.io.cache import StageCache
 
     return StageCache(cache_root(path)).entries()
 
 
 def prune_cache(path: str | Path, options: PruneOptions) -> list[dict[str, Any]]:
     """Remove stage results as ``options`` say; returns the removed ones."""
-    from lgi.pipeline.cache import StageCache
+    from lgi.io.cache import StageCache
 
     return StageCache(cache_root(path)).prune(options.keep, options.older_than)
 

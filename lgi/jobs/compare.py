@@ -241,17 +241,11 @@ def checked_pairs(options: CompareOptions) -> list[tuple[int, Path]]:
 
 def check_outputs(recon_dir: str | Path, options: CompareOptions, pairs: list[tuple[int, Path]]) -> None:
     """Refuse, before any work, an ``--out`` that cannot hold the outputs or would replace an input."""
-    from lgi.io.atomic import check_contents, check_not_in_store, check_output
+    from lgi.io.atomic import check_job_folder
 
     o = options
-    if not o.out:
-        return
-    inputs = [recon_dir, o.index, o.pairs, *(s for _, s in pairs)]
-    check_output(o.out, "dir", inputs=inputs)
-    check_not_in_store(o.out)
-    for name in OUTPUTS:
-        check_output(Path(o.out) / name, "dir" if name == "heatmaps" else "file", inputs=inputs)
-    check_contents(o.out, OUTPUT_CONTENTS, OUTPUTS)  # after: an input there is named as one
+    if o.out:
+        check_job_folder(o.out, OUTPUTS, OUTPUT_CONTENTS, [recon_dir, o.index, o.pairs, *(s for _, s in pairs)])
 
 
 def remove_outputs(folder: str | Path) -> None:

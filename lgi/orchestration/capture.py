@@ -82,8 +82,8 @@ def calibrate_session(images: str, options: dict, out: str, cache_dir: str):
     """Calibrate the camera pair (``lgi calibrate``), cached by the images' content and the options; the result
     is copied to ``out``. A cache hit ends in a state named Cached."""
     from lgi.io.atomic import atomic_file
+    from lgi.io.cache import StageCache, hash_tree
     from lgi.jobs.capture import calibrate
-    from lgi.pipeline.cache import StageCache, hash_tree
 
     opts = CalibrateOptions(**options)
 

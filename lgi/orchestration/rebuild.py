@@ -1,5 +1,5 @@
 """The dataset rebuild as Prefect tasks and a flow: read, stabilise, (augment,) and with markers the index
-stages and the verification; one task per stage of :mod:`lgi.pipeline.stages`, each cached by content.
+stages and the verification; one task per stage of :mod:`lgi.jobs.rebuild`, each cached by content.
 
 A re-run with nothing changed computes nothing; changing one option recomputes only the stages that depend
 on it. The stages run the job layer's functions (:mod:`lgi.jobs.dataset`, :mod:`lgi.jobs.index`) with the
@@ -23,13 +23,13 @@ from prefect.states import Completed, State
 
 from lgi.errors import InputError
 from lgi.index.build import IndexOptions
+from lgi.io.cache import StageCache
+from lgi.jobs import rebuild
 from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
 from lgi.jobs.index import RigOptions, VerifyOptions
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png, transient_only
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
-from lgi.pipeline import stages as pipeline
-from lgi.pipeline.cache import StageCache
 
 # Stage results are files in the stage cache, never Prefect results (no pickles); I/O may be retried; the
 # timeouts are generous bounds that stop a hung run from holding the deployment's concurrency slot forever.
@@ -54,22 +54,22 @@ def _call(stage, *args):
 
 @task(name="read-shapes", **_hours(1))
 def read_shapes(cache_dir: str, shapes_dir: str, options: dict) -> tuple[str, bool] | State:
-    """Read a folder of OBJ shapes (see :func:`lgi.pipeline.stages.read_stage`)."""
-    path, hit = pipeline.read_stage(StageCache(cache_dir), shapes_dir, ImportOptions.from_json(options))
+    """Read a folder of OBJ shapes (see :func:`lgi.jobs.rebuild.read_stage`)."""
+    path, hit = rebuild.read_stage(StageCache(cache_dir), shapes_dir, ImportOptions.from_json(options))
     return _done(path, hit)
 
 
 @task(name="stabilise", **_hours(1))
 def stabilise(cache_dir: str, raw_dir: str, options: dict) -> tuple[str, bool] | State:
-    """Remove head motion and save the dataset (see :func:`lgi.pipeline.stages.stabilise_stage`)."""
-    path, hit = pipeline.stabilise_stage(StageCache(cache_dir), Path(raw_dir), ImportOptions.from_json(options))
+    """Remove head motion and save the dataset (see :func:`lgi.jobs.rebuild.stabilise_stage`)."""
+    path, hit = rebuild.stabilise_stage(StageCache(cache_dir), Path(raw_dir), ImportOptions.from_json(options))
     return _done(path, hit)
 
 
 @task(name="augment", **_hours(12))
 def augment(cache_dir: str, dataset_dir: str, options: dict, jaw_rig: str | None = None) -> tuple[str, bool] | State:
-    """Linear and/or simulated in-betweens (see :func:`lgi.pipeline.stages.augment_stage`)."""
-    path, hit = pipeline.augment_stage(StageCache(cache_dir), Path(dataset_dir), AugmentOptions.from_json(options),
+    """Linear and/or simulated in-betweens (see :func:`lgi.jobs.rebuild.augment_stage`)."""
+    path, hit = rebuild.augment_stage(StageCache(cache_dir), Path(dataset_dir), AugmentOptions.from_json(options),
                                        jaw_rig)
     return _done(path, hit)
 
@@ -77,7 +77,7 @@ def augment(cache_dir: str, dataset_dir: str, options: dict, jaw_rig: str | None
 @task(name="natural-neighbours", **_hours(2))
 def natural_neighbours(cache_dir: str, dataset_dir: str, markers: str, options: dict) -> tuple[str, bool] | State:
     """Geodesic Voronoi, Sibson weights and the correction basis."""
-    path, hit = pipeline.natural_stage_cached(StageCache(cache_dir), Path(dataset_dir), markers,
+    path, hit = rebuild.natural_stage_cached(StageCache(cache_dir), Path(dataset_dir), markers,
                                               IndexOptions.from_json(options))
     return _done(path, hit)
 
@@ -86,7 +86,7 @@ def natural_neighbours(cache_dir: str, dataset_dir: str, markers: str, options: 
 def point_clouds(cache_dir: str, dataset_dir: str, markers: str, natural_dir: str, options: dict,
                  jaw_rig: str | None = None) -> tuple[str, bool] | State:
     """Per-bundle point clouds (pruned), overlapping simplices and grids."""
-    path, hit = pipeline.clouds_stage_cached(StageCache(cache_dir), Path(dataset_dir), markers, Path(natural_dir),
+    path, hit = rebuild.clouds_stage_cached(StageCache(cache_dir), Path(dataset_dir), markers, Path(natural_dir),
                                              IndexOptions.from_json(options), jaw_rig)
     return _done(path, hit)
 
@@ -95,22 +95,22 @@ def point_clouds(cache_dir: str, dataset_dir: str, markers: str, natural_dir: st
 def assemble(cache_dir: str, dataset_dir: str, markers: str, natural_dir: str, clouds_dir: str, options: dict,
              jaw_rig: str | None = None) -> tuple[str, bool] | State:
     """The index directory from the stages above."""
-    path, hit = pipeline.index_stage(StageCache(cache_dir), Path(dataset_dir), markers, Path(natural_dir),
+    path, hit = rebuild.index_stage(StageCache(cache_dir), Path(dataset_dir), markers, Path(natural_dir),
                                      Path(clouds_dir), IndexOptions.from_json(options), jaw_rig)
     return _done(path, hit)
 
 
 @task(name="fit-jaw-rig", **_hours(1))
 def fit_rig(cache_dir: str, dataset_dir: str, options: dict) -> tuple[str, bool] | State:
-    """The jaw rig from the dataset's jaw shapes (see :func:`lgi.pipeline.stages.rig_stage`)."""
-    path, hit = pipeline.rig_stage(StageCache(cache_dir), Path(dataset_dir), RigOptions(**options))
+    """The jaw rig from the dataset's jaw shapes (see :func:`lgi.jobs.rebuild.rig_stage`)."""
+    path, hit = rebuild.rig_stage(StageCache(cache_dir), Path(dataset_dir), RigOptions(**options))
     return _done(path, hit)
 
 
 @task(name="verify", **_hours(6))
 def verify(cache_dir: str, index_dir: str, options: dict) -> tuple[str, bool] | State:
     """Every dataset shape reconstructed from its own bundles (see :func:`lgi.jobs.index.verify`)."""
-    path, hit = pipeline.verify_stage(StageCache(cache_dir), Path(index_dir), VerifyOptions(**options))
+    path, hit = rebuild.verify_stage(StageCache(cache_dir), Path(index_dir), VerifyOptions(**options))
     return _done(path, hit)
 
 
@@ -118,7 +118,7 @@ def verify(cache_dir: str, index_dir: str, options: dict) -> tuple[str, bool] | 
 def publish(src: str, dest: str, kind: str) -> str:
     """Copy a cached result of ``kind`` ("dataset", "index", "verification") to its user-facing place,
     atomically."""
-    return str(pipeline.publish(Path(src), dest, kind))
+    return str(rebuild.publish(Path(src), dest, kind))
 
 
 @flow(name="rebuild-dataset")
@@ -178,7 +178,7 @@ def rebuild_dataset(
     imp = ImportOptions(**{f.name: params[f.name] for f in fields(ImportOptions)})
     aug_opts = (augmentation if isinstance(augmentation, AugmentOptions) or augmentation is None
                 else AugmentOptions.from_json(augmentation))
-    idx_opts = pipeline.options_from(index_options).to_json() if markers else None
+    idx_opts = rebuild.options_from(index_options).to_json() if markers else None
     ver_opts = VerifyOptions(tolerance=tolerance, shapes=verify_shapes).to_json()
     if rig is not None and jaw_rig:
         raise InputError("give either jaw_rig (a fitted rig) or rig (fit one), not both")
@@ -232,13 +232,13 @@ def rebuild_dataset(
         shutil.rmtree(out_dir / name, ignore_errors=True)
     _artifacts(summary, out_dir)
     logger = get_run_logger()
-    for line in pipeline.rebuild_report(summary):
+    for line in rebuild.rebuild_report(summary):
         logger.info(line)
     return summary
 
 
 def _artifacts(summary: dict, out_dir: Path) -> None:
-    """Table artifacts (shapes, bundles, verification) and the markdown report (:func:`lgi.pipeline.stages.
+    """Table artifacts (shapes, bundles, verification) and the markdown report (:func:`lgi.jobs.rebuild.
     rebuild_markdown`) with absolute links."""
     manifest = json.loads((out_dir / "dataset" / "manifest.json").read_text())
     shapes = [{"shape": s["name"], "source": s["source"], "tags": ",".join(s["tags"]),
@@ -246,7 +246,7 @@ def _artifacts(summary: dict, out_dir: Path) -> None:
               for s in manifest["shapes"]]
     key = functools.partial(artifact_key, path=out_dir)
     create_table_artifact(table=shapes, key=key("dataset-shapes"), description="shapes and the head motion removed")
-    md, png = pipeline.rebuild_markdown(summary, out_dir)
+    md, png = rebuild.rebuild_markdown(summary, out_dir)
     if "verification" in summary:
         bundles = pd.read_csv(out_dir / "index" / "bundles.csv")
         create_table_artifact(table=bundles.to_dict(orient="records"), key=key("index-bundles"),

@@ -25,6 +25,7 @@ from prefect.artifacts import (
 )
 from prefect.cache_policies import NO_CACHE
 
+from lgi.errors import InputError
 from lgi.io.atomic import output_lock
 from lgi.jobs import reconstruct as job
 from lgi.jobs.compare import IN_SHOT, REGIONS, CompareOptions, check_scan_frames, scan_inputs, shot_scan_options
@@ -202,13 +203,13 @@ def reconstruct_shot(
         scan_region = at(scan_region, "scan_region")  # a vertex index file
     params = dict(locals())
     if footage and not (calib and markers):
-        raise ValueError("a shot from footage needs calib and markers")
+        raise InputError("a shot from footage needs calib and markers")
     if footage and not observations:
         params["calib"] = None  # it calibrates the tracking; without observations there are no rays to make
     opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
     # Scans are checked before any work (files there, frames in the shot), their loading and coverage after.
     scan_opts = shot_scan_options(scans, index_dir, out, scan_units, scan_align, scan_region, scan_gate)
-    job.check_output(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
+    job.check_outputs(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
                            contours, *scan_inputs(scan_opts)))
     # One run at a time in OUT (lgi reconstruct holds it already; a deployment's run takes it here).
     with output_lock(out):
@@ -340,7 +341,7 @@ def task_runner(dask_address: str | None):
     if dask_address.startswith("local"):
         n = dask_address.partition(":")[2] or "2"
         if not n.isdigit() or not 1 <= int(n) <= 256:
-            raise ValueError(f"dask_address {dask_address!r}: local:N takes a number of workers from 1 to 256")
+            raise InputError(f"dask_address {dask_address!r}: local:N takes a number of workers from 1 to 256")
         import dask
 
         # A local cluster's workers get this process's Dask configuration. Their statistical profiler (for the

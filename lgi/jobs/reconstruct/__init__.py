@@ -23,7 +23,7 @@ from lgi.jobs.reconstruct.options import ReconstructOptions, parse_far_field, re
 from lgi.jobs.reconstruct.outputs import (
                                           OUTPUT_CONTENTS,
                                           OUTPUTS,
-                                          check_output,
+                                          check_outputs,
                                           per_frame_table,
                                           plot_per_frame,
                                           resume_key,
@@ -49,7 +49,7 @@ from lgi.jobs.reconstruct.stages import (
 from lgi.jobs.reconstruct.summary import report_lines, summarise
 
 __all__ = ["CONSTRAINED", "OUTPUTS", "OUTPUT_CONTENTS", "RAY_COLUMNS", "ReconstructOptions", "Shot", "assemble",
-           "check_output", "choose_chunk", "chunk_needs", "constrain_to_rays", "finish_chunk", "forget_parts",
+           "check_outputs", "choose_chunk", "chunk_needs", "constrain_to_rays", "finish_chunk", "forget_parts",
            "forget_shots", "load_choices", "load_part", "parse_far_field", "per_frame_table", "plot_per_frame",
            "preflight", "prepared_shot", "read_constraints", "read_jaw_file", "reconstruct", "replace_outputs",
            "report_lines", "resume_key", "save_choices", "save_part", "summarise", "write_reconstruction"]

@@ -99,10 +99,10 @@ def reconstruct_blendshape(index_dir: str | Path, bundles: str | Path, out: str 
     does; returns the summary (:func:`lgi.jobs.reconstruct.report_lines` formats it)."""
     from lgi.capture.bundles import read_bundles
     from lgi.index.build import LGIIndex
-    from lgi.jobs.reconstruct.outputs import OUTPUTS, check_output, write_reconstruction
+    from lgi.jobs.reconstruct.outputs import OUTPUTS, check_outputs, write_reconstruction
 
     check_options(options)
-    check_output(out, (index_dir, bundles))
+    check_outputs(out, (index_dir, bundles))
     t0 = time.perf_counter()
     index = LGIIndex.load(index_dir)
     b = read_bundles(bundles, index.marker_names)

@@ -29,17 +29,12 @@ OUTPUTS = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json", "per_fr
 OUTPUT_CONTENTS = {"obj": ("frame_*.obj", "*.mtl"), "shot.clips": USD_CLIP_CONTENTS}
 
 
-def check_output(out: str | Path, inputs: tuple[Any, ...] = ()) -> None:
+def check_outputs(out: str | Path, inputs: tuple[Any, ...] = ()) -> None:
     """Refuse, before any work, an output path that cannot become the job's directory, or whose outputs would
     replace one of the run's ``inputs`` (index, bundles, jaw file)."""
-    from lgi.io.atomic import check_contents, check_not_in_store
-    from lgi.io.atomic import check_output as check
+    from lgi.io.atomic import check_job_folder
 
-    check(out, "dir")
-    check_not_in_store(out)
-    for name in OUTPUTS:
-        check(Path(out) / name, "dir" if name in OUTPUT_CONTENTS else "file", inputs=inputs)
-    check_contents(out, OUTPUT_CONTENTS, OUTPUTS)  # after: an input there is named as one
+    check_job_folder(out, OUTPUTS, OUTPUT_CONTENTS, inputs)
 
 
 def per_frame_table(diagnostics: pd.DataFrame) -> pd.DataFrame:

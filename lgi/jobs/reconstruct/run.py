@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from lgi.jobs.reconstruct.options import ReconstructOptions
-from lgi.jobs.reconstruct.outputs import check_output, reconstruction_outputs, resume_key
+from lgi.jobs.reconstruct.outputs import check_outputs, reconstruction_outputs, resume_key
 from lgi.jobs.reconstruct.rays import CONSTRAINED
 from lgi.jobs.reconstruct.shot import Shot, constrain_to_rays
 from lgi.jobs.reconstruct.stages import replace_outputs
@@ -38,7 +38,7 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
         from lgi.jobs.reconstruct.blendshape import reconstruct_blendshape
 
         return reconstruct_blendshape(index_dir, bundles, out, options, show_progress)
-    check_output(out, (index_dir, bundles, options.jaw, options.observations, options.calib, options.contours))
+    check_outputs(out, (index_dir, bundles, options.jaw, options.observations, options.calib, options.contours))
     t0 = time.perf_counter()
     shot = Shot(index_dir, bundles, options)
     t1 = time.perf_counter()

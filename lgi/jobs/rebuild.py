@@ -1,6 +1,6 @@
-"""The dataset rebuild as cached stages (plain functions; the Prefect tasks in ``tasks/`` wrap them).
+"""The dataset rebuild as cached stages (plain functions; the rebuild-dataset flow's tasks wrap them).
 
-Each stage is keyed by what it depends on and nothing else (see :mod:`lgi.pipeline.cache`):
+Each stage is keyed by what it depends on and nothing else (see :mod:`lgi.io.cache`):
 
 ============  ===========================================================================
 read          the OBJ files' bytes; neutral, include/exclude patterns, units, delta mode
@@ -31,11 +31,11 @@ from lgi.dataset.importing import RawShapes
 from lgi.dataset.markers import read_layout
 from lgi.dataset.shapes import ShapeDataset
 from lgi.index.build import NATURAL_FIELDS, IndexOptions, assemble_index, clouds_stage, natural_stage
+from lgi.io.cache import StageCache, hash_file, hash_tree
 from lgi.io.npz import save_npz
 from lgi.io.obj import PolyMesh
 from lgi.jobs.dataset import AugmentOptions, ImportOptions, augment, published, read_shapes, stabilise_shapes
 from lgi.jobs.index import RigOptions, VerifyOptions, fit_jaw_rig, verify
-from lgi.pipeline.cache import StageCache, hash_file, hash_tree
 
 # The modules whose source (with every lgi module they import) keys each stage's results, besides the stage's
 # own make function: the code that computes them, not the whole package.
@@ -188,7 +188,7 @@ def verify_stage(cache: StageCache, index_dir: Path, options: VerifyOptions) -> 
         verification_chart(table, options.tolerance, out / "errors.png")
 
     # This module too: the chart is drawn here.
-    return cache.run("verify", inputs, make, (*_VERIFY, "lgi.pipeline.stages"))
+    return cache.run("verify", inputs, make, (*_VERIFY, "lgi.jobs.rebuild"))
 
 
 def options_from(params: dict[str, Any] | None) -> IndexOptions:
@@ -212,7 +212,7 @@ def publish(src: Path, dest: str | os.PathLike[str], kind: str) -> Path:
     import shutil
 
     from lgi.io.atomic import atomic_dir
-    from lgi.pipeline.cache import locked
+    from lgi.io.cache import locked
 
     dest = Path(dest)
     # Two rebuilds into one OUT publish in turn (each replaces the folder whole; without the lock one could
