@@ -9,6 +9,9 @@ import sys
 from lgi import __version__
 from lgi.errors import InputError, LgiError, Terminated
 from lgi.export.clips import USD_CLIP_FRAMES
+from lgi.jobs.reconstruct.options import GROUPS as RECONSTRUCT_GROUPS
+from lgi.jobs.reconstruct.options import ReconstructOptions
+from lgi.options import add_flags
 
 
 def _import_options(args: argparse.Namespace):
@@ -96,14 +99,9 @@ def cmd_build(args: argparse.Namespace) -> int:
 
 def _reconstruct_options(args: argparse.Namespace):
     from lgi.jobs.reconstruct import ReconstructOptions
+    from lgi.options import from_args
 
-    return ReconstructOptions(temporal_weight=args.temporal_weight, spatial_weight=args.spatial_weight,
-                              smooth=args.smooth, jaw_smooth=args.jaw_smooth, noise=args.noise, method=args.method,
-                              jaw=args.jaw, max_gap=args.max_gap, bilateral=args.bilateral, obj=args.obj,
-                              usd=args.usd, plot=args.plot, fps=args.fps, dcc=args.dcc, up_axis=args.up_axis,
-                              units=args.units, chunk_size=args.chunk_size,
-                              observations=args.observations, calib=args.calib, contours=args.contours,
-                              far_field=args.far_field)
+    return from_args(ReconstructOptions, args)
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -419,30 +417,15 @@ def _command(sub: argparse._SubParsersAction, name: str, help: str, description:
 
 def _convention_flags(g, what: str = "the written geometry") -> None:
     """The scene convention of a USD or EXR output (:class:`lgi.export.convention.Convention`)."""
-    from lgi.export.convention import DCC_PRESETS
+    from lgi.export.convention import convention_option
 
-    presets = "; ".join(f"{k}: {u} up, {m}" for k, (u, m) in DCC_PRESETS.items())
-    g.add_argument("--dcc", choices=tuple(DCC_PRESETS), help=f"the convention of {what} for a DCC ({presets}); "
-                   "--up-axis and --units given beside it take precedence. In Blender's, a USD file NAME.usd* comes "
-                   "with NAME.blender.py, the script that imports it with its frame rate and correctives")
-    g.add_argument("--up-axis", choices=("Y", "Z"), help=f"the up axis of {what} (default Y, lgi's; Z turns the "
-                   "face +90 degrees about X: it looks along -Y)")
-    g.add_argument("--units", choices=("cm", "m"), help=f"the unit of {what}'s coordinates (default cm, lgi's)")
+    for name in ("dcc", "up_axis", "units"):
+        fl = convention_option(name, what).metadata["flag"]
+        g.add_argument("--" + name.replace("_", "-"), choices=fl.choices, help=fl.help)
 
 
 def _quiet(g: argparse._ActionsContainer) -> None:
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-
-
-def _window(text: str) -> int:
-    """``--smooth``/``--jaw-smooth`` WINDOW: a whole number of frames. ``auto`` (the default of an early release,
-    when noisy shots were smoothed here; they are now smoothed per marker, see --noise) is taken as 1."""
-    if text.strip().lower() == "auto":
-        return 1
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"a whole number of frames expected, not {text!r}") from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -668,76 +651,15 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("index_dir", metavar="INDEX_DIR", help="the LGI index (lgi build)")
     g.add_argument("--bundles", required=True, metavar="BUNDLES",
                    help="the shot's bundles: CSV or Parquet table frame, marker, x, y, z (cm)")
-    g = s.add_argument_group("outputs")
-    g.add_argument("--out", required=True, metavar="OUT_DIR", help="folder for the reconstruction's files")
-    g.add_argument("--obj", action="store_true", help="also write one OBJ per frame, OUT_DIR/obj/frame_NNNNN.obj")
-    g.add_argument("--usd", action="store_true", help="also write OUT_DIR/shot.usdc (animated mesh, see --fps; a "
-                   f"shot of over {USD_CLIP_FRAMES} frames keeps them in value clips, OUT_DIR/shot.clips/)")
-    g.add_argument("--fps", type=float, default=30.0, metavar="F",
-                   help="USD time codes per second (default %(default)s)")
-    _convention_flags(g, "shot.usdc")
-    g.add_argument("--plot", action="store_true", help="also write OUT_DIR/per_frame.png")
+    groups = {name: s.add_argument_group(name) for name in (*RECONSTRUCT_GROUPS[:-1], "scans", "scheduling")}
+    groups["outputs"].add_argument("--out", required=True, metavar="OUT_DIR",
+                                   help="folder for the reconstruction's files")
+    add_flags(groups, ReconstructOptions)
+    g = groups["outputs"]
     g.add_argument("--review", action="store_true",
                    help="also write the shot's review page into OUT_DIR/review (index.html; see lgi review)")
     _quiet(g)
-    g = s.add_argument_group("method")
-    g.add_argument("--method", default="local", choices=["local", "simplex", "blendshape"],
-                   help="local: a global fit of the jaw and shape weights, refitted per bundle over its natural "
-                        "neighbours and its containing simplices' shapes; simplex: the paper's choice among "
-                        "containing simplices only; blendshape: no LGI, the rigged bounded blendshape fit (jaw and "
-                        "weights per frame, then skinned; the benchmarks' baseline), the same outputs, for lgi "
-                        "review --compare (the LGI options --noise, --smooth, --far-field... do not apply) "
-                        "(default %(default)s)")
-    g.add_argument("--temporal-weight", type=float, default=0.02, metavar="MM",
-                   help="preference for the previous frame's shapes, mm of neighbour misfit (default %(default)s; "
-                        "0 = none)")
-    g.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
-                   help="tie-break toward shapes the neighbours agree on, mm (default %(default)s; 0 = none)")
-    g.add_argument("--far-field", default="5:15", metavar="START:END|off",
-                   help="mm from the nearest marker over the skin: beyond START, a bundle whose weights predict the "
-                        "markers beyond its neighbourhood clearly worse than the frame's global fit gives way to "
-                        "that fit, wholly beyond END; off = the bundles' weights everywhere (default %(default)s)")
-    g = s.add_argument_group("noise and time")
-    g.add_argument("--noise", default="auto", metavar="MM|auto",
-                   help="bundle noise per coordinate, mm: 0 = exact bundles (the surface passes through each); "
-                        "above 0 they are measurements: each marker's trajectory is smoothed (windows chosen per "
-                        "marker and axis by Stein's unbiased risk estimate), each bundle keeps its local geometry as "
-                        "far as the noise allows, and the surface passes between the bundles by the share of each "
-                        "residual that is the face; auto: the bundles' covariances when the file has them (lgi "
-                        "track writes them), else estimated per axis from the shot's trajectories and reported "
-                        "(default %(default)s)")
-    g.add_argument("--smooth", type=_window, default=1, metavar="WINDOW",
-                   help="central moving average of each bundle's shape weights over WINDOW frames (default "
-                        "%(default)s = none; 0 and below also mean none, and 'auto' means 1)")
-    g.add_argument("--jaw-smooth", type=_window, default=None, metavar="WINDOW",
-                   help="moving average of the jaw parameters over WINDOW frames (default: --smooth's window)")
-    g.add_argument("--max-gap", type=int, default=0, metavar="N",
-                   help="bridge a marker's missing runs of up to N frames by interpolating between the frames "
-                        "around (default %(default)s = off: a hidden marker's weights are fitted to its seen "
-                        "neighbours in its own frame, which follows fast motion that interpolation misses)")
-    g.add_argument("--bilateral", metavar="SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]",
-                   help="bilateral filter of the bundles before solving: in time (frames, mm), and with the third "
-                        "value also over the nearest markers (mm), e.g. 1.5:0.5:10 (default: off)")
-    g = s.add_argument_group("jaw")
-    g.add_argument("--jaw", default="auto", metavar="auto|none|FILE",
-                   help="with a jaw-rigged index: estimate the jaw per frame (auto) or read it from a CSV "
-                        "(frame, open_deg, yaw_deg, roll_deg, forward_cm); 'none' needs an index without a rig "
-                        "(default %(default)s)")
-    g = s.add_argument_group("constraints from the cameras")
-    g.add_argument("--observations", metavar="TRACKS_PARQUET",
-                   help="the 2D tracks table of lgi track: a marker seen by one camera where the bundles lack it is "
-                        "put on its viewing ray, at the depth a first reconstruction without it gives, and the shot "
-                        "is reconstructed again through it (twice the solve time); writes "
-                        "OUT_DIR/bundles_constrained.parquet and a constraint column in the diagnostics")
-    g.add_argument("--calib", metavar="CALIB_JSON",
-                   help="with --observations: the stereo calibration (default: the rig lgi track stored in the "
-                        "table, refined by helmet dots if it was)")
-    g.add_argument("--contours", metavar="CONTOURS_CSV",
-                   help="lip contours traced per frame and camera (frame, camera, curve, point, x, y; curve "
-                        "upper_inner or lower_inner; px): the lip region is deformed so that the mesh's inner lip "
-                        "edges meet them, keeping the bundles (needs --observations for the head pose and rig); "
-                        "adds contour_px_before/after to the diagnostics")
-    g = s.add_argument_group("scans")
+    g = groups["scans"]
     g.add_argument("--scans", metavar="PAIRS_CSV",
                    help="a CSV of frame, scan (scan paths relative to the CSV): after the reconstruction each frame "
                         "is compared with its scan as lgi compare does, into OUT_DIR/compare, and with --review the "
@@ -753,12 +675,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--scan-gate", type=float, default=10.0, metavar="MM",
                    help="with --scans: closest points farther than this, mm, count as not covered (default "
                         "%(default)s)")
-    g = s.add_argument_group("scheduling")
+    g = groups["scheduling"]
     g.add_argument("--flow", action="store_true",
                    help="run the job as the Prefect reconstruct-shot flow (chunks of frames as tasks, "
                         "artifacts): the same options and the same files as without it")
-    g.add_argument("--chunk-size", type=int, default=60, metavar="N",
-                   help="with --flow: frames per task (default %(default)s; the results do not depend on it)")
     g.add_argument("--dask", metavar="ADDRESS",
                    help="with --flow: run the chunk tasks on Dask, a scheduler address (tcp://host:8786) or local:N "
                         "(a local cluster of N processes); the results do not depend on it")

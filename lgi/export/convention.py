@@ -23,6 +23,26 @@ UNITS = {"cm": 1.0, "m": 100.0}
 #: Each DCC's native convention: (up axis, units).
 DCC_PRESETS = {"maya": ("Y", "cm"), "houdini": ("Y", "m"), "blender": ("Z", "m"), "unreal": ("Z", "cm")}
 
+
+
+def convention_option(name: str, what: str, group: str | None = None) -> Any:
+    """The options ``dcc``, ``up_axis`` and ``units`` of a job writing ``what`` (:func:`lgi.options.option`),
+    declared here once for every job that writes in a DCC's convention."""
+    from lgi.options import option
+
+    presets = "; ".join(f"{k}: {u} up, {m}" for k, (u, m) in DCC_PRESETS.items())
+    helps = {
+        "dcc": (tuple(DCC_PRESETS), f"the convention of {what} for a DCC ({presets}); --up-axis and --units given "
+                "beside it take precedence. In Blender's, a USD file NAME.usd* comes with NAME.blender.py, the "
+                "script that imports it with its frame rate and correctives"),
+        "up_axis": (UP_AXES, f"the up axis of {what} (default Y, lgi's; Z turns the face +90 degrees about X: it "
+                    "looks along -Y)"),
+        "units": (tuple(UNITS), f"the unit of {what}'s coordinates (default cm, lgi's)"),
+    }
+    choices, text = helps[name]
+    return option(None, text, choices=choices, group=group)
+
+
 _Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 
 

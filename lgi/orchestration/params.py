@@ -9,14 +9,17 @@ import re
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+from lgi.options import option_help
+
 F = TypeVar("F", bound=Callable[..., Any])
 
 _ENTRY = re.compile(r"^    (?P<names>[A-Za-z_][\w, ]*?)\s*:\s*(?P<type>.*)$")
 
 
 def option_docs(cls: type) -> dict[str, str]:
-    """Field name -> description from a numpy-style ``Parameters``/``Attributes`` section of ``cls``'s docstring
-    (an entry ``a, b : type`` describes both)."""
+    """Field name -> description: the options declared with :func:`lgi.options.option` (their help), and the
+    rest from a numpy-style ``Parameters``/``Attributes`` section of ``cls``'s docstring (an entry ``a, b : type``
+    describes both)."""
     docs: dict[str, str] = {}
     current: list[str] = []
     for line in (cls.__doc__ or "").splitlines():
@@ -32,6 +35,7 @@ def option_docs(cls: type) -> dict[str, str]:
             continue
         else:
             current = []
+    docs.update(option_help(cls))
     return {k: v.strip(" .") + "." for k, v in docs.items()}
 
 

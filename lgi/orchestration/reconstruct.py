@@ -12,8 +12,8 @@ from __future__ import annotations
 import os
 import re
 import shutil
-from dataclasses import fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from prefect import flow, get_run_logger, task
@@ -29,6 +29,7 @@ from lgi.errors import InputError
 from lgi.io.atomic import output_lock
 from lgi.jobs import reconstruct as job
 from lgi.jobs.compare import IN_SHOT, REGIONS, CompareOptions, check_scan_frames, scan_inputs, shot_scan_options
+from lgi.options import flow_parameters
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
@@ -122,14 +123,6 @@ def compare_task(recon: str, options: dict) -> dict:
            footage="Stereo frames (cam0/, cam1/): track them into bundles first (needs calib and markers).",
            calib="Stereo calibration JSON (lgi calibrate): tracks the footage, and turns the observations into rays "
                  "(for rays, default: the rig stored in the tracks table).",
-           observations="The tracks table of lgi track (Parquet): markers seen by one camera are put on their "
-                        "viewing rays and the shot reconstructed through them (twice the solve time; with the head "
-                        "pose solved with the face they changed the error by under 2 %, so they are not used "
-                        "unless given).",
-           contours="Lip contours traced per frame and camera (CSV frame, camera, curve, point, x, y in px): the "
-                    "lip region is deformed onto them; needs observations. Exact contours lower the lip RMS by "
-                    "5-7 % but raise its maximum; contours with 1 px of noise raise the lip RMS by 57 %: not used "
-                    "unless given.",
            markers="Marker layout CSV with neutral positions, with footage.",
            helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot, with footage.",
            dask_address="Run the chunk tasks on Dask: a scheduler address (tcp://host:8786), or local:N for a "
@@ -147,31 +140,11 @@ def compare_task(recon: str, options: dict) -> dict:
            scan_region="Vertices to compare (lgi compare --region): all, face, marked, lips, FIRST:LAST or a "
                        "vertex index file.",
            scan_gate="Closest points farther than this, mm, count as not covered by the scan.")
+@flow_parameters(job.ReconstructOptions, after=3)
 def reconstruct_shot(
     index_dir: str,
     bundles: str,
     out: str,
-    temporal_weight: float = 0.02,
-    spatial_weight: float = 1e-3,
-    smooth: int = 1,
-    jaw_smooth: int | None = None,
-    noise: float | str = "auto",
-    method: str = "local",
-    jaw: str = "auto",
-    max_gap: int = 0,
-    bilateral: str | None = None,
-    obj: bool = False,
-    usd: bool = False,
-    plot: bool = False,
-    fps: float = 30.0,
-    dcc: str | None = None,
-    up_axis: str | None = None,
-    units: str | None = None,
-    chunk_size: int = 60,
-    observations: str | None = None,
-    calib: str | None = None,
-    contours: str | None = None,
-    far_field: str = "5:15",
     footage: str | None = None,
     markers: str | None = None,
     helmet: str | None = None,
@@ -182,6 +155,7 @@ def reconstruct_shot(
     scan_align: str = "none",
     scan_region: str = "all",
     scan_gate: float = 10.0,
+    **options: Any,
 ) -> dict:
     """Reconstruct a shot into ``out``: the options of ``lgi reconstruct`` (:class:`~lgi.jobs.reconstruct.
     ReconstructOptions`), with the work in chunks of ``chunk_size`` frames.
@@ -194,19 +168,20 @@ def reconstruct_shot(
     footage, markers, helmet = at(footage, "footage"), at(markers, "markers"), at(helmet, "helmet")
     index_dir, out = at(index_dir, "index_dir"), at(out, "out", output=True)
     bundles = at(bundles, "bundles", output=bool(footage))  # from footage, the tracked bundles are written there
-    jaw = at(jaw, "jaw", ("auto", "none"))
-    observations, calib, contours = at(observations, "observations"), at(calib, "calib"), at(contours, "contours")
+    options["jaw"] = at(options.get("jaw", "auto"), "jaw", ("auto", "none"))
+    for name in ("observations", "calib", "contours"):
+        options[name] = at(options.get(name), name)
+    calib, contours = options["calib"], options["contours"]
     if scans is not None:
         scans = at(scans, "scans") if isinstance(scans, str) else [(f, at(s, "scans")) for f, s in scans]
     if isinstance(scan_region, str) and scan_region.strip() not in REGIONS \
             and not re.fullmatch(r"\s*\d+\s*:\s*\d+\s*", scan_region):
         scan_region = at(scan_region, "scan_region")  # a vertex index file
-    params = dict(locals())
     if footage and not (calib and markers):
         raise InputError("a shot from footage needs calib and markers")
-    if footage and not observations:
-        params["calib"] = None  # it calibrates the tracking; without observations there are no rays to make
-    opts = job.ReconstructOptions(**{f.name: params[f.name] for f in fields(job.ReconstructOptions)})
+    if footage and not options["observations"]:
+        options["calib"] = None  # it calibrates the tracking; without observations there are no rays to make
+    opts = job.ReconstructOptions.from_json(options)
     # Scans are checked before any work (files there, frames in the shot), their loading and coverage after.
     scan_opts = shot_scan_options(scans, index_dir, out, scan_units, scan_align, scan_region, scan_gate)
     job.check_outputs(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
@@ -233,10 +208,10 @@ def reconstruct_shot(
         # One working folder per run: two runs into the same OUT never touch each other's chunk files. A stopped run's
         # folder (its process gone) is this run's when it was the same job in the same chunks: the chunks it finished
         # are not done again; any other is removed.
-        work = _chunk_folder(Path(out), f"{job.resume_key(index_dir, bundles, opts)}:{chunk_size}")
+        work = _chunk_folder(Path(out), f"{job.resume_key(index_dir, bundles, opts)}:{opts.chunk_size}")
         # What a stopped run of this job left (both passes' chunks, with markers on rays), for the report.
         kept = {"chosen": len(list(work.rglob("choice_*.npz"))), "finished": len(list(work.rglob("part_*.npz"))),
-                "chunks": len(chunk_bounds(n, chunk_size))}
+                "chunks": len(chunk_bounds(n, opts.chunk_size))}
         # One progress artifact per shot (keyed by OUT, so `prefect artifact ls` lists it), updated by both passes.
         progress_key = artifact_key("shot-progress", out)
 
@@ -245,10 +220,10 @@ def reconstruct_shot(
             if runner is None:
                 # Prefect's threads in this process: the flow's own task runner, and the finished chunks handed to
                 # the writer in memory.
-                return chunk_work(index_dir, bundles_file, options, n, chunk_size, str(folder), into, keep=True,
+                return chunk_work(index_dir, bundles_file, options, n, opts.chunk_size, str(folder), into, keep=True,
                                   progress_key=progress_key)
             return reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles_file, options, n,
-                                                                       chunk_size, str(folder), into, progress_key)
+                                                                       opts.chunk_size, str(folder), into, progress_key)
 
         try:
             if opts.observations:
@@ -283,7 +258,7 @@ def reconstruct_shot(
             remove_outputs(Path(out) / IN_SHOT)  # an earlier run's distances were measured on other meshes
         if review:
             done = summary.get("compare", {}).get("status") == "done"
-            summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, fps,
+            summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, opts.fps,
                                             scan_opts.out if done else None, page_warnings)
         else:
             from lgi.jobs.review import remove_review

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -11,96 +12,106 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
+from lgi.export.clips import USD_CLIP_FRAMES
+from lgi.export.convention import convention_option
 from lgi.jobs import options_from_dict
+from lgi.options import declared, option
 from lgi.units import MM_PER_CM
 
 #: Options whose values below the least are taken as the least (no smoothing, no bridging), as they always were.
 _NONE_BELOW = ("smooth", "jaw_smooth", "max_gap")
 
 
+def window(text: str) -> int:
+    """``--smooth``/``--jaw-smooth`` WINDOW: a whole number of frames. ``auto`` (the default of an early release,
+    when noisy shots were smoothed here; they are now smoothed per marker, see --noise) is taken as 1."""
+    if text.strip().lower() == "auto":
+        return 1
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a whole number of frames expected, not {text!r}") from None
+
+
+#: The help sections of ``lgi reconstruct``'s options, in the order its help lists them.
+GROUPS = ("outputs", "method", "noise and time", "jaw", "constraints from the cameras", "scheduling")
+
+
+@declared
 @dataclass(frozen=True)
 class ReconstructOptions:
-    """Options of the reconstruct job (the ``lgi reconstruct`` flags; see its ``--help``).
+    """Options of the reconstruct job: the ``lgi reconstruct`` flags, and the reconstruct-shot flow's parameters
+    (:mod:`lgi.options`)."""
 
-    Attributes
-    ----------
-    temporal_weight : float, mm
-        Preference for the previous frame's shapes (0 = none).
-    spatial_weight : float, mm
-        Tie-break toward the shapes the neighbours agree on (0 = none).
-    smooth : int
-        Moving average of each bundle's shape weights over this many frames (1 = none; below 1 is taken as 1).
-    jaw_smooth : int or None
-        Moving average of the jaw parameters (None: ``smooth``; below 1 is taken as 1).
-    noise : float (mm) or "auto"
-        Bundle noise per coordinate; 0 = exact bundles.
-    method : "local", "simplex" or "blendshape"
-        Where a bundle's weights come from: refitted over its natural neighbours ("local"), or the paper's
-        choice among the containing simplices only ("simplex"); "blendshape": no LGI, the rigged bounded
-        blendshape fit of the benchmarks' baseline (:mod:`lgi.jobs.reconstruct.blendshape`).
-    jaw : "auto", "none" or a CSV path
-        With a rigged index: estimate the jaw per frame, or read it (frame, open_deg, yaw_deg, roll_deg,
-        forward_cm); "none" needs an index without a rig.
-    max_gap : int
-        Bridge missing runs of up to this many frames (0 = off; below 0 is taken as 0).
-    bilateral : str or None
-        ``SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]``: bilateral filter of the bundles before solving.
-    obj : bool
-        Also write one OBJ mesh per frame, ``obj/frame_NNNNN.obj``.
-    usd : bool
-        Also write the animated mesh as ``shot.usdc`` (``fps`` time codes per second; a shot of over
-        :data:`~lgi.export.clips.USD_CLIP_FRAMES` frames keeps them in value clips, ``shot.clips/``).
-    plot : bool
-        Also write ``per_frame.png``: per frame, the largest distance to the bundles before the correction and
-        the bundles projected, missing or bridged.
-    fps : float
-        USD time codes per second.
-    dcc : str or None
-        Write ``shot.usdc`` in a DCC's convention (maya, houdini, blender, unreal:
-        :class:`lgi.export.convention.Convention`; default lgi's, Y up and cm). The other outputs stay lgi's.
-    up_axis : str or None
-        The up axis of ``shot.usdc``, Y or Z, over ``dcc``'s.
-    units : str or None
-        The units of ``shot.usdc``, cm or m, over ``dcc``'s.
-    chunk_size : int
-        Frames per task when the job runs as a flow (scheduling only: results do not depend on it).
-    observations : str or None
-        The tracks table of ``lgi track`` (Parquet): a marker seen by one camera where the shot has no bundle
-        is put on its viewing ray, at the depth a first reconstruction without it gives, and the shot is
-        reconstructed again through it (:mod:`lgi.capture.observations`).
-    calib : str or None
-        Stereo calibration for ``observations`` (default: the rig stored in the tracks table).
-    contours : str or None
-        Lip contours traced per frame and camera (CSV ``frame, camera, curve, point, x, y``, px): the lip
-        region is deformed so that the mesh's inner lip edges meet them (:mod:`lgi.solve.contours`); needs
-        ``observations`` (its head poses and rig).
-    far_field : str
-        ``START:END`` in mm of distance from the nearest marker (over the skin, UV-geodesic): beyond START
-        a bundle whose weights predict the markers beyond its neighbourhood clearly worse than the frame's
-        global fit gives way to that fit, wholly so beyond END; "off": the bundles' weights everywhere.
-    """
-
-    temporal_weight: float = 0.02
-    spatial_weight: float = 1e-3
-    smooth: int = 1
-    jaw_smooth: int | None = None
-    noise: float | str = "auto"
-    method: str = "local"
-    jaw: str = "auto"
-    max_gap: int = 0
-    bilateral: str | None = None
-    obj: bool = False
-    usd: bool = False
-    plot: bool = False
-    fps: float = 30.0
-    dcc: str | None = None
-    up_axis: str | None = None
-    units: str | None = None
-    chunk_size: int = 60
-    observations: str | None = None
-    calib: str | None = None
-    contours: str | None = None
-    far_field: str = "5:15"
+    temporal_weight: float = option(
+        0.02, "preference for the previous frame's shapes, mm of neighbour misfit (default %(default)s; 0 = none)",
+        group="method", metavar="MM", units="mm")
+    spatial_weight: float = option(
+        1e-3, "tie-break toward shapes the neighbours agree on, mm (default %(default)s; 0 = none)", group="method",
+        metavar="MM", units="mm")
+    smooth: int = option(
+        1, "central moving average of each bundle's shape weights over WINDOW frames (default %(default)s = none; "
+        "0 and below also mean none, and 'auto' means 1)", group="noise and time", metavar="WINDOW", parse=window,
+        units="frames")
+    jaw_smooth: int | None = option(
+        None, "moving average of the jaw parameters over WINDOW frames (default: --smooth's window)",
+        group="noise and time", metavar="WINDOW", parse=window, units="frames")
+    noise: float | str = option(
+        "auto", "bundle noise per coordinate, mm: 0 = exact bundles (the surface passes through each); above 0 they "
+        "are measurements: each marker's trajectory is smoothed (windows chosen per marker and axis by Stein's "
+        "unbiased risk estimate), each bundle keeps its local geometry as far as the noise allows, and the surface "
+        "passes between the bundles by the share of each residual that is the face; auto: the bundles' "
+        "covariances when the file has them (lgi track writes them), else estimated per axis from the shot's "
+        "trajectories and reported (default %(default)s)", group="noise and time", metavar="MM|auto", units="mm")
+    method: str = option(
+        "local", "local: a global fit of the jaw and shape weights, refitted per bundle over its natural "
+        "neighbours and its containing simplices' shapes; simplex: the paper's choice among containing simplices "
+        "only; blendshape: no LGI, the rigged bounded blendshape fit (jaw and weights per frame, then skinned; "
+        "the benchmarks' baseline), the same outputs, for lgi review --compare (the LGI options --noise, "
+        "--smooth, --far-field... do not apply) (default %(default)s)", group="method",
+        choices=("local", "simplex", "blendshape"))
+    jaw: str = option(
+        "auto", "with a jaw-rigged index: estimate the jaw per frame (auto) or read it from a CSV (frame, open_deg, "
+        "yaw_deg, roll_deg, forward_cm); 'none' needs an index without a rig (default %(default)s)", group="jaw",
+        metavar="auto|none|FILE")
+    max_gap: int = option(
+        0, "bridge a marker's missing runs of up to N frames by interpolating between the frames around (default "
+        "%(default)s = off: a hidden marker's weights are fitted to its seen neighbours in its own frame, which "
+        "follows fast motion that interpolation misses)", group="noise and time", metavar="N", units="frames")
+    bilateral: str | None = option(
+        None, "bilateral filter of the bundles before solving: in time (frames, mm), and with the third value also "
+        "over the nearest markers (mm), e.g. 1.5:0.5:10 (default: off)", group="noise and time",
+        metavar="SIGMA_FRAMES:SIGMA_MM[:SIGMA_SPACE_MM]")
+    obj: bool = option(False, "also write one OBJ per frame, OUT_DIR/obj/frame_NNNNN.obj", group="outputs")
+    usd: bool = option(
+        False, "also write OUT_DIR/shot.usdc (animated mesh, see --fps; a shot of over "
+        f"{USD_CLIP_FRAMES} frames keeps them in value clips, OUT_DIR/shot.clips/)", group="outputs")
+    plot: bool = option(False, "also write OUT_DIR/per_frame.png", group="outputs")
+    fps: float = option(30.0, "USD time codes per second (default %(default)s)", group="outputs", metavar="F")
+    dcc: str | None = convention_option("dcc", "shot.usdc", "outputs")
+    up_axis: str | None = convention_option("up_axis", "shot.usdc", "outputs")
+    units: str | None = convention_option("units", "shot.usdc", "outputs")
+    chunk_size: int = option(
+        60, "with --flow: frames per task (default %(default)s; the results do not depend on it)",
+        group="scheduling", metavar="N", units="frames")
+    observations: str | None = option(
+        None, "the 2D tracks table of lgi track: a marker seen by one camera where the bundles lack it is put on "
+        "its viewing ray, at the depth a first reconstruction without it gives, and the shot is reconstructed "
+        "again through it (twice the solve time); writes OUT_DIR/bundles_constrained.parquet and a constraint "
+        "column in the diagnostics", group="constraints from the cameras", metavar="TRACKS_PARQUET")
+    calib: str | None = option(
+        None, "with --observations: the stereo calibration (default: the rig lgi track stored in the table, "
+        "refined by helmet dots if it was)", group="constraints from the cameras", metavar="CALIB_JSON")
+    contours: str | None = option(
+        None, "lip contours traced per frame and camera (frame, camera, curve, point, x, y; curve upper_inner or "
+        "lower_inner; px): the lip region is deformed so that the mesh's inner lip edges meet them, keeping the "
+        "bundles (needs --observations for the head pose and rig); adds contour_px_before/after to the "
+        "diagnostics", group="constraints from the cameras", metavar="CONTOURS_CSV")
+    far_field: str = option(
+        "5:15", "mm from the nearest marker over the skin: beyond START, a bundle whose weights predict the markers "
+        "beyond its neighbourhood clearly worse than the frame's global fit gives way to that fit, wholly beyond "
+        "END; off = the bundles' weights everywhere (default %(default)s)", group="method",
+        metavar="START:END|off", units="mm")
 
     def __post_init__(self) -> None:
         def bad(flag: str, why: str) -> InputError:
