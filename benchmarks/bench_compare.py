@@ -58,7 +58,7 @@ def dense(w: Path, vertices: int, frames: int, sizes: list[int]) -> str:
     of ``sizes`` vertices, as a whole process."""
     from lgi.dataset.shapes import ShapeDataset
     from lgi.evaluation.compare import remeshed_scan, subdivided, write_ply
-    from lgi.jobs.index import build
+    from lgi.jobs.build import build
     from lgi.jobs.reconstruct import reconstruct
     from lgi.jobs.synthetic import SynthOptions, write_synthetic
 
@@ -114,8 +114,8 @@ def run(w: Path, vertices: int, frames: int, n_scans: int) -> None:
     from lgi.index.build import LGIIndex
     from lgi.io.npz import save_npz
     from lgi.io.obj import write_obj
+    from lgi.jobs.build import build
     from lgi.jobs.compare import CompareOptions, compare
-    from lgi.jobs.index import build
     from lgi.jobs.layout import measured_region
     from lgi.jobs.reconstruct import reconstruct
     from lgi.jobs.synthetic import SynthOptions, write_synthetic

@@ -12,7 +12,7 @@ import os
 import signal
 import sys
 
-from lgi._stages import stage
+from lgi._debug_stages import stage
 from lgi.errors import Terminated
 
 _STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143}

@@ -88,7 +88,7 @@ def _index_options(args: argparse.Namespace):
 
 
 def cmd_build(args: argparse.Namespace) -> int:
-    from lgi.jobs.index import build, build_report
+    from lgi.jobs.build import build, build_report
 
     summary = build(args.dataset_dir, args.markers, args.out, _index_options(args), args.jaw_rig,
                     show_progress=not args.quiet)
@@ -203,7 +203,7 @@ def _reconstruct_in(args: argparse.Namespace, opts, scan: dict, scan_opts, input
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from lgi.jobs.index import VerifyOptions, verify, verify_report
+    from lgi.jobs.verify import VerifyOptions, verify, verify_report
 
     table, summary = verify(args.index_dir, VerifyOptions(tolerance=args.tolerance, shapes=args.shapes,
                                                           spatial_weight=args.spatial_weight),
@@ -258,7 +258,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_rig(args: argparse.Namespace) -> int:
-    from lgi.jobs.index import RigOptions, fit_jaw_rig, rig_report
+    from lgi.jobs.rig import RigOptions, fit_jaw_rig, rig_report
 
     for line in rig_report(fit_jaw_rig(args.dataset_dir, args.out, RigOptions(args.jaw_vertices, args.shapes))):
         print(line)
@@ -266,7 +266,7 @@ def cmd_rig(args: argparse.Namespace) -> int:
 
 
 def cmd_rig_generate(args: argparse.Namespace) -> int:
-    from lgi.jobs.rig import RigGenerateOptions, generate_rig, rig_generate_report
+    from lgi.jobs.rig_generate import RigGenerateOptions, generate_rig, rig_generate_report
 
     opts = RigGenerateOptions(correctives=args.correctives, transfer=args.transfer, controls=args.controls,
                               coverage_mm=args.coverage, fit_mm=args.fit, dcc=args.dcc, up_axis=args.up_axis,

@@ -798,7 +798,7 @@ def test_import_over_a_dataset_and_a_dead_temporary(world: Path, tmp_path: Path,
 
 # ---------------------------------------------------------------------------------------------- interrupts
 # Each interrupt waits for the stage it means to interrupt: the command marks each stage it enters with a file in
-# LGI_DEBUG_STAGES (lgi/_stages.py), so a loaded machine cannot make the signal land elsewhere, and an exit status
+# LGI_DEBUG_STAGES (lgi/_debug_stages.py), so a loaded machine cannot make the signal land elsewhere, and an exit status
 # of 0 (a signal lost, or handled as if nothing happened) fails the test.
 STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143}
 SAYS = {signal.SIGINT: "interrupted", signal.SIGTERM: "SIGTERM"}
@@ -1119,12 +1119,12 @@ def test_default_verification_tolerance(world: Path, tmp_path: Path, capsys) -> 
 def test_internal_error_is_status_3_and_debug_prints_the_traceback(world: Path, capsys, monkeypatch) -> None:
     """A bug (a deliberately failing internal call): status 3, one line that says it is a bug and how to get the
     traceback; with ``--debug`` anywhere on the command line, the traceback."""
-    import lgi.jobs.index
+    import lgi.jobs.verify
 
     def broken(*args, **kwargs):
         raise ZeroDivisionError("deliberate failure inside the verification")
 
-    monkeypatch.setattr(lgi.jobs.index, "verify", broken)
+    monkeypatch.setattr(lgi.jobs.verify, "verify", broken)
     code, out, err = run(["verify", str(world / "idx"), "-q"], capsys)
     assert code == 3, err
     assert "internal error" in err and "ZeroDivisionError" in err and "--debug" in err
@@ -1136,7 +1136,7 @@ def test_internal_error_is_status_3_and_debug_prints_the_traceback(world: Path, 
 
 def test_internal_error_status_through_the_command(world: Path, tmp_path: Path) -> None:
     """The same through the installed entry point (the status a shell sees), the failure planted by a wrapper."""
-    plant = ("import sys, lgi.jobs.index as j\n"
+    plant = ("import sys, lgi.jobs.verify as j\n"
              "def broken(*a, **k):\n    raise KeyError('planted')\n"
              "j.verify = broken\n"
              "from lgi._entry import run\n"

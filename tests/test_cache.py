@@ -17,7 +17,7 @@ from lgi.io.cache import StageCache, module_closure
 
 
 def test_stage_code_excludes_the_command_line_and_the_benchmarks() -> None:
-    for stage_modules in (("lgi.jobs.dataset",), ("lgi.index.build",), ("lgi.jobs.index",)):
+    for stage_modules in (("lgi.jobs.dataset",), ("lgi.index.build",), ("lgi.jobs.verify",)):
         closure = module_closure(stage_modules)
         assert stage_modules[0] in closure and "lgi.errors" in closure
         assert not [m for m in closure if m.startswith(("lgi.cli", "lgi.jobs.bench", "lgi.orchestration"))], closure
@@ -38,7 +38,7 @@ def package_copy(tmp_path: Path, monkeypatch) -> Path:
 
 
 def test_a_comment_in_the_benchmark_job_recomputes_no_stage(package_copy: Path) -> None:
-    stages = [("lgi.jobs.dataset",), ("lgi.index.build",), ("lgi.jobs.index",)]
+    stages = [("lgi.jobs.dataset",), ("lgi.index.build",), ("lgi.jobs.verify",)]
     before = [cache_mod.code_version(m) for m in stages]
     with open(package_copy / "jobs" / "bench.py", "a") as f:
         f.write("\n# a comment\n")

@@ -12,7 +12,7 @@ import pytest
 from lgi.cli import main
 from lgi.io.record import RECORD_FILE, read_record
 from lgi.jobs.reconstruct import ReconstructOptions
-from lgi.jobs.reconstruct.stages import save_part as _save_part
+from lgi.jobs.reconstruct.chunks import save_part as _save_part
 
 FILES = ("meshes.npz", "diagnostics.csv", "per_frame.csv", "run.json")
 
@@ -85,17 +85,17 @@ def test_a_flow_over_its_memory_budget_hands_chunks_on_through_files(prefect_har
                                                                      monkeypatch) -> None:
     """A long take's finished chunks wait for the writer on disk once those held in memory reach the budget: the
     same files as the plain path, and none held afterwards."""
-    from lgi.jobs.reconstruct import stages
+    from lgi.jobs.reconstruct import chunks
 
-    monkeypatch.setattr(stages, "PARTS_KEPT_BYTES", 2 * 8 * 2600 * 12)  # two chunks of 8 frames in memory, no more
+    monkeypatch.setattr(chunks, "PARTS_KEPT_BYTES", 2 * 8 * 2600 * 12)  # two chunks of 8 frames in memory, no more
     saved = []
-    monkeypatch.setattr(stages, "save_part", lambda path, *a: (saved.append(path), _save_part(path, *a)))
+    monkeypatch.setattr(chunks, "save_part", lambda path, *a: (saved.append(path), _save_part(path, *a)))
     common = [str(shot / "idxr"), "--bundles", str(shot / "noisy.csv"), "-q"]
     assert main(["reconstruct", *common, "--out", str(shot / "bp")]) == 0
     assert main(["reconstruct", *common, "--out", str(shot / "bf"), "--flow", "--chunk-size", "8"]) == 0
     _same(shot / "bp", shot / "bf", FILES)
     assert saved, "every chunk was held in memory"
-    assert not stages._PARTS and stages._PARTS_BYTES[0] == 0
+    assert not chunks._PARTS and chunks._PARTS_BYTES[0] == 0
 
 
 def test_jaw_none_on_a_rigged_index_refused_on_both_paths(prefect_harness, shot: Path, capsys) -> None:

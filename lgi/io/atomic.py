@@ -566,7 +566,7 @@ def reading(folder: str | os.PathLike[str]) -> Iterator[None]:
                 mine[1] += 1
         if mine is not None:
             os.close(fd)
-        from lgi._stages import stage as debug_stage
+        from lgi._debug_stages import stage as debug_stage
 
         debug_stage("read")  # a test holds the reader here, its folder locked
     try:
@@ -695,7 +695,7 @@ def _staged(out: Path, owned: tuple[str, ...], resume: str | None) -> Iterator[P
 
 def _commit(out: Path, stage: Path, owned: tuple[str, ...], written: set[str]) -> None:
     """Replace the ``owned`` entries of ``out`` with those ``written`` in ``stage``; remove the others."""
-    from lgi._stages import stage as debug_stage
+    from lgi._debug_stages import stage as debug_stage
 
     # The record lists the new files before any is moved in, and the replaced ones until all are: a run
     # stopped half way through leaves only files the next run knows as lgi's.

@@ -35,13 +35,14 @@ from lgi.io.cache import StageCache, hash_file, hash_tree
 from lgi.io.npz import save_npz
 from lgi.io.obj import PolyMesh
 from lgi.jobs.dataset import AugmentOptions, ImportOptions, augment, published, read_shapes, stabilise_shapes
-from lgi.jobs.index import RigOptions, VerifyOptions, fit_jaw_rig, verify
+from lgi.jobs.rig import RigOptions, fit_jaw_rig
+from lgi.jobs.verify import VerifyOptions, verify
 
 # The modules whose source (with every lgi module they import) keys each stage's results, besides the stage's
 # own make function: the code that computes them, not the whole package.
 _DATASET = ("lgi.jobs.dataset",)
 _INDEX = ("lgi.index.build",)
-_VERIFY = ("lgi.jobs.index",)
+_VERIFY = ("lgi.jobs.verify",)
 
 
 def _load_npz(path: Path) -> dict[str, np.ndarray]:
@@ -163,7 +164,7 @@ def index_stage(cache: StageCache, dataset_dir: Path, markers: str, natural_dir:
 
 
 def rig_stage(cache: StageCache, dataset_dir: Path, options: RigOptions) -> tuple[Path, bool]:
-    """The jaw rig fitted from the dataset's jaw shapes (:func:`lgi.jobs.index.fit_jaw_rig`); result:
+    """The jaw rig fitted from the dataset's jaw shapes (:func:`lgi.jobs.rig.fit_jaw_rig`); result:
     ``jaw_rig.npz`` and the fit's report ``rig.json``."""
     spec = options.jaw_vertices
     inputs = {"dataset": json.loads((dataset_dir / "manifest.json").read_text())["content_hash"],
@@ -177,7 +178,7 @@ def rig_stage(cache: StageCache, dataset_dir: Path, options: RigOptions) -> tupl
 
 
 def verify_stage(cache: StageCache, index_dir: Path, options: VerifyOptions) -> tuple[Path, bool]:
-    """The paper's verification (:func:`lgi.jobs.index.verify`); result: ``verification.csv`` and
+    """The paper's verification (:func:`lgi.jobs.verify.verify`); result: ``verification.csv`` and
     ``summary.json``."""
     inputs = {"index": index_dir.name, "options": options.to_json()}
 

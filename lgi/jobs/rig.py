@@ -1,13 +1,8 @@
-"""``lgi rig-generate``: an actor-specific blendshape rig from a template rig and the actor's index (paper 7.7).
-
-The algorithm is :mod:`lgi.retarget.template`; this job reads the inputs, checks the outputs before the work,
-and writes a shape dataset (controls and correctives, tagged) and optionally a UsdSkel rig.
-"""
+"""``lgi rig``: the jaw rig (hinge and skinning weights) fitted from a dataset's jaw shapes; the rebuild-dataset
+flow's rig stage calls it with the same :class:`RigOptions`."""
 
 from __future__ import annotations
 
-import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -15,246 +10,106 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
-
-log = logging.getLogger(__name__)
-
-
-#: A corrective whose largest displacement is under this (mm) is left out of the rig.
-ZERO_CORRECTIVE_MM = 1e-3
+from lgi.units import MM_PER_CM
 
 
 @dataclass(frozen=True)
-class RigGenerateOptions:
-    """Options of ``lgi rig-generate``.
+class RigOptions:
+    """Options of ``lgi rig``: ``jaw_vertices`` (``FIRST:LAST`` inclusive, or an index file) moving rigidly
+    with the jaw, and ``shapes``, the shell pattern of the jaw shapes."""
 
-    Attributes
-    ----------
-    correctives : str or None
-        None (no correctives), ``"auto"`` (pairs of controls that move the same markers, at most 24, not two
-        jaw controls) or comma-separated combinations ``a+b[+c]``.
-    transfer : {"scale", "add"}
-        How the template's displacements reach the actor's markers (:mod:`lgi.retarget.template`).
-    controls : str or None
-        Shell patterns (comma-separated) of the template shapes to use as controls (default: every shape
-        whose name has no ``+``).
-    coverage_mm : float
-        A combination whose bundles lie farther outside the actor's clouds takes the template's corrective,
-        transferred (:class:`~lgi.retarget.template.TemplateTransfer`).
-    fit_mm : float
-        The transferred bundles are fitted as measurements with this noise (mm); 0 interpolates them exactly.
-    dcc, up_axis, units : str or None
-        The up axis and units of the USD rig (:class:`lgi.export.convention.Convention`; default lgi's, Y up
-        and cm). The rig dataset stays lgi's.
-    """
+    __pydantic_config__ = {"extra": "forbid"}  # as a flow parameter: a misspelt key is an error
 
-    correctives: str | None = None
-    transfer: str = "scale"
-    controls: str | None = None
-    coverage_mm: float = 2.0
-    fit_mm: float = 0.5
-    dcc: str | None = None
-    up_axis: str | None = None
-    units: str | None = None
+    jaw_vertices: str
+    shapes: str = "jaw*"
 
-    @property
-    def convention(self):
-        """The scene convention of the rig's USD (``dcc`` preset, ``up_axis`` and ``units`` over it)."""
-        from lgi.export.convention import Convention
+    def vertex_indices(self, n_vertices: int) -> np.ndarray:
+        """(J,) int64 jaw vertices, checked against the mesh."""
+        spec = self.jaw_vertices
+        if ":" in spec and not Path(spec).exists():
+            try:
+                lo, hi = (int(v) for v in spec.split(":"))
+            except ValueError:
+                raise InputError(f"--jaw-vertices takes FIRST:LAST or a file, got {spec!r}") from None
+            if lo < 0 or hi >= n_vertices or hi < lo:
+                raise InputError(f"--jaw-vertices {spec}: out of range for {n_vertices} vertices")
+            jv = np.arange(lo, hi + 1)
+        else:
+            from lgi.dataset.importing import load_vertex_indices
 
-        return Convention.of(self.dcc, self.up_axis, self.units)
-
-    def __post_init__(self) -> None:
-        import math
-
-        from lgi.retarget.template import TRANSFERS
-
-        self.convention  # noqa: B018 - checks the values
-
-        if self.transfer not in TRANSFERS:
-            raise InputError(f"--transfer {self.transfer!r}: use one of {', '.join(TRANSFERS)}")
-        if math.isnan(self.coverage_mm) or self.coverage_mm < 0:
-            raise InputError(f"--coverage must be a distance >= 0 in mm (inf: always reconstruct), not "
-                             f"{self.coverage_mm!r}")
-        if not math.isfinite(self.fit_mm) or self.fit_mm < 0:
-            raise InputError(f"--fit must be a finite distance >= 0 in mm (0: interpolate exactly), not "
-                             f"{self.fit_mm!r}")
+            jv = load_vertex_indices(spec, n_vertices)
+        if len(np.unique(jv)) < 3:
+            raise InputError(f"--jaw-vertices {spec}: {len(np.unique(jv))} vertices; a rigid jaw motion needs at "
+                             "least 3 (the lower teeth, typically hundreds)")
+        return jv
 
 
-def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Path,
-                 options: RigGenerateOptions | None = None, usd: str | Path | None = None,
-                 show_progress: bool = False) -> dict[str, Any]:
-    """Generate the actor's rig; returns a summary (:func:`rig_generate_report`)."""
+def fit_jaw_rig(dataset_dir: str | Path, out: str | Path, options: RigOptions) -> dict[str, Any]:
+    """``lgi rig``: fit the jaw hinge and skinning weights and save the rig npz; returns a summary
+    (:func:`rig_report`)."""
+    import logging
+
     from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
-    from lgi.dataset.shapes import ShapeDataset, ShapeMeta
-    from lgi.export.blender import for_blender, script_path, write_blender_script
-    from lgi.index.build import ENTRIES as INDEX_ENTRIES
-    from lgi.index.build import LGIIndex
+    from lgi.dataset.shapes import ShapeDataset
     from lgi.io.atomic import check_output, files_in
-    from lgi.progress import progress
-    from lgi.retarget.template import (
-        TemplateTransfer,
-        parse_correctives,
-        select_controls,
-        template_combinations,
-    )
-    from lgi.solve.solver import LGISolver
+    from lgi.solve.jaw import PARAM_NAMES, fit_rig
 
-    o = options or RigGenerateOptions()
-    inputs = [template_dir, index_dir, *files_in(template_dir, DATASET_ENTRIES), *files_in(index_dir, INDEX_ENTRIES)]
-    check_output(out, "dir", inputs=inputs, owned=DATASET_ENTRIES, what="shape dataset")
-    if usd is not None:
-        if Path(usd).suffix not in (".usd", ".usda", ".usdc"):
-            raise InputError("the rig's USD file must end in .usd, .usda or .usdc", path=usd)
-        check_output(usd, "file", inputs=[*inputs, out])
-        if for_blender(o.convention):
-            check_output(script_path(usd), "file", inputs=[*inputs, out])
-        if Path(out).resolve() in Path(usd).resolve().parents:
-            raise InputError("the rig's USD file cannot be inside the rig's dataset directory (which is replaced "
-                             "whole)", path=usd)
-    t0 = time.perf_counter()
-    template = ShapeDataset.load(template_dir)
-    index = LGIIndex.load(index_dir)
-    transfer = TemplateTransfer(template, LGISolver(index), o.transfer, o.coverage_mm, o.fit_mm)
-    controls = select_controls(template.names, o.controls, [m.tags for m in template.shape_meta])
-    if not o.controls:
-        skipped = [n for n in template.names if "+" not in n and n not in controls]
-        if skipped:
-            log.info("template shapes that are in-betweens or combinations, not controls (name them in --controls "
-                     "to use them): %s", ", ".join(skipped))
-    if not controls:
-        raise InputError(f"no template shape is a control (patterns {o.controls!r}; shapes whose name has '+' "
-                         "are combinations)", path=template_dir)
-    correctives = parse_correctives(o.correctives, transfer, controls)
-    own = template_combinations(template.names, controls)
-    if own and not correctives:
-        log.warning("the template has %d combination shapes (%s) but no corrective was asked for: pass "
-                    "--correctives auto to generate them", len(own), ", ".join("+".join(c) for c in own[:4]))
-    names = [*controls, *("+".join(p) for p in correctives)]
-    if usd is not None:
-        from lgi.export.formats import usd_name
-
-        tokens = [usd_name(n) for n in names]
-        clash = sorted({n for n, t in zip(names, tokens, strict=True) if tokens.count(t) > 1})
-        if clash:
-            raise InputError(f"shape names {', '.join(map(repr, clash))} become the same USD name; rename them in the "
-                             "template", path=template_dir)
-    if transfer.rig is None:
-        log.warning("the actor's index has no jaw rig: the jaw moves as marker displacements (a template's jaw "
-                    "rotation lands off the actor's hinge); build the index with --jaw-rig for a jaw transfer")
-    rig = transfer.generate(controls, correctives,
-                            progress=lambda it: progress(it, "generating", disable=not show_progress))
-
-    a = index.arrays
-    # An index may be stored without its faces; the template shares the actor's topology (checked).
-    faces = a if "face_vertices" in a else {"face_vertices": template.face_vertices,
-                                             "face_offsets": template.face_offsets, "uvs": template.uvs,
-                                             "face_uvs": template.face_uvs}
-    neutral = rig.neutral
-    jaw = transfer.rig
-    if jaw is None:
-        deltas = np.concatenate([rig.shapes - neutral[None].astype(np.float32),
-                                 rig.corrective_deltas]).astype(np.float32)
-    else:
-        # The jaw becomes the rig's joint: a UsdSkel user opens the jaw by rotating it, and a jaw control's
-        # blend shape keeps only what the rotation does not do (the lips' stretch, the chin's bulge). The shapes
-        # are stored unskinned (the jaw closed), as the index stores them, and the joint skins them with the
-        # jaw rig's weights; a control's own jaw pose is kept in its metadata ("jaw").
-        deltas = np.concatenate(rig.unskinned(jaw)).astype(np.float32)
-    meta = []
-    for i, name in enumerate(names):
-        combo = None if i < len(controls) else list(correctives[i - len(controls)])
-        shape = transfer.template_shape(tuple(combo)) if combo else None
-        from_template = f"combination shape {shape}" if shape else "sum of parts"
-        meta.append(ShapeMeta(
-            source=f"lgi rig-generate: template {Path(template_dir).name}/{name}",
-            tags=["control"] if combo is None else ["corrective", "combination"],
-            extra={"residual_mm": round(float(rig.residual_mm[i]), 6), "transfer": o.transfer,
-                   "outside_clouds_mm": round(float(rig.projection_mm[i]), 4),
-                   **({} if rig.jaw is None else {"jaw": [round(float(v), 6) for v in rig.jaw[i]]}),
-                   **({} if combo is None else {
-                       "combination": combo, "template": from_template, "driver": "product of the controls' weights",
-                       "corrective_from": rig.corrective_source[i - len(controls)]})}))
-    # A corrective that moves nothing (the sum of its controls is already the shape) would be one more target
-    # and one more curve in every DCC for nothing: it is left out, and said so.
-    size_mm = np.linalg.norm(rig.corrective_deltas, axis=2).max(axis=1) * 10 if correctives else np.zeros(0)
-    keep_c = size_mm >= ZERO_CORRECTIVE_MM
-    if not keep_c.all():
-        log.warning("%d corrective%s left out: %s move%s no vertex by %g mm or more (the sum of the controls is "
-                    "already the shape)", int((~keep_c).sum()), "s" if (~keep_c).sum() > 1 else "",
-                    ", ".join("+".join(c) for c, k in zip(correctives, keep_c, strict=True) if not k),
-                    "" if (~keep_c).sum() > 1 else "s", ZERO_CORRECTIVE_MM)
-        keep = np.r_[np.ones(len(controls), bool), keep_c]
-        names = [n for n, k in zip(names, keep, strict=True) if k]
-        meta = [m for m, k in zip(meta, keep, strict=True) if k]
-        deltas = deltas[keep]
-        correctives = [c for c, k in zip(correctives, keep_c, strict=True) if k]
-    uvs = faces.get("uvs") if "uvs" in faces else None
-    face_uvs = faces.get("face_uvs") if "face_uvs" in faces else None
-    ds = ShapeDataset(neutral=neutral, deltas=deltas, names=names, face_vertices=np.asarray(faces["face_vertices"]),
-                      face_offsets=np.asarray(faces["face_offsets"]),
-                      uvs=None if uvs is None else np.asarray(uvs), face_uvs=None if face_uvs is None else
-                      np.asarray(face_uvs), units="cm", shape_meta=meta,
-                      info={"name": "actor-rig", "template": str(Path(template_dir).resolve()),
-                            "index": str(Path(index_dir).resolve()), "transfer": o.transfer,
-                            "controls": controls, "correctives": ["+".join(p) for p in correctives],
-                            "jaw": "none" if jaw is None else "joint: shapes unskinned, jaw parameters "
-                                   "(open_deg, yaw_deg, roll_deg, forward_cm) per shape in its metadata"},
-                      jaw_pivot=None if jaw is None else jaw.pivot, jaw_weights=None if jaw is None else jaw.weights)
-    existed = Path(out).exists()
-    ds.save(out)
-    if usd is not None:
-        from lgi.export.formats import write_usd_rig
-
-        try:
-            write_usd_rig(usd, neutral, ds.face_vertices, ds.face_offsets, names, deltas,
-                          [None] * len(controls) + list(correctives), ds.uvs, ds.face_uvs, jaw_rig=jaw,
-                          jaw_parameters=None if rig.jaw is None else rig.jaw[np.r_[np.ones(len(controls), bool),
-                                                                                      keep_c]],
-                          convention=o.convention)
-            if for_blender(o.convention):
-                from lgi.export.formats import usd_name
-
-                script = write_blender_script(usd, 30.0, 0, 0, {usd_name("+".join(c)): [usd_name(n) for n in c]
-                                                                for c in correctives})
-        except BaseException:
-            if not existed:  # a run that fails leaves nothing of itself behind
-                import shutil
-
-                shutil.rmtree(out, ignore_errors=True)
-            raise
-    sources = [src for src, k in zip(rig.corrective_source, keep_c, strict=True) if k]
-    return {"path": str(Path(out).resolve()), "usd": None if usd is None else str(Path(usd).resolve()),
-            "blender_script": str(script.resolve()) if usd is not None and for_blender(o.convention) else None,
-            "controls": len(controls), "correctives": ["+".join(p) for p in correctives],
-            "controls_outside": [c for c, d in zip(controls, rig.projection_mm, strict=False) if d > o.coverage_mm],
-            "corrective_max_mm": size_mm[keep_c].tolist(), "correctives_left_out": int((~keep_c).sum()),
-            "residual_max_mm": float(rig.residual_mm.max(initial=0.0)),
-            "correctives_from_template": [n for n, src in zip(("+".join(p) for p in correctives), sources, strict=True)
-                                          if src == "template"],
-            "jaw": transfer.rig is not None, "transfer": o.transfer, "fit_mm": o.fit_mm,
-            "seconds": time.perf_counter() - t0}
+    check_output(out, "file", inputs=[dataset_dir, *files_in(dataset_dir, DATASET_ENTRIES)])
+    ds = ShapeDataset.load(dataset_dir)
+    jv = options.vertex_indices(ds.n_vertices)
+    sel = ds.select(include=options.shapes)
+    if sel.n_shapes == 0:
+        raise InputError(f"no shape matches {options.shapes!r}", path=dataset_dir)
+    # fit_rig logs its warnings; they are in the report, so keep Python's last-resort handler from printing them
+    # a second time (handlers an application set up still get them).
+    jaw_log = logging.getLogger("lgi.solve.jaw")
+    quiet = logging.NullHandler()
+    jaw_log.addHandler(quiet)
+    jaw_log.propagate = False
+    try:
+        rig, params = fit_rig(ds.neutral, sel.deltas, jv, ds.triangles, names=sel.names)
+    finally:
+        jaw_log.removeHandler(quiet)
+        jaw_log.propagate = True
+    if not np.all(np.isfinite(rig.pivot)) or not np.all(np.isfinite(params)):
+        raise InputError("the jaw rig fit gave non-finite values: check --jaw-vertices and the jaw shapes",
+                         path=dataset_dir)
+    rep = rig.fit_report
+    rig.save(out)
+    shapes = []
+    for name, th in zip(sel.names, params, strict=True):
+        fit = rig.skin(ds.neutral, th) - ds.neutral
+        err = np.linalg.norm(fit - sel.deltas[sel.index(name)], axis=1)[rig.weights > 0.5]
+        shapes.append({"shape": name, **{n: float(v) for n, v in zip(PARAM_NAMES, th, strict=True)},
+                       "skin_rms_mm": float(np.sqrt(np.mean(err**2)) * MM_PER_CM)})
+    return {"path": str(Path(out).resolve()), "n_shapes": sel.n_shapes, "jaw_vertices": len(jv), "units": ds.units,
+            "pivot": [float(v) for v in rig.pivot], "weighted_vertices": int((rig.weights > 0.5).sum()),
+            "joint_slides": bool(rep.joint_slides), "used": list(rep.used), "widest": rep.widest,
+            "centroid": [float(v) for v in rep.centroid],
+            "openings": {n: {"deg": float(rep.angles_deg[n]), "slide_mm": float(rep.slides[n] * MM_PER_CM),
+                             "residual_mm": float(rep.residual_rms[n] * MM_PER_CM)} for n in rep.used},
+            "skipped": dict(rep.skipped), "shapes": shapes, "warnings": list(rep.warnings)}
 
 
-def rig_generate_report(s: dict[str, Any]) -> list[str]:
-    lines = [f"actor rig: {s['controls']} controls, {len(s['correctives'])} correctives "
-             f"({'jaw as the rig joint' if s['jaw'] else 'no jaw rig: one fixed joint'}, transfer {s['transfer']}, "
-             f"{'fitted with ' + format(s['fit_mm'], 'g') + ' mm' if s['fit_mm'] else 'interpolated'}) "
-             f"in {s['seconds']:.1f} s",
-             f"largest distance of a generated shape from its bundles: {s['residual_max_mm']:.2g} mm"]
-    if s["controls_outside"]:
-        lines.append(f"{len(s['controls_outside'])} of {s['controls']} controls lie over the coverage distance outside "
-                     "the actor's dataset (they come out short of the template's motion): "
-                     + ", ".join(s["controls_outside"]))
-    if s.get("correctives_left_out"):
-        lines.append(f"{s['correctives_left_out']} corrective(s) left out: they move no vertex by "
-                     f"{ZERO_CORRECTIVE_MM:g} mm or more")
-    if s["correctives_from_template"]:
-        lines.append(f"{len(s['correctives_from_template'])} of {len(s['correctives'])} correctives are the "
-                     "template's, transferred (the actor's dataset does not cover them): "
-                     + ", ".join(s["correctives_from_template"]))
-    if s["correctives"]:
-        top = sorted(zip(s["corrective_max_mm"], s["correctives"], strict=True), reverse=True)[:5]
-        lines.append("largest correctives (max mm): " + ", ".join(f"{n} {m:.2f}" for m, n in top))
-    lines.append(f"dataset: {s['path']}" + (f"  usd: {s['usd']}" if s["usd"] else "")
-                 + (f"  Blender: run {s['blender_script']}" if s.get("blender_script") else ""))
+def rig_report(s: dict[str, Any]) -> list[str]:
+    from lgi.solve.jaw import PARAM_NAMES
+
+    used = s["used"]
+    plural = "s" if len(used) > 1 else ""
+    how = "pivot and slides solved jointly" if s["joint_slides"] else f"pivot as the rotation{plural}' fixed point"
+    pivot = np.asarray(s["pivot"])
+    lines = [f"jaw rig from {s['n_shapes']} shapes and {s['jaw_vertices']} jaw vertices: pivot "
+             f"{np.round(pivot, 3).tolist()} {s['units']}; {s['weighted_vertices']} vertices with weight > 0.5",
+             f"hinge from {len(used)} opening shape{plural}: {', '.join(used)} ({how}); weights from {s['widest']}",
+             f"  pivot ({', '.join(f'{v * MM_PER_CM:.2f}' for v in pivot)}) mm, "
+             f"{np.linalg.norm(pivot - np.asarray(s['centroid'])) * MM_PER_CM:.1f} mm from the jaw vertices' centroid"]
+    for name, o in s["openings"].items():
+        lines.append(f"  opening {name}: {o['deg']:.2f} deg, slide {o['slide_mm']:.2f} mm, hinge residual "
+                     f"{o['residual_mm']:.3f} mm RMS")
+    lines += [f"  skipped {name}: {why}" for name, why in s["skipped"].items()]
+    for row in s["shapes"]:
+        vals = ", ".join(f"{n} {row[n]:.3g}" for n in PARAM_NAMES)
+        lines.append(f"  {row['shape']}: {vals}; skinning reproduces it to {row['skin_rms_mm']:.2f} mm RMS on the jaw")
+    lines += [f"warning: {msg}" for msg in s["warnings"]]
+    lines.append(f"rig: {s['path']}")
     return lines

@@ -2,8 +2,8 @@
 stages and the verification; one task per stage of :mod:`lgi.jobs.rebuild`, each cached by content.
 
 A re-run with nothing changed computes nothing; changing one option recomputes only the stages that depend
-on it. The stages run the job layer's functions (:mod:`lgi.jobs.dataset`, :mod:`lgi.jobs.index`) with the
-same options objects as ``lgi import`` / ``lgi augment`` / ``lgi verify``.
+on it. The stages run the job layer's functions (:mod:`lgi.jobs.dataset`, :mod:`lgi.jobs.rig`,
+:mod:`lgi.jobs.verify`) with the same options objects as ``lgi import`` / ``lgi augment`` / ``lgi verify``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ from lgi.index.build import IndexOptions
 from lgi.io.cache import StageCache
 from lgi.jobs import rebuild
 from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
-from lgi.jobs.index import RigOptions, VerifyOptions
+from lgi.jobs.rig import RigOptions
+from lgi.jobs.verify import VerifyOptions
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png, transient_only
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
@@ -109,7 +110,7 @@ def fit_rig(cache_dir: str, dataset_dir: str, options: dict) -> tuple[str, bool]
 
 @task(name="verify", **_hours(6))
 def verify(cache_dir: str, index_dir: str, options: dict) -> tuple[str, bool] | State:
-    """Every dataset shape reconstructed from its own bundles (see :func:`lgi.jobs.index.verify`)."""
+    """Every dataset shape reconstructed from its own bundles (see :func:`lgi.jobs.verify.verify`)."""
     path, hit = rebuild.verify_stage(StageCache(cache_dir), Path(index_dir), VerifyOptions(**options))
     return _done(path, hit)
 

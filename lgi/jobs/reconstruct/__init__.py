@@ -14,7 +14,7 @@ Results do not depend on the schedule: any chunk size, task runner or ``--flow``
 
 The package's modules follow the job: :mod:`~lgi.jobs.reconstruct.options` (the flags and their checks),
 :mod:`~lgi.jobs.reconstruct.shot` (a prepared shot and its stages), :mod:`~lgi.jobs.reconstruct.rays` (the
-bundles file of markers seen by one camera), :mod:`~lgi.jobs.reconstruct.stages` (the flow's chunk stages),
+bundles file of markers seen by one camera), :mod:`~lgi.jobs.reconstruct.chunks` (the flow's chunk stages),
 :mod:`~lgi.jobs.reconstruct.outputs` (the writer), :mod:`~lgi.jobs.reconstruct.summary` and
 :mod:`~lgi.jobs.reconstruct.run` (the whole job in this process).
 """
@@ -29,10 +29,10 @@ _WHERE = {
     "OUTPUT_CONTENTS": "outputs", "check_outputs": "outputs", "per_frame_table": "outputs", "plot_per_frame":
     "outputs", "resume_key": "outputs", "write_reconstruction": "outputs", "CONSTRAINED": "rays", "RAY_COLUMNS":
     "rays", "read_constraints": "rays", "reconstruct": "run", "Shot": "shot", "chunk_needs": "shot",
-    "constrain_to_rays": "shot", "assemble": "stages", "choose_chunk": "stages", "finish_chunk": "stages",
-    "forget_parts": "stages", "forget_shots": "stages", "load_choices": "stages", "load_part": "stages",
-    "preflight": "stages", "prepared_shot": "stages", "replace_outputs": "stages", "save_choices": "stages",
-    "save_part": "stages", "report_lines": "summary", "summarise": "summary"
+    "constrain_to_rays": "shot", "assemble": "chunks", "choose_chunk": "chunks", "finish_chunk": "chunks",
+    "forget_parts": "chunks", "forget_shots": "chunks", "load_choices": "chunks", "load_part": "chunks",
+    "preflight": "chunks", "prepared_shot": "chunks", "replace_outputs": "chunks", "save_choices": "chunks",
+    "save_part": "chunks", "report_lines": "summary", "summarise": "summary"
 }
 
 

@@ -232,7 +232,7 @@ class ReconstructionWriter:
         self._per_frame = [pd.DataFrame({c: a[f"per_frame_{c}"] for c in info["per_frame_columns"]})]
         if self._jaw is not None:
             self._jaw = [a["jaw"]]
-        from lgi.jobs.reconstruct.stages import load_choices
+        from lgi.jobs.reconstruct.chunks import load_choices
 
         self.done = done
         summary = {k[len("summary_"):]: a[k] for k in a if k.startswith("summary_")}
@@ -261,7 +261,7 @@ class ReconstructionWriter:
         leaves the last complete checkpoint."""
         from lgi.io.atomic import RESUME_FILE
         from lgi.io.npz import save_npz
-        from lgi.jobs.reconstruct.stages import save_choices
+        from lgi.jobs.reconstruct.chunks import save_choices
 
         if self._key is None or not self.done:
             return
@@ -290,7 +290,7 @@ class ReconstructionWriter:
     def append(self, res) -> None:
         """Write the next block of frames (a :class:`~lgi.solve.results.SequenceResult` of frames following the
         last block's)."""
-        from lgi._stages import stage as debug_stage
+        from lgi._debug_stages import stage as debug_stage
 
         n = len(res.frames)
         if not np.array_equal(res.frames, self.frames[self.done:self.done + n]):

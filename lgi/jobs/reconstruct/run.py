@@ -8,11 +8,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lgi.jobs.reconstruct.chunks import replace_outputs
 from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.jobs.reconstruct.outputs import check_outputs, reconstruction_outputs, resume_key
 from lgi.jobs.reconstruct.rays import CONSTRAINED
 from lgi.jobs.reconstruct.shot import Shot, constrain_to_rays
-from lgi.jobs.reconstruct.stages import replace_outputs
 from lgi.jobs.reconstruct.summary import ShotSummary
 
 #: Frames solved and written at a time by the job in this process: a long take's memory is bounded by a block of
@@ -31,7 +31,7 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
 
     With ``options.observations``, twice: without the markers seen by one camera, then through their points on
     their rays (:func:`constrain_to_rays`)."""
-    from lgi._stages import stage
+    from lgi._debug_stages import stage
 
     options = options or ReconstructOptions()
     if options.method == "blendshape":
