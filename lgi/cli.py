@@ -8,10 +8,11 @@ import sys
 
 from lgi import __version__
 from lgi.errors import InputError, LgiError, Terminated
-from lgi.export.clips import USD_CLIP_FRAMES
+from lgi.jobs.export import ExportOptions
 from lgi.jobs.reconstruct.options import GROUPS as RECONSTRUCT_GROUPS
 from lgi.jobs.reconstruct.options import ReconstructOptions
-from lgi.options import add_flags
+from lgi.jobs.rig_generate import RigGenerateOptions
+from lgi.options import add_flags, from_args
 
 
 def _import_options(args: argparse.Namespace):
@@ -239,8 +240,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     from lgi.jobs.export import ExportOptions, export, export_report
 
-    opts = ExportOptions(usd=args.usd, exr=args.exr, exr_size=args.exr_size, fps=args.fps, dcc=args.dcc,
-                         up_axis=args.up_axis, units=args.units)
+    opts = from_args(ExportOptions, args)
     for line in export_report(export(args.recon_dir, args.index, opts, show_progress=not args.quiet), opts):
         print(line)
     return 0
@@ -268,9 +268,7 @@ def cmd_rig(args: argparse.Namespace) -> int:
 def cmd_rig_generate(args: argparse.Namespace) -> int:
     from lgi.jobs.rig_generate import RigGenerateOptions, generate_rig, rig_generate_report
 
-    opts = RigGenerateOptions(correctives=args.correctives, transfer=args.transfer, controls=args.controls,
-                              coverage_mm=args.coverage, fit_mm=args.fit, dcc=args.dcc, up_axis=args.up_axis,
-                              units=args.units)
+    opts = from_args(RigGenerateOptions, args)
     for line in rig_generate_report(generate_rig(args.template, args.index, args.out, opts, usd=args.usd,
                                                  show_progress=not args.quiet)):
         print(line)
@@ -413,15 +411,6 @@ def _command(sub: argparse._SubParsersAction, name: str, help: str, description:
              example: tuple[str, ...], outputs: str | None = None) -> argparse.ArgumentParser:
     return sub.add_parser(name, help=help, description=description, epilog=_epilog(outputs, example),
                           formatter_class=_Formatter)
-
-
-def _convention_flags(g, what: str = "the written geometry") -> None:
-    """The scene convention of a USD or EXR output (:class:`lgi.export.convention.Convention`)."""
-    from lgi.export.convention import convention_option
-
-    for name in ("dcc", "up_axis", "units"):
-        fl = convention_option(name, what).metadata["flag"]
-        g.add_argument("--" + name.replace("_", "-"), choices=fl.choices, help=fl.help)
 
 
 def _quiet(g: argparse._ActionsContainer) -> None:
@@ -743,32 +732,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "one for the synthetic mesh; lgi import of a rig's OBJ shapes, ICT FaceKit's for one, for "
                         "an actor on that mesh)")
     g.add_argument("--index", required=True, metavar="INDEX_DIR", help="the actor's LGI index")
-    g.add_argument("--controls", default=None, metavar="PATTERN",
-                   help="template shapes to use as controls (shell patterns; default: every name without '+' that is "
-                        "not an in-between (NAME_50 beside NAME, or tagged inbetween) or a combination (tagged so))")
-    g.add_argument("--correctives", default=None, metavar="PAIRS|auto",
-                   help="combinations a+b[+c] (comma-separated) or 'auto' (the template's combination shapes, or "
-                        "else up to 24 pairs moving the same markers); the template's combination shape (its parts "
-                        "in any order) is used when it has one, else the sum of the parts (default: none)")
-    g = s.add_argument_group("method")
-    g.add_argument("--transfer", choices=["scale", "add"], default="scale",
-                   help="template displacements scaled by the affine map between the neutrals, or added "
-                        "(default %(default)s)")
-    g.add_argument("--coverage", type=float, default=2.0, metavar="MM",
-                   help="a combination whose bundles lie farther than this outside the actor's dataset takes the "
-                        "template's corrective, transferred, and is reported, mm (default %(default)s; inf: always "
-                        "reconstruct)")
-    g.add_argument("--fit", type=float, default=0.5, metavar="MM",
-                   help="fit the actor's shapes to the transferred bundles as measurements with this noise, mm, so "
-                        "the template's own detail at the markers is not copied (default %(default)s; 0: "
-                        "interpolate exactly)")
-    g = s.add_argument_group("outputs")
-    g.add_argument("--out", required=True, metavar="RIG_DIR", help="the actor's rig, as a shape dataset")
-    g.add_argument("--usd", default=None, metavar="RIG.usda",
-                   help="also write the rig as UsdSkel: blend shapes and, with a jaw-rigged index, a jaw joint "
-                        "(default: none)")
-    _convention_flags(g)
-    _quiet(g)
+    groups = {"inputs": g, "method": s.add_argument_group("method"), "outputs": s.add_argument_group("outputs")}
+    groups["outputs"].add_argument("--out", required=True, metavar="RIG_DIR", help="the actor's rig, as a shape "
+                                   "dataset")
+    groups["outputs"].add_argument("--usd", default=None, metavar="RIG.usda",
+                                   help="also write the rig as UsdSkel: blend shapes and, with a jaw-rigged index, a "
+                                        "jaw joint (default: none)")
+    add_flags(groups, RigGenerateOptions)
+    _quiet(groups["outputs"])
     s.set_defaults(func=cmd_rig_generate)
 
     # ------------------------------------------------------------------------------------------------- rig-solve
@@ -890,15 +861,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("recon_dir", metavar="RECON_DIR", help="a reconstruction (lgi reconstruct's OUT_DIR)")
     g.add_argument("--index", required=True, metavar="INDEX_DIR", help="the index it was reconstructed with")
     g = s.add_argument_group("outputs")
-    g.add_argument("--usd", metavar="FILE", help="animated mesh: .usdc (binary) or .usda (text); a shot of over "
-                   f"{USD_CLIP_FRAMES} frames keeps them in value clips beside it, in NAME.clips/ (FILE without its "
-                   "extension)")
-    g.add_argument("--fps", type=float, default=30.0, metavar="F",
-                   help="USD time codes per second (default %(default)s)")
-    g.add_argument("--exr", metavar="DIR", help="displacement maps: one frame_NNNNN.exr per frame")
-    g.add_argument("--exr-size", type=int, default=512, metavar="N",
-                   help="map width and height, texels (default %(default)s)")
-    _convention_flags(g)
+    add_flags({"outputs": g}, ExportOptions)
     _quiet(g)
     s.set_defaults(func=cmd_export)
 

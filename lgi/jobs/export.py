@@ -10,26 +10,33 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
-from lgi.export.convention import Convention
+from lgi.export.clips import USD_CLIP_FRAMES
+from lgi.export.convention import Convention, convention_option
 from lgi.io.atomic import reads
+from lgi.options import declared, option
 
 #: What a displacement map folder holds: a folder holding anything else is not replaced by one.
 EXR_ENTRIES = ("frame_*.exr",)
 
 
+@declared
 @dataclass(frozen=True)
 class ExportOptions:
-    """Options of ``lgi export``: ``usd`` file (.usdc/.usda) and/or ``exr`` directory (one map per frame of
-    ``exr_size`` squared texels), USD time codes per second ``fps``; the scene convention of both (``dcc``
-    preset, ``up_axis`` and ``units`` over it: :class:`lgi.export.convention.Convention`)."""
+    """Options of ``lgi export`` (:mod:`lgi.options`): a USD file and/or a folder of EXR maps, in the scene
+    convention of ``dcc``, ``up_axis`` and ``units`` (:class:`lgi.export.convention.Convention`)."""
 
-    usd: str | None = None
-    exr: str | None = None
-    exr_size: int = 512
-    fps: float = 30.0
-    dcc: str | None = None
-    up_axis: str | None = None
-    units: str | None = None
+    usd: str | None = option(
+        None, "animated mesh: .usdc (binary) or .usda (text); a shot of over "
+        f"{USD_CLIP_FRAMES} frames keeps them in value clips beside it, in NAME.clips/ (FILE without its "
+        "extension)", group="outputs", metavar="FILE")
+    exr: str | None = option(None, "displacement maps: one frame_NNNNN.exr per frame", group="outputs",
+                             metavar="DIR")
+    exr_size: int = option(512, "map width and height, texels (default %(default)s)", group="outputs",
+                           metavar="N", units="texels")
+    fps: float = option(30.0, "USD time codes per second (default %(default)s)", group="outputs", metavar="F")
+    dcc: str | None = convention_option("dcc", "the written geometry", "outputs")
+    up_axis: str | None = convention_option("up_axis", "the written geometry", "outputs")
+    units: str | None = convention_option("units", "the written geometry", "outputs")
 
     def __post_init__(self) -> None:
         for flag, path in (("--usd", self.usd), ("--exr", self.exr)):

@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
+from lgi.export.convention import convention_option
+from lgi.options import declared, option
 
 log = logging.getLogger(__name__)
 
@@ -23,38 +25,34 @@ log = logging.getLogger(__name__)
 ZERO_CORRECTIVE_MM = 1e-3
 
 
+@declared
 @dataclass(frozen=True)
 class RigGenerateOptions:
-    """Options of ``lgi rig-generate``.
+    """Options of ``lgi rig-generate`` (:mod:`lgi.options`); the rig dataset stays in lgi's convention, the USD
+    rig takes ``dcc``, ``up_axis`` and ``units``."""
 
-    Attributes
-    ----------
-    correctives : str or None
-        None (no correctives), ``"auto"`` (pairs of controls that move the same markers, at most 24, not two
-        jaw controls) or comma-separated combinations ``a+b[+c]``.
-    transfer : {"scale", "add"}
-        How the template's displacements reach the actor's markers (:mod:`lgi.retarget.template`).
-    controls : str or None
-        Shell patterns (comma-separated) of the template shapes to use as controls (default: every shape
-        whose name has no ``+``).
-    coverage_mm : float
-        A combination whose bundles lie farther outside the actor's clouds takes the template's corrective,
-        transferred (:class:`~lgi.retarget.template.TemplateTransfer`).
-    fit_mm : float
-        The transferred bundles are fitted as measurements with this noise (mm); 0 interpolates them exactly.
-    dcc, up_axis, units : str or None
-        The up axis and units of the USD rig (:class:`lgi.export.convention.Convention`; default lgi's, Y up
-        and cm). The rig dataset stays lgi's.
-    """
-
-    correctives: str | None = None
-    transfer: str = "scale"
-    controls: str | None = None
-    coverage_mm: float = 2.0
-    fit_mm: float = 0.5
-    dcc: str | None = None
-    up_axis: str | None = None
-    units: str | None = None
+    controls: str | None = option(
+        None, "template shapes to use as controls (shell patterns; default: every name without '+' that is not an "
+        "in-between (NAME_50 beside NAME, or tagged inbetween) or a combination (tagged so))", group="inputs",
+        metavar="PATTERN")
+    correctives: str | None = option(
+        None, "combinations a+b[+c] (comma-separated) or 'auto' (the template's combination shapes, or else up to "
+        "24 pairs moving the same markers); the template's combination shape (its parts in any order) is used when "
+        "it has one, else the sum of the parts (default: none)", group="inputs", metavar="PAIRS|auto")
+    transfer: str = option(
+        "scale", "template displacements scaled by the affine map between the neutrals, or added (default "
+        "%(default)s)", group="method", choices=("scale", "add"))
+    coverage_mm: float = option(
+        2.0, "a combination whose bundles lie farther than this outside the actor's dataset takes the template's "
+        "corrective, transferred, and is reported, mm (default %(default)s; inf: always reconstruct)",
+        group="method", metavar="MM", name="--coverage", units="mm")
+    fit_mm: float = option(
+        0.5, "fit the actor's shapes to the transferred bundles as measurements with this noise, mm, so the "
+        "template's own detail at the markers is not copied (default %(default)s; 0: interpolate exactly)",
+        group="method", metavar="MM", name="--fit", units="mm")
+    dcc: str | None = convention_option("dcc", "the written geometry", "outputs")
+    up_axis: str | None = convention_option("up_axis", "the written geometry", "outputs")
+    units: str | None = convention_option("units", "the written geometry", "outputs")
 
     @property
     def convention(self):
