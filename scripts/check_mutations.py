@@ -13,10 +13,10 @@ temporary copies are removed afterwards.
 Exit status: 0 when every fault was caught, 1 when one was missed or a test run could not be judged (the tests
 failed to start), 2 when a fault's target text is gone (update the fault).
 
-A run of every fault that catches them all writes ``scripts/mutations-checked.json``: each fault's digest (its
-definition, the file it changes and the test files it runs). The default test suite (tests/test_mutations.py)
-checks every target and runs again, in CI, each fault whose digest no longer matches: a fault's code or tests
-changed since the last whole check.
+A run whose faults are all caught records each one's digest (its definition, the file it changes and the test
+files it runs) in ``scripts/mutations-checked.json``. The default test suite (tests/test_mutations.py) checks
+every target, and runs again, in CI, each fault whose digest is not recorded: its code or tests changed since it
+was last caught.
 """
 
 from __future__ import annotations
@@ -260,9 +260,12 @@ def main(argv: list[str] | None = None) -> int:
         else:
             shutil.rmtree(base, ignore_errors=True)
     caught = results.count("caught")
-    if caught == len(faults) == len(FAULTS):
-        RECORD.write_text(json.dumps({f.name: digest(f) for f in faults}, indent=1) + "\n")
-        print(f"digests of the faults written to {RECORD.relative_to(ROOT)}")
+    if caught == len(faults):
+        record = json.loads(RECORD.read_text()) if RECORD.is_file() else {}
+        record = {f.name: record[f.name] for f in FAULTS if f.name in record}  # a fault no longer defined goes
+        record.update({f.name: digest(f) for f in faults})
+        RECORD.write_text(json.dumps(record, indent=1) + "\n")
+        print(f"digests of the faults caught written to {RECORD.relative_to(ROOT)}")
     print(f"{caught} of {len(faults)} faults caught" + ("" if caught == len(faults) else
                                                        f"; missed or not run: {len(faults) - caught}"))
     return 0 if caught == len(faults) else 1
