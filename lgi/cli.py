@@ -8,19 +8,24 @@ import sys
 
 from lgi import __version__
 from lgi.errors import InputError, LgiError, Terminated
+from lgi.jobs.bench import BenchOptions
+from lgi.jobs.cache import PruneOptions
+from lgi.jobs.capture import CalibrateOptions, TrackFootageOptions
+from lgi.jobs.compare import SHOT_SCAN_OPTIONS, CompareOptions
+from lgi.jobs.dataset import AugmentOptions, ImportOptions
 from lgi.jobs.export import ExportOptions
 from lgi.jobs.reconstruct.options import GROUPS as RECONSTRUCT_GROUPS
 from lgi.jobs.reconstruct.options import ReconstructOptions
+from lgi.jobs.rig import RigOptions
 from lgi.jobs.rig_generate import RigGenerateOptions
-from lgi.options import add_flags, from_args
+from lgi.jobs.rig_solve import RigSolveOptions
+from lgi.jobs.synthetic import DemoOptions, SynthOptions
+from lgi.jobs.verify import VerifyOptions
+from lgi.options import add_flags, declared_fields, flag_name, from_args, params, take
 
 
 def _import_options(args: argparse.Namespace):
-    from lgi.jobs.dataset import ImportOptions
-
-    return ImportOptions(neutral=args.neutral, include=args.include, exclude=args.exclude,
-                         rigid_vertices=args.rigid_vertices, units=args.units, deltas=args.deltas,
-                         identity=args.identity)
+    return from_args(ImportOptions, args)
 
 
 def cmd_import(args: argparse.Namespace) -> int:
@@ -50,10 +55,7 @@ def cmd_import(args: argparse.Namespace) -> int:
 def cmd_synth(args: argparse.Namespace) -> int:
     from lgi.jobs.synthetic import SynthOptions, synth_report, write_synthetic
 
-    opts = SynthOptions(vertices=args.vertices, frames=args.frames, seed=args.seed, hmc=args.hmc, lens=args.lens,
-                        image_size=args.image_size, dot_noise=args.dot_noise, board_views=args.board_views,
-                        rig_flex=args.rig_flex, contour_noise=args.contour_noise, actor=args.actor,
-                        slip=args.slip, template=args.template)
+    opts = from_args(SynthOptions, args)
     for line in synth_report(write_synthetic(args.out, opts, show_progress=not args.quiet), opts):
         print(line)
     return 0
@@ -62,9 +64,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_track(args: argparse.Namespace) -> int:
     from lgi.jobs.capture import TrackFootageOptions, track, track_report
 
-    opts = TrackFootageOptions(tracks=args.tracks, dataset=args.dataset, units=args.units, labels=args.labels,
-                               reference_frame=args.reference_frame, helmet=args.helmet, gate=args.gate,
-                               dot_size=args.dot_size, index=args.index, pixel_noise=args.pixel_noise)
+    opts = from_args(TrackFootageOptions, args)
     for line in track_report(track(args.footage_dir, args.calib, args.markers, args.out, opts)):
         print(line)
     return 0
@@ -114,10 +114,11 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         raise InputError("--dask runs the flow's chunk tasks on Dask: it needs --flow")
     if opts.method == "blendshape" and args.flow:
         raise InputError("--method blendshape runs in this process: it does not take --flow")
-    scan = dict(units=args.scan_units, align=args.scan_align, region=args.scan_region, gate=args.scan_gate)
-    if not args.scans and scan != dict(units="cm", align="none", region="all", gate=10.0):
-        logging.getLogger(__name__).warning("--scan-units, --scan-align, --scan-region and --scan-gate apply to "
-                                            "--scans: ignored without it")
+    scan = take(SHOT_SCAN_OPTIONS, args)
+    scan_flags = declared_fields(SHOT_SCAN_OPTIONS)
+    if not args.scans and scan != {f.name: f.default for f in scan_flags}:
+        logging.getLogger(__name__).warning("%s apply to --scans: ignored without it",
+                                            ", ".join(flag_name(f, SHOT_SCAN_OPTIONS.prefix) for f in scan_flags))
     scan_opts = shot_scan_options(args.scans, args.index_dir, args.out, **scan)
     if args.review:
         from lgi.io.atomic import check_output as check_dir
@@ -162,7 +163,7 @@ def _reconstruct_in(args: argparse.Namespace, opts, scan: dict, scan_opts, input
 
         summary = reconstruct_shot(args.index_dir, args.bundles, args.out, dask_address=args.dask,
                                    review=args.review, scans=args.scans,
-                                   **{f"scan_{k}": v for k, v in scan.items()}, **opts.to_json())
+                                   **params(SHOT_SCAN_OPTIONS, scan), **opts.to_json())
     else:
         from lgi.jobs.review import collected_warnings
 
@@ -206,9 +207,7 @@ def _reconstruct_in(args: argparse.Namespace, opts, scan: dict, scan_opts, input
 def cmd_verify(args: argparse.Namespace) -> int:
     from lgi.jobs.verify import VerifyOptions, verify, verify_report
 
-    table, summary = verify(args.index_dir, VerifyOptions(tolerance=args.tolerance, shapes=args.shapes,
-                                                          spatial_weight=args.spatial_weight),
-                            show_progress=not args.quiet)
+    table, summary = verify(args.index_dir, from_args(VerifyOptions, args), show_progress=not args.quiet)
     for line in verify_report(table, summary):
         print(line)
     return 0 if summary["passed"] else 1
@@ -217,11 +216,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 def cmd_augment(args: argparse.Namespace) -> int:
     from lgi.jobs.dataset import AugmentOptions, augment_dataset, augment_report
 
-    opts = AugmentOptions(linear=args.linear, simulate=args.simulate, budget=args.budget,
-                          levels=AugmentOptions.parse_list(args.levels, float, "--levels"),
-                          orders=AugmentOptions.parse_list(args.orders, int, "--orders"), seed=args.seed,
-                          include=args.include, requires=args.requires, thickness=args.thickness,
-                          iterations=args.iterations)
+    opts = from_args(AugmentOptions, args)
     s = augment_dataset(args.dataset_dir, args.out, opts, args.jaw_rig, args.markers, show_progress=not args.quiet)
     for line in augment_report(s):
         print(line)
@@ -231,7 +226,7 @@ def cmd_augment(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from lgi.jobs.capture import CalibrateOptions, calibrate, calibrate_report
 
-    opts = CalibrateOptions(board=args.board, rational=args.rational, fisheye=args.fisheye, yaml=args.yaml)
+    opts = from_args(CalibrateOptions, args)
     for line in calibrate_report(calibrate(args.images_dir, args.out, opts)):
         print(line)
     return 0
@@ -249,9 +244,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     from lgi.jobs.compare import CompareOptions, compare, compare_report
 
-    opts = CompareOptions(frames=tuple(args.frame or ()), scans=tuple(args.scan or ()), pairs=args.pairs,
-                          index=args.index, align=args.align, region=args.region, gate_mm=args.gate,
-                          units=args.units, out=args.out)
+    opts = from_args(CompareOptions, args)
     for line in compare_report(compare(args.recon_dir, opts)):
         print(line)
     return 0
@@ -260,7 +253,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_rig(args: argparse.Namespace) -> int:
     from lgi.jobs.rig import RigOptions, fit_jaw_rig, rig_report
 
-    for line in rig_report(fit_jaw_rig(args.dataset_dir, args.out, RigOptions(args.jaw_vertices, args.shapes))):
+    for line in rig_report(fit_jaw_rig(args.dataset_dir, args.out, from_args(RigOptions, args))):
         print(line)
     return 0
 
@@ -278,8 +271,7 @@ def cmd_rig_generate(args: argparse.Namespace) -> int:
 def cmd_rig_solve(args: argparse.Namespace) -> int:
     from lgi.jobs.rig_solve import RigSolveOptions, rig_solve, rig_solve_report
 
-    opts = RigSolveOptions(smooth=args.smooth, vertices=args.vertices, robust=args.robust, fps=args.fps,
-                           jaw=args.jaw, format=args.format)
+    opts = from_args(RigSolveOptions, args)
     for line in rig_solve_report(rig_solve(args.recon_dir, args.rig, args.out, opts, usd=args.usd,
                                            rig_usd=args.rig_usd, show_progress=not args.quiet)):
         print(line)
@@ -289,7 +281,7 @@ def cmd_rig_solve(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from lgi.jobs.bench import BenchOptions, bench
 
-    bench(args.out, BenchOptions(frames=args.frames, noise=args.noise, ict=args.ict, no_ict=args.no_ict))
+    bench(args.out, from_args(BenchOptions, args))
     return 0
 
 
@@ -299,7 +291,7 @@ def cmd_cache(args: argparse.Namespace) -> int:
     if args.action == "ls":
         lines = cache_report(list_cache(args.cache_dir))
     else:
-        opts = PruneOptions(keep=args.keep, older_than=args.older_than)
+        opts = from_args(PruneOptions, args)
         lines = cache_report(prune_cache(args.cache_dir, opts), removed=True)
     for line in lines:
         print(line)
@@ -309,7 +301,7 @@ def cmd_cache(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from lgi.jobs.synthetic import DemoOptions, demo
 
-    demo(args.out, DemoOptions(vertices=args.vertices, frames=args.frames, seed=args.seed),
+    demo(args.out, from_args(DemoOptions, args),
          show_progress=not args.quiet)
     return 0
 
@@ -417,15 +409,8 @@ def _quiet(g: argparse._ActionsContainer) -> None:
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="lgi", description=DESCRIPTION, epilog=EPILOG, formatter_class=_Formatter)
-    p.add_argument("--version", action="version", version=f"lgi {__version__}")
-    p.add_argument("--debug", action="store_true",
-                   help="on an error, also print the traceback (anywhere on the command line)")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND",
-                           help="the job to run; `lgi COMMAND --help` describes its options")
-
-    # ---------------------------------------------------------------------------------------------------- import
+def _add_import(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi import`` command's parser."""
     s = _command(sub, "import", "import a folder of OBJ shapes into a shape dataset",
                  "Import a folder of OBJ shapes (one neutral plus shapes with its vertex order; quads, UV seams and "
                  "materials kept) into a shape dataset directory, removing rigid head motion. Positions are "
@@ -436,20 +421,8 @@ def build_parser() -> argparse.ArgumentParser:
     g = s.add_argument_group("inputs")
     g.add_argument("shapes_dir", metavar="SHAPES_DIR",
                    help="folder of .obj files: the neutral, the shapes, and any identity*.obj identity modes")
-    g.add_argument("--neutral", metavar="NAME", help="file stem of the neutral (default: the file named *neutral*)")
-    g.add_argument("--include", metavar="PATTERN",
-                   help="shell patterns of shapes to import, comma-separated (default: all)")
-    g.add_argument("--exclude", metavar="PATTERN",
-                   help="shell patterns of shapes to leave out, comma-separated (default: none)")
-    g.add_argument("--units", default="cm", choices=["mm", "cm", "m", "in"],
-                   help="length unit of the files' coordinates (default %(default)s)")
-    g.add_argument("--deltas", action="store_true", help="shape files hold displacements, not full meshes")
-    g.add_argument("--identity", metavar="NAME=W,...",
-                   help="blend identity modes (identity*.obj) into the neutral with these weights")
-    g = s.add_argument_group("method")
-    g.add_argument("--rigid-vertices", default="auto", metavar="FILE|auto|none",
-                   help="vertex indices that move with the skull (JSON, text or .npy file), 'auto' to find them, "
-                        "'none' to skip stabilisation (default %(default)s)")
+    groups = {"inputs": g, "method": s.add_argument_group("method")}
+    add_flags(groups, ImportOptions)
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="DATASET_DIR", help="the shape dataset directory to write")
     _quiet(g)
@@ -461,7 +434,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --flow: also build and verify the index (without --flow: ignored, with a warning)")
     s.set_defaults(func=cmd_import)
 
-    # ----------------------------------------------------------------------------------------------------- synth
+
+def _add_synth(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi synth`` command's parser."""
     s = _command(sub, "synth", "write the synthetic actor: dataset, markers, performance, truth",
                  "Write the synthetic actor: DIR/dataset, DIR/markers.csv, DIR/bundles.csv (its performance), "
                  "DIR/jaw_rig.npz and DIR/truth.npz (ground-truth vertices (F, V, 3) float32 under 'vertices'); "
@@ -473,45 +448,13 @@ def build_parser() -> argparse.ArgumentParser:
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="DIR", help="folder to write")
     _quiet(g)
-    g = s.add_argument_group("actor and performance")
-    g.add_argument("--vertices", type=int, default=20000, metavar="N",
-                   help="at least this many mesh vertices (default %(default)s)")
-    g.add_argument("--frames", type=int, default=240, metavar="F",
-                   help="performance length, frames (default %(default)s)")
-    g.add_argument("--seed", type=int, default=0, metavar="S", help="performance seed (default %(default)s)")
-    g.add_argument("--actor", type=int, default=0, metavar="SEED",
-                   help="another actor: proportions and expression details drawn from SEED, same mesh topology "
-                        "(default %(default)s: the default actor)")
-    g.add_argument("--template", action="store_true",
-                   help="also write DIR/template: a template rig for lgi rig-generate on this mesh, the default "
-                        "actor's 13 named controls and its combination shapes (a+b, the pairs that are not the sum "
-                        "of their parts: up to 24)")
-    g = s.add_argument_group("head-mounted camera footage")
-    g.add_argument("--hmc", action="store_true",
-                   help="also render head-mounted camera footage into DIR/hmc (frames, board views, true cameras, "
-                        "lip_contours.csv)")
-    g.add_argument("--lens", choices=["fisheye", "pinhole"], default="fisheye",
-                   help="with --hmc: lens model (default %(default)s)")
-    g.add_argument("--image-size", default="1280x1024", metavar="WxH",
-                   help="with --hmc: image size, px (default %(default)s)")
-    g.add_argument("--dot-noise", type=float, default=0.3, metavar="PX",
-                   help="with --hmc: random offset of each painted dot per camera and frame, px (default %(default)s)")
-    g.add_argument("--board-views", type=int, default=15, metavar="N",
-                   help="with --hmc: calibration board views (default %(default)s)")
-    g.add_argument("--rig-flex", type=float, default=0.0, metavar="DEG",
-                   help="with --hmc: turn camera 1 by this angle during the shot, after calibration, deg "
-                        "(default %(default)s; see lgi track --helmet)")
-    g.add_argument("--contour-noise", type=float, default=0.0, metavar="PX",
-                   help="with --hmc: Gaussian noise of the true lip contours in DIR/hmc/lip_contours.csv, px "
-                        "(default %(default)s)")
-    g.add_argument("--slip", choices=["smooth", "jolts"], default="smooth",
-                   help="with --hmc: how the helmet moves on the head during the shot: smooth (a slow drift of up "
-                        "to 1 deg and 1.5 mm) or jolts (that drift plus sudden shifts of 0.5-1.5 deg and 1-3 mm over "
-                        "1-3 frames, each then held, and a vibration of about 0.02 deg / 0.03 mm) "
-                        "(default %(default)s)")
+    add_flags({name: s.add_argument_group(name) for name in ("actor and performance",
+                                                             "head-mounted camera footage")}, SynthOptions)
     s.set_defaults(func=cmd_synth)
 
-    # ----------------------------------------------------------------------------------------------------- track
+
+def _add_track(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi track`` command's parser."""
     s = _command(sub, "track", "track painted dots in stereo HMC footage and write bundles",
                  "Detect dots, label the reference frame (rigid fit of the marker layout, or --labels), track with "
                  "anchor frames, triangulate, remove head motion; write the bundles file (cm) and a 2D tracks "
@@ -528,38 +471,15 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--calib", required=True, metavar="CALIB_JSON", help="the stereo calibration (lgi calibrate)")
     g.add_argument("--markers", required=True, metavar="MARKERS_CSV",
                    help="marker layout; its x,y,z columns give the neutral positions unless --dataset is given")
-    g.add_argument("--dataset", metavar="DIR", help="dataset whose neutral places the markers (and sets the units)")
-    g.add_argument("--units", default="cm", choices=["mm", "cm", "m"],
-                   help="units of the marker file's positions without --dataset (default %(default)s); the bundles "
-                        "are written in cm, as datasets are stored")
-    g.add_argument("--labels", metavar="CSV",
-                   help="labels of the reference frame's dots: camera,x,y,marker (px) (default: fitted)")
-    g.add_argument("--helmet", metavar="CSV",
-                   help="markers fixed on the helmet (name,x,y,z in mm, calibration frame): refine the extrinsics "
-                        "for this shot from them")
-    g.add_argument("--index", metavar="INDEX_DIR", default=None,
-                   help="the actor's LGI index (lgi build): solve each frame's head pose with the face (the jaw and "
-                        "the shape weights) instead of assuming the least-moving markers rigid; the bundles are then "
-                        "in the index's head frame (default: none, the stable-marker fit)")
-    g = s.add_argument_group("tracking")
-    g.add_argument("--reference-frame", type=int, default=0, metavar="F",
-                   help="frame to label (default %(default)s)")
-    g.add_argument("--gate", type=float, default=12.0, metavar="PX",
-                   help="tracking search radius, px (default %(default)s)")
-    g.add_argument("--dot-size", type=float, default=9.0, metavar="PX",
-                   help="typical painted dot diameter in the images, px: sets the detector's scale "
-                        "(default %(default)s)")
-    g.add_argument("--pixel-noise", type=float, default=0.25, metavar="PX",
-                   help="the dot detector's centre error per image coordinate, px (one standard deviation): sets "
-                        "each bundle's covariance, written as the bundles file's cov_* columns (cm^2, head frame); "
-                        "the default was measured on lgi synth --hmc footage (default %(default)s)")
-    g = s.add_argument_group("outputs")
-    g.add_argument("--out", required=True, metavar="BUNDLES", help="bundles file to write (.csv or .parquet)")
-    g.add_argument("--tracks", metavar="PARQUET",
-                   help="2D tracks table (default: OUT's stem + .tracks.parquet)")
+    groups = {"inputs": g, "tracking": s.add_argument_group("tracking"), "outputs": s.add_argument_group("outputs")}
+    groups["outputs"].add_argument("--out", required=True, metavar="BUNDLES",
+                                   help="bundles file to write (.csv or .parquet)")
+    add_flags(groups, TrackFootageOptions)
     s.set_defaults(func=cmd_track)
 
-    # --------------------------------------------------------------------------------------------------- bundles
+
+def _add_bundles(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi bundles`` command's parser."""
     s = _command(sub, "bundles", "evaluate markers on dataset shapes (one frame per shape)",
                  "Write a bundles file with one frame per dataset shape, and BUNDLES.shapes.csv (the bundles "
                  "file's stem + .shapes.csv) mapping frames to shape names.",
@@ -573,7 +493,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", required=True, metavar="BUNDLES", help="bundles file to write (.csv or .parquet)")
     s.set_defaults(func=cmd_bundles)
 
-    # ----------------------------------------------------------------------------------------------------- build
+
+def _add_build(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi build`` command's parser."""
     s = _command(sub, "build", "build the LGI index of a dataset for a marker layout",
                  "Build the local geometric index: per-bundle point clouds (pruned: INDEX_DIR/pruning.csv says why "
                  "each shape was dropped or merged), overlapping simplices, search grids, natural-neighbour "
@@ -618,7 +540,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the subsets (default %(default)s)")
     s.set_defaults(func=cmd_build)
 
-    # ----------------------------------------------------------------------------------------------- reconstruct
+
+def _add_reconstruct(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi reconstruct`` command's parser."""
     s = _command(sub, "reconstruct", "reconstruct meshes from a bundles file",
                  "Reconstruct every frame of a shot: a global fit of the jaw and shape weights, refitted per "
                  "bundle over its natural neighbours, natural-neighbour blend, skinning, and a correction through "
@@ -654,16 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "is compared with its scan as lgi compare does, into OUT_DIR/compare, and with --review the "
                         "page gets the scan map; a scan that does not load or covers no face leaves the "
                         "reconstruction written and exits 2 naming it (default: none)")
-    g.add_argument("--scan-units", default="cm", choices=["mm", "cm", "m", "in"],
-                   help="with --scans: units of the scan files (default %(default)s)")
-    g.add_argument("--scan-align", default="none", choices=["none", "rigid"],
-                   help="with --scans: rigid moves each scan onto its frame by ICP first (lgi compare --align) "
-                        "(default %(default)s)")
-    g.add_argument("--scan-region", default="all", metavar="REGION",
-                   help="with --scans: the vertices to compare, as lgi compare --region (default %(default)s)")
-    g.add_argument("--scan-gate", type=float, default=10.0, metavar="MM",
-                   help="with --scans: closest points farther than this, mm, count as not covered (default "
-                        "%(default)s)")
+    add_flags(groups, SHOT_SCAN_OPTIONS, "scans")
     g = groups["scheduling"]
     g.add_argument("--flow", action="store_true",
                    help="run the job as the Prefect reconstruct-shot flow (chunks of frames as tasks, "
@@ -673,7 +588,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(a local cluster of N processes); the results do not depend on it")
     s.set_defaults(func=cmd_reconstruct)
 
-    # ---------------------------------------------------------------------------------------------------- verify
+
+def _add_verify(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi verify`` command's parser."""
     s = _command(sub, "verify", "reconstruct every dataset shape from its own bundles (paper 7.1)",
                  "The paper's verification: every dataset shape reconstructed from its own bundles; prints RMS and "
                  "max error per shape (mm) over the marked region and the whole mesh; exit 1 if any marked-region "
@@ -683,17 +600,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "1 when the check fails.")
     g = s.add_argument_group("inputs")
     g.add_argument("index_dir", metavar="INDEX_DIR", help="the LGI index (lgi build)")
-    g.add_argument("--shapes", metavar="PATTERN", help="only shapes matching these shell patterns (default: all)")
-    g = s.add_argument_group("check")
-    g.add_argument("--tolerance", type=float, default=0.01, metavar="MM",
-                   help="RMS tolerance, mm (default %(default)s)")
-    g.add_argument("--spatial-weight", type=float, default=1e-3, metavar="MM",
-                   help="the solver's tie-break toward shapes the neighbours agree on, mm (default %(default)s)")
+    add_flags({"inputs": g, "check": s.add_argument_group("check")}, VerifyOptions)
     g = s.add_argument_group("outputs")
     _quiet(g)
     s.set_defaults(func=cmd_verify)
 
-    # ------------------------------------------------------------------------------------------------------- rig
+
+def _add_rig(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi rig`` command's parser."""
     s = _command(sub, "rig", "fit a jaw rig (hinge and skinning weights) from a dataset's jaw shapes",
                  "Fit the jaw hinge and linear-blend-skinning weights from shapes in which given vertices move "
                  "rigidly with the jaw (ICT: the lower teeth 19247:21450): the hinge from the opening shapes only, "
@@ -704,17 +618,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "augment --jaw-rig.")
     g = s.add_argument_group("inputs")
     g.add_argument("dataset_dir", metavar="DATASET_DIR", help="the shape dataset (lgi import)")
-    g.add_argument("--jaw-vertices", required=True, metavar="FIRST:LAST|FILE",
-                   help="vertices moving rigidly with the jaw: an inclusive range, or an index file (JSON list, "
-                        "text, or .npy of integers)")
-    g.add_argument("--shapes", default="jaw*", metavar="PATTERN",
-                   help="the jaw shapes; the hinge is fitted from the openings among them (the jaw vertices rotate "
-                        "about the lateral x axis), the others only get their jaw parameters (default %(default)s)")
+    add_flags({"inputs": g}, RigOptions, "inputs")
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="RIG_NPZ", help="the jaw rig file to write (.npz)")
     s.set_defaults(func=cmd_rig)
 
-    # ---------------------------------------------------------------------------------------------- rig-generate
+
+def _add_rig_generate(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi rig-generate`` command's parser."""
     s = _command(sub, "rig-generate", "an actor-specific blendshape rig from a template rig (paper 7.7)",
                  "Reconstruct each template control (and combinations, for correctives) on the actor with LGI: "
                  "the template's displacements at the markers (scaled by the affine map between the neutrals "
@@ -742,7 +653,9 @@ def build_parser() -> argparse.ArgumentParser:
     _quiet(groups["outputs"])
     s.set_defaults(func=cmd_rig_generate)
 
-    # ------------------------------------------------------------------------------------------------- rig-solve
+
+def _add_rig_solve(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi rig-solve`` command's parser."""
     s = _command(sub, "rig-solve", "a reconstructed shot as animation curves of the actor's rig",
                  "Fit the rig's control weights (in [0, 1], correctives driven by the product of their controls') to "
                  "each reconstructed frame over the face region (robust Gauss-Newton, warm-started), then clean the "
@@ -763,30 +676,14 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", required=True, metavar="OUT_DIR", help="folder for curves.csv, residuals.csv, ...")
     g.add_argument("--usd", default=None, metavar="ANIM.usda",
                    help="also write the shot as a UsdSkel animation of the rig (needs --rig-usd; default: none)")
-    g.add_argument("--fps", type=float, default=30.0, metavar="F",
-                   help="time codes per second of the USD animation (default %(default)s)")
-    g.add_argument("--format", choices=["csv", "parquet"], default="csv",
-                   help="the curves' file: curves.csv or curves.parquet, columns frame, control, value (weights in "
-                        "[0, 1]; the jaw joint's jaw_open_deg, jaw_yaw_deg, jaw_roll_deg in degrees and "
-                        "jaw_forward_cm in cm; default %(default)s)")
+    groups = {"outputs": g, "method": s.add_argument_group("method")}
+    add_flags(groups, RigSolveOptions)
     _quiet(g)
-    g = s.add_argument_group("method")
-    g.add_argument("--jaw", choices=["fit", "fixed"], default="fit",
-                   help="for a rig with a jaw joint: fit the jaw's rotation and slide (degrees, cm) per frame with the "
-                        "weights, started from the reconstruction's jaw, or hold them at the reconstruction's "
-                        "(default %(default)s)")
-    g.add_argument("--smooth", type=float, default=4.0, metavar="FRAMES",
-                   help="temporal regularisation: the period in frames whose wiggles the curves' penalty halves "
-                        "(zero-phase, so no lag; default %(default)s; 0: each frame fitted on its own)")
-    g.add_argument("--vertices", type=int, default=4000, metavar="N",
-                   help="face vertices fitted per frame, an even subsample (default %(default)s; 0: every vertex "
-                        "the rig moves)")
-    g.add_argument("--robust", type=float, default=3.0, metavar="TIMES",
-                   help="Huber threshold in multiples of each frame's median vertex residual (default %(default)s; "
-                        "0: plain least squares)")
     s.set_defaults(func=cmd_rig_solve)
 
-    # --------------------------------------------------------------------------------------------------- augment
+
+def _add_augment(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi augment`` command's parser."""
     s = _command(sub, "augment", "add in-between shapes to a dataset",
                  "Add in-betweens: combinations of 2-3 compatible shapes at fixed weights, tagged with their "
                  "sources (opposites such as jawLeft+jawRight are skipped; mouthClose only with jawOpen), as "
@@ -799,33 +696,18 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("dataset_dir", metavar="DATASET_DIR", help="the shape dataset to add to")
     g.add_argument("--markers", metavar="MARKERS_CSV",
                    help="also report per bundle how many points the in-betweens added and kept (augmentation.csv)")
-    g = s.add_argument_group("combinations")
-    g.add_argument("--budget", type=int, default=200, metavar="N",
-                   help="combinations to add at most, per method (default %(default)s)")
-    g.add_argument("--levels", default="0.25,0.5,0.75,1", metavar="W,...",
-                   help="weights a source may take (default %(default)s)")
-    g.add_argument("--orders", default="2,3", metavar="K,...", help="sources per combination (default %(default)s)")
-    g.add_argument("--include", metavar="PATTERN", help="only these source shapes (default: all)")
-    g.add_argument("--requires", metavar="SHAPE=PARTNER,...",
-                   help="shapes that appear only with a partner (default mouthClose=jawOpen)")
-    g.add_argument("--seed", type=int, default=0, metavar="S",
-                   help="seed of the choice within the budget (default %(default)s)")
-    g = s.add_argument_group("method")
-    g.add_argument("--linear", action="store_true", help="linear combinations of dataset shapes")
-    g.add_argument("--simulate", action="store_true",
-                   help="physically simulated in-betweens (volumetric flesh, volume kept, lips kept apart)")
-    g.add_argument("--jaw-rig", metavar="RIG_NPZ",
-                   help="with --simulate: the jaw carries the flesh's jaw side; lip contact")
-    g.add_argument("--thickness", type=float, default=0.8, metavar="D",
-                   help="with --simulate: flesh thickness in dataset units, cm (default %(default)s)")
-    g.add_argument("--iterations", type=int, default=60, metavar="N",
-                   help="with --simulate: solver iterations (default %(default)s)")
+    groups = {"combinations": s.add_argument_group("combinations"), "method": s.add_argument_group("method")}
+    add_flags(groups, AugmentOptions)
+    groups["method"].add_argument("--jaw-rig", metavar="RIG_NPZ",
+                                  help="with --simulate: the jaw carries the flesh's jaw side; lip contact")
     g = s.add_argument_group("outputs")
     g.add_argument("--out", required=True, metavar="DATASET_DIR2", help="the augmented dataset to write")
     _quiet(g)
     s.set_defaults(func=cmd_augment)
 
-    # ------------------------------------------------------------------------------------------------- calibrate
+
+def _add_calibrate(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi calibrate`` command's parser."""
     s = _command(sub, "calibrate", "calibrate a stereo camera pair from chessboard or ChArUco images",
                  "Detect the board, calibrate both cameras (rejecting outlier views, saying why) and the stereo "
                  "extrinsics; print RMS, per-view errors and the baseline; write a documented JSON (and OpenCV "
@@ -835,18 +717,15 @@ def build_parser() -> argparse.ArgumentParser:
                          "views); with --yaml, the OpenCV YAML.")
     g = s.add_argument_group("inputs")
     g.add_argument("images_dir", metavar="IMAGES_DIR", help="left*/right* images, or cam0/ and cam1/ folders")
-    g.add_argument("--board", required=True, metavar="BOARD",
-                   help="chessboard:COLSxROWS:SQUARE_MM (inner corners) or charuco:COLSxROWS:SQUARE_MM:MARKER_MM:DICT "
-                        "(squares; e.g. charuco:7x5:15:11:DICT_5X5_100)")
-    g = s.add_argument_group("lens model (default: pinhole)")
-    g.add_argument("--rational", action="store_true", help="OpenCV's rational distortion model (wide lenses)")
-    g.add_argument("--fisheye", action="store_true", help="fisheye (equidistant) lens model")
-    g = s.add_argument_group("outputs")
-    g.add_argument("--out", required=True, metavar="CALIB_JSON", help="the calibration to write (JSON)")
-    g.add_argument("--yaml", metavar="FILE", help="also write OpenCV YAML (K0, dist0, K1, dist1, R, T)")
+    groups = {"inputs": g, "lens model": s.add_argument_group("lens model (default: pinhole)"),
+              "outputs": s.add_argument_group("outputs")}
+    groups["outputs"].add_argument("--out", required=True, metavar="CALIB_JSON", help="the calibration to write (JSON)")
+    add_flags(groups, CalibrateOptions)
     s.set_defaults(func=cmd_calibrate)
 
-    # ---------------------------------------------------------------------------------------------------- export
+
+def _add_export(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi export`` command's parser."""
     s = _command(sub, "export", "export a reconstruction as USD and/or OpenEXR displacement maps",
                  "Write RECON_DIR/meshes.npz as an animated USD mesh (time samples, face-varying UVs; by default "
                  "cm with metersPerUnit 0.01, Y up) and/or per-frame displacement maps in UV space (OpenEXR, "
@@ -865,7 +744,9 @@ def build_parser() -> argparse.ArgumentParser:
     _quiet(g)
     s.set_defaults(func=cmd_export)
 
-    # --------------------------------------------------------------------------------------------------- compare
+
+def _add_compare(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi compare`` command's parser."""
     s = _command(sub, "compare", "compare reconstructed frames with scans of any topology (distances in mm)",
                  "Point-to-surface distances both ways between reconstructed frames and scans of the same moments "
                  "(any topology; holes, hair and shoulders allowed): RMS, 95th percentile, maximum and Hausdorff "
@@ -877,38 +758,13 @@ def build_parser() -> argparse.ArgumentParser:
                          "(Parquet) and heat maps (PNG).")
     g = s.add_argument_group("inputs")
     g.add_argument("recon_dir", metavar="RECON_DIR", help="a folder written by lgi reconstruct (its meshes.npz)")
-    g.add_argument("--index", metavar="INDEX_DIR",
-                   help="the index (or dataset) the shot was reconstructed with: the mesh's triangles (default: "
-                        "RECON_DIR/obj/frame_NNNNN.obj, written by lgi reconstruct --obj)")
-    g.add_argument("--frame", type=int, action="append", metavar="F",
-                   help="a frame number of the reconstruction; repeat, one per --scan, in the same order "
-                        "(default: none; give pairs this way or with --pairs)")
-    g.add_argument("--scan", action="append", metavar="SCAN",
-                   help="a scan of that frame's moment (.obj, .ply, .stl or .off; in --units); repeat, one per "
-                        "--frame (default: none)")
-    g.add_argument("--pairs", metavar="CSV",
-                   help="instead of --frame/--scan: a CSV with columns frame, scan (paths relative to the CSV's "
-                        "folder) (default: none)")
-    g.add_argument("--units", default="cm", choices=["mm", "cm", "m", "in"],
-                   help="units of the scan files, converted to cm like the reconstruction (default %(default)s)")
-    g = s.add_argument_group("method")
-    g.add_argument("--align", default="none", choices=["none", "rigid"],
-                   help="rigid: first move the scan onto the reconstruction by ICP over the covered region, and "
-                        "report the transform; none: compare as given (default %(default)s)")
-    g.add_argument("--region", default="all", metavar="REGION",
-                   help="vertices to measure: all, face (the face area), marked (what the markers constrain; needs "
-                        "--index), lips (the synthetic actor and ICT), FIRST:LAST (0-based vertex indices, "
-                        "inclusive) or a vertex index file (JSON list, text or .npy) (default %(default)s)")
-    g.add_argument("--gate", type=float, default=10.0, metavar="MM",
-                   help="closest points farther than this, mm, count as not covered (reconstruction) or outside "
-                        "(scan) (default %(default)s)")
-    g = s.add_argument_group("outputs")
-    g.add_argument("--out", metavar="DIR",
-                   help="also write summary.csv/.json, per-vertex distances (Parquet) and heat maps (PNG) here "
-                        "(default: print only)")
+    add_flags({"inputs": g, "method": s.add_argument_group("method"), "outputs": s.add_argument_group("outputs")},
+              CompareOptions)
     s.set_defaults(func=cmd_compare)
 
-    # ----------------------------------------------------------------------------------------------------- bench
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi bench`` command's parser."""
     s = _command(sub, "bench", "compare LGI with the baselines on the same frames",
                  "Run LGI, the blendshape fits (with and without the jaw rig), RBF weights + smooth and smooth "
                  "interpolation on the synthetic held-out performance and, when ../shared/data has ICT FaceKit, "
@@ -919,18 +775,14 @@ def build_parser() -> argparse.ArgumentParser:
                  ("lgi bench --out lgi-bench --frames 300 --no-ict",),
                  outputs='DIR/accuracy.csv and DIR/heatmaps_*.png; the tables on stdout.')
     g = s.add_argument_group("inputs")
-    g.add_argument("--frames", type=int, default=300, metavar="F",
-                   help="synthetic performance length, frames (default %(default)s)")
-    g.add_argument("--noise", type=float, default=0.3, metavar="MM",
-                   help="bundle noise of the noisy sets per coordinate, mm; 5 %% of marker-frames are also missing "
-                        "(default %(default)s)")
-    g.add_argument("--ict", metavar="DIR", help="ICT FaceKit folder (default: ../shared/data/ict-facekit)")
-    g.add_argument("--no-ict", action="store_true", help="synthetic sets only (the performance and its sessions)")
+    add_flags({"inputs": g}, BenchOptions, "inputs")
     g = s.add_argument_group("outputs")
     g.add_argument("--out", default="lgi-bench", metavar="DIR", help="tables and pictures (default %(default)s)")
     s.set_defaults(func=cmd_bench)
 
-    # ----------------------------------------------------------------------------------------------------- cache
+
+def _add_cache(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi cache`` command's parser."""
     s = _command(sub, "cache", "list or trim the rebuild's stage cache",
                  "List the stage results of a dataset rebuild's cache (OUT/.cache, or the rebuild's cache folder): "
                  "stage, key, size, last use; or remove old ones. Results in use by a running rebuild are left "
@@ -941,12 +793,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("action", choices=["ls", "prune"], metavar="ls|prune",
                    help="ls: list the results; prune: remove those --keep and --older-than say")
     g.add_argument("cache_dir", metavar="CACHE_DIR", help="the rebuild's OUT (its .cache) or the cache folder")
-    g = s.add_argument_group("prune")
-    g.add_argument("--keep", type=int, metavar="N", help="keep the N most recently used results of each stage")
-    g.add_argument("--older-than", type=float, metavar="DAYS", help="remove results unused for DAYS days")
+    add_flags({"prune": s.add_argument_group("prune")}, PruneOptions)
     s.set_defaults(func=cmd_cache)
 
-    # ------------------------------------------------------------------------------------------------------ demo
+
+def _add_demo(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi demo`` command's parser."""
     s = _command(sub, "demo", "run the main job end to end on the built-in synthetic actor",
                  "Build the synthetic actor, index it with its jaw rig, reconstruct its performance (frames not in "
                  "the dataset) with lgi reconstruct's defaults and compare with the truth; prints the figures "
@@ -958,15 +810,12 @@ def build_parser() -> argparse.ArgumentParser:
     g = s.add_argument_group("outputs")
     g.add_argument("--out", default="lgi-demo", metavar="DIR", help="output directory (default %(default)s)")
     _quiet(g)
-    g = s.add_argument_group("actor and performance")
-    g.add_argument("--vertices", type=int, default=20000, metavar="N",
-                   help="at least this many mesh vertices (default %(default)s)")
-    g.add_argument("--frames", type=int, default=240, metavar="F",
-                   help="performance length, frames (default %(default)s)")
-    g.add_argument("--seed", type=int, default=0, metavar="S", help="performance seed (default %(default)s)")
+    add_flags({"actor and performance": s.add_argument_group("actor and performance")}, DemoOptions)
     s.set_defaults(func=cmd_demo)
 
-    # ---------------------------------------------------------------------------------------------------- review
+
+def _add_review(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi review`` command's parser."""
     s = _command(sub, "review", "write a shot's review page (3D, colour maps, markers, curves)",
                  "Write REVIEW_DIR/index.html and its data scripts: the reconstruction in 3D (orbit, zoom, pan; "
                  "play, step, slider, speed), colour maps in mm (distance to the truth, the correction's size, the "
@@ -1012,7 +861,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "allows)")
     s.set_defaults(func=cmd_review)
 
-    # ---------------------------------------------------------------------------------------------------- layout
+
+def _add_layout(sub: argparse._SubParsersAction) -> None:
+    """The ``lgi layout`` command's parser."""
     s = sub.add_parser("layout", help="design a marker layout by integer programming, or compare layouts",
                        description="Marker layouts: design one by integer programming (after Zell et al.), or "
                                    "measure one on held-out shapes. See docs/layout_design.md.",
@@ -1068,6 +919,34 @@ def build_parser() -> argparse.ArgumentParser:
     g = e.add_argument_group("outputs")
     g.add_argument("--out", metavar="CSV", help="also write the per-shape table (method, shape, rms, p95, max mm)")
     e.set_defaults(func=cmd_layout_evaluate)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="lgi", description=DESCRIPTION, epilog=EPILOG, formatter_class=_Formatter)
+    p.add_argument("--version", action="version", version=f"lgi {__version__}")
+    p.add_argument("--debug", action="store_true",
+                   help="on an error, also print the traceback (anywhere on the command line)")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                           help="the job to run; `lgi COMMAND --help` describes its options")
+    _add_import(sub)
+    _add_synth(sub)
+    _add_track(sub)
+    _add_bundles(sub)
+    _add_build(sub)
+    _add_reconstruct(sub)
+    _add_verify(sub)
+    _add_rig(sub)
+    _add_rig_generate(sub)
+    _add_rig_solve(sub)
+    _add_augment(sub)
+    _add_calibrate(sub)
+    _add_export(sub)
+    _add_compare(sub)
+    _add_bench(sub)
+    _add_cache(sub)
+    _add_demo(sub)
+    _add_review(sub)
+    _add_layout(sub)
     return p
 
 

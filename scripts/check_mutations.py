@@ -135,7 +135,7 @@ FAULTS = [
           "        return False\n",
           ("tests/test_local_fit.py::test_noise_is_estimated_and_handled",)),
     Fault("default-verify-tolerance-1mm", "the default verification tolerance 0.01 mm became 1 mm",
-          "lgi/cli.py", "\"--tolerance\", type=float, default=0.01,", "\"--tolerance\", type=float, default=1.0,",
+          "lgi/jobs/verify.py", "    tolerance: float = option(0.01,", "    tolerance: float = option(1.0,",
           (f"{BAD}::test_default_verification_tolerance",)),
     Fault("obj-uv-indices-zero-based", "OBJ files written with 0-based texture-coordinate indices",
           "lgi/io/obj.py", "    fuv = None if face_uvs is None else np.asarray(face_uvs) + 1\n",

@@ -10,19 +10,24 @@ from pathlib import Path
 from typing import Any
 
 from lgi.errors import InputError
+from lgi.options import declared, option
 from lgi.units import MM_PER_CM
 
 
+@declared
 @dataclass(frozen=True)
 class BenchOptions:
     """Options of ``lgi bench``: the synthetic set's performance length ``frames`` (the capture-session sets keep
     their own, :func:`lgi.evaluation.benchsets.session_set`), bundle ``noise`` (mm per coordinate) of the noisy
     sets, the ICT FaceKit folder ``ict`` (default: the shared data) or ``no_ict``."""
 
-    frames: int = 300
-    noise: float = 0.3
-    ict: str | None = None
-    no_ict: bool = False
+    frames: int = option(300, "synthetic performance length, frames (default %(default)s)", metavar="F",
+                         units="frames")
+    noise: float = option(
+        0.3, "bundle noise of the noisy sets per coordinate, mm; 5 %% of marker-frames are also missing (default "
+        "%(default)s)", metavar="MM", units="mm")
+    ict: str | None = option(None, "ICT FaceKit folder (default: ../shared/data/ict-facekit)", metavar="DIR")
+    no_ict: bool = option(False, "synthetic sets only (the performance and its sessions)")
 
     def __post_init__(self) -> None:
         if isinstance(self.frames, bool) or not isinstance(self.frames, int) or not 1 <= self.frames <= 100_000:

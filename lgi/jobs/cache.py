@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from lgi.errors import InputError
+from lgi.options import declared, option
 
 
 def cache_root(path: str | Path) -> Path:
@@ -21,13 +22,16 @@ def cache_root(path: str | Path) -> Path:
     return p
 
 
+@declared
 @dataclass(frozen=True)
 class PruneOptions:
     """``lgi cache prune``: keep the ``keep`` most recently used results of each stage, and/or remove those not
     used for ``older_than`` days. One of the two is needed."""
 
-    keep: int | None = None
-    older_than: float | None = None
+    keep: int | None = option(None, "keep the N most recently used results of each stage", group="prune",
+                              metavar="N")
+    older_than: float | None = option(None, "remove results unused for DAYS days", group="prune", metavar="DAYS",
+                                      units="days")
 
     def __post_init__(self) -> None:
         if self.keep is None and self.older_than is None:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from lgi.errors import InputError
+from lgi.options import REQUIRED, declared, option
 
 log = logging.getLogger(__name__)
 
@@ -17,15 +18,19 @@ log = logging.getLogger(__name__)
 MOVED_RIG_PX = 0.5
 
 
+@declared
 @dataclass(frozen=True)
 class CalibrateOptions:
-    """Options of ``lgi calibrate``: the ``board`` spec (:meth:`lgi.capture.calibration.Board.parse`), OpenCV's
-    ``rational`` or the ``fisheye`` lens model, and an OpenCV ``yaml`` file to write beside the JSON."""
+    """Options of ``lgi calibrate`` (:mod:`lgi.options`); ``board`` as :meth:`lgi.capture.calibration.Board.parse`
+    reads it."""
 
-    board: str
-    rational: bool = False
-    fisheye: bool = False
-    yaml: str | None = None
+    board: str = option(
+        REQUIRED, "chessboard:COLSxROWS:SQUARE_MM (inner corners) or charuco:COLSxROWS:SQUARE_MM:MARKER_MM:DICT "
+        "(squares; e.g. charuco:7x5:15:11:DICT_5X5_100)", group="inputs", metavar="BOARD")
+    rational: bool = option(False, "OpenCV's rational distortion model (wide lenses)", group="lens model")
+    fisheye: bool = option(False, "fisheye (equidistant) lens model", group="lens model")
+    yaml: str | None = option(None, "also write OpenCV YAML (K0, dist0, K1, dist1, R, T)", group="outputs",
+                              metavar="FILE")
 
     def __post_init__(self) -> None:
         from lgi.capture.calibration import Board
@@ -68,23 +73,38 @@ def calibrate_report(s: dict[str, Any]) -> list[str]:
     return lines
 
 
+@declared
 @dataclass(frozen=True)
 class TrackFootageOptions:
-    """Options of ``lgi track`` (see its ``--help``)."""
+    """Options of ``lgi track`` (:mod:`lgi.options`)."""
 
-    tracks: str | None = None
-    dataset: str | None = None
-    units: str = "cm"
-    labels: str | None = None
-    reference_frame: int = 0
-    helmet: str | None = None
-    gate: float = 12.0
-    dot_size: float = 9.0
-    index: str | None = None
-    #: The dot detector's centre error per image coordinate, px (one standard deviation): sets each bundle's
-    #: covariance (the bundles file's ``cov_*`` columns). The default is :data:`lgi.capture.tracking.PIXEL_NOISE_PX`
-    #: (0.25 px, measured on ``lgi synth --hmc`` footage: detected against true dot centres).
-    pixel_noise: float = 0.25
+    tracks: str | None = option(None, "2D tracks table (default: OUT's stem + .tracks.parquet)", group="outputs",
+                                metavar="PARQUET")
+    dataset: str | None = option(None, "dataset whose neutral places the markers (and sets the units)",
+                                 group="inputs", metavar="DIR")
+    units: str = option(
+        "cm", "units of the marker file's positions without --dataset (default %(default)s); the bundles are written "
+        "in cm, as datasets are stored", group="inputs", choices=("mm", "cm", "m"))
+    labels: str | None = option(None, "labels of the reference frame's dots: camera,x,y,marker (px) (default: "
+                                "fitted)", group="inputs", metavar="CSV")
+    reference_frame: int = option(0, "frame to label (default %(default)s)", group="tracking", metavar="F")
+    helmet: str | None = option(
+        None, "markers fixed on the helmet (name,x,y,z in mm, calibration frame): refine the extrinsics for this "
+        "shot from them", group="inputs", metavar="CSV")
+    gate: float = option(12.0, "tracking search radius, px (default %(default)s)", group="tracking", metavar="PX",
+                         units="px")
+    dot_size: float = option(
+        9.0, "typical painted dot diameter in the images, px: sets the detector's scale (default %(default)s)",
+        group="tracking", metavar="PX", units="px")
+    index: str | None = option(
+        None, "the actor's LGI index (lgi build): solve each frame's head pose with the face (the jaw and the shape "
+        "weights) instead of assuming the least-moving markers rigid; the bundles are then in the index's head "
+        "frame (default: none, the stable-marker fit)", group="inputs", metavar="INDEX_DIR")
+    # lgi.capture.tracking.PIXEL_NOISE_PX is the library's default; a test keeps the two equal.
+    pixel_noise: float = option(
+        0.25, "the dot detector's centre error per image coordinate, px (one standard deviation): sets each "
+        "bundle's covariance, written as the bundles file's cov_* columns (cm^2, head frame); the default was "
+        "measured on lgi synth --hmc footage (default %(default)s)", group="tracking", metavar="PX", units="px")
 
     def __post_init__(self) -> None:
         from lgi.units import check_units

@@ -23,17 +23,20 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from lgi.errors import InputError
 from lgi.io.atomic import reads
 from lgi.jobs import options_from_dict
+from lgi.options import Subset, declared, option
 from lgi.units import MM_PER_CM
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 log = logging.getLogger(__name__)
 
@@ -50,41 +53,40 @@ JSON_ONLY = ("transform_cm", "vertices_sha256")
 LOW_COVERAGE = 0.1
 
 
+@declared
 @dataclass(frozen=True)
 class CompareOptions:
-    """Options of ``lgi compare`` (see its ``--help``).
+    """Options of ``lgi compare`` (:mod:`lgi.options`); ``frames`` are ``meshes.npz``'s frame numbers, paired
+    with ``scans`` in order, or given with their scans in the ``pairs`` CSV."""
 
-    Attributes
-    ----------
-    frames : tuple of int
-        Frame numbers (``meshes.npz``'s ``frames``), paired with ``scans`` in order.
-    scans : tuple of str
-        Scan files (.obj, .ply, .stl, .off).
-    pairs : str or None
-        A CSV with columns ``frame, scan`` (relative scan paths are relative to the CSV's folder), instead of
-        ``frames``/``scans``.
-    index : str or None
-        The index (or dataset) directory the shot was reconstructed with: the triangles.
-    align : "none" or "rigid"
-    region : str
-        See the module docstring.
-    gate_mm : float, mm
-        Closest points farther than this count as not covered / outside.
-    units : str
-        Units of the scan files (converted to cm).
-    out : str or None
-        Folder for the tables and heat maps (none: print only).
-    """
-
-    frames: tuple[int, ...] = field(default_factory=tuple)
-    scans: tuple[str, ...] = field(default_factory=tuple)
-    pairs: str | None = None
-    index: str | None = None
-    align: str = "none"
-    region: str = "all"
-    gate_mm: float = 10.0
-    units: str = "cm"
-    out: str | None = None
+    frames: tuple[int, ...] = option(
+        (), "a frame number of the reconstruction; repeat, one per --scan, in the same order (default: none; give "
+        "pairs this way or with --pairs)", group="inputs", metavar="F", parse=int, append=True, name="--frame")
+    scans: tuple[str, ...] = option(
+        (), "a scan of that frame's moment (.obj, .ply, .stl or .off; in --units); repeat, one per --frame "
+        "(default: none)", group="inputs", metavar="SCAN", append=True, name="--scan")
+    pairs: str | None = option(
+        None, "instead of --frame/--scan: a CSV with columns frame, scan (paths relative to the CSV's folder) "
+        "(default: none)", group="inputs", metavar="CSV")
+    index: str | None = option(
+        None, "the index (or dataset) the shot was reconstructed with: the mesh's triangles (default: "
+        "RECON_DIR/obj/frame_NNNNN.obj, written by lgi reconstruct --obj)", group="inputs", metavar="INDEX_DIR")
+    align: str = option(
+        "none", "rigid: first move the scan onto the reconstruction by ICP over the covered region, and report "
+        "the transform; none: compare as given (default %(default)s)", group="method", choices=("none", "rigid"))
+    region: str = option(
+        "all", "vertices to measure: all, face (the face area), marked (what the markers constrain; needs "
+        "--index), lips (the synthetic actor and ICT), FIRST:LAST (0-based vertex indices, inclusive) or a vertex "
+        "index file (JSON list, text or .npy) (default %(default)s)", group="method", metavar="REGION")
+    gate_mm: float = option(
+        10.0, "closest points farther than this, mm, count as not covered (reconstruction) or outside (scan) "
+        "(default %(default)s)", group="method", metavar="MM", name="--gate", units="mm")
+    units: str = option(
+        "cm", "units of the scan files, converted to cm like the reconstruction (default %(default)s)",
+        group="inputs", choices=("mm", "cm", "m", "in"))
+    out: str | None = option(
+        None, "also write summary.csv/.json, per-vertex distances (Parquet) and heat maps (PNG) here (default: "
+        "print only)", group="outputs", metavar="DIR")
 
     def __post_init__(self) -> None:
         from lgi.units import check_units
@@ -277,6 +279,8 @@ def heatmap_names(pairs: list[tuple[int, Path]]) -> list[str]:
 def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
     """``lgi compare``: each (frame, scan) pair measured; with ``options.out``, the tables and heat maps written
     there (all at the end, atomically: nothing on failure). Returns the summary (:func:`compare_report`)."""
+    import pandas as pd
+
     from lgi.evaluation.compare import compare_frame, frame_fingerprint, read_scan, rotation_deg, stats_mm
     from lgi.io.npz import load_meshes
 
@@ -363,6 +367,8 @@ def compare(recon_dir: str | Path, options: CompareOptions) -> dict[str, Any]:
 
 def _write(out: str | Path, rows: list[dict[str, Any]], vertex_tables: list[pd.DataFrame],
            scan_tables: list[pd.DataFrame], pictures: list, triangles: np.ndarray) -> None:
+    import pandas as pd
+
     from lgi.evaluation.render import heatmap_row
     from lgi.io.atomic import job_outputs
 
@@ -400,15 +406,18 @@ def compare_report(s: dict[str, Any]) -> list[str]:
     return lines
 
 
-def shot_scan_options(scans: str | list | None, index_dir: str, out: str, units: str = "cm", align: str = "none",
-                      region: str = "all", gate: float = 10.0) -> CompareOptions | None:
+#: The comparison options a reconstruction with scans takes (``lgi reconstruct --scan-gate``, the flow's
+#: ``scan_gate``, for ``lgi compare --gate``).
+SHOT_SCAN_OPTIONS = Subset(CompareOptions, "scan_", ("units", "align", "region", "gate_mm"), "with --scans: ")
+
+
+def shot_scan_options(scans: str | list | None, index_dir: str, out: str, **scan: Any) -> CompareOptions | None:
     """The compare job's options for a reconstruction's ``scans`` (a pairs CSV, or ``[frame, scan]`` pairs),
-    writing into ``out/compare`` (``lgi reconstruct --scans`` and the reconstruct-shot flow's ``scans``); None
-    without scans."""
+    writing into ``out/compare`` (``lgi reconstruct --scans`` and the reconstruct-shot flow's ``scans``), with
+    the options ``scan`` of :data:`SHOT_SCAN_OPTIONS` (by field name); None without scans."""
     if scans is None or (isinstance(scans, (list, tuple)) and not scans):
         return None
-    common = dict(index=index_dir, align=align, region=region, gate_mm=gate, units=units,
-                  out=str(Path(out) / IN_SHOT))
+    common = dict(index=index_dir, out=str(Path(out) / IN_SHOT), **scan)
     if isinstance(scans, (str, Path)):
         return CompareOptions(pairs=str(scans), **common)
     try:

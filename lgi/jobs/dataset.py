@@ -6,8 +6,10 @@ these functions with the same options objects, so the flow's dataset is the comm
 
 from __future__ import annotations
 
+import argparse
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -16,39 +18,29 @@ import numpy as np
 
 from lgi.errors import InputError
 from lgi.jobs import options_from_dict
+from lgi.options import declared, option
 
 
 # --------------------------------------------------------------------------------------------- import
+@declared
 @dataclass(frozen=True)
 class ImportOptions:
-    """Options of ``lgi import`` (see its ``--help``).
+    """Options of ``lgi import`` and the rebuild-dataset flow (:mod:`lgi.options`)."""
 
-    Attributes
-    ----------
-    neutral : str or None
-        File stem of the neutral (default: the one file named ``*neutral*``).
-    include : str or None
-        Shell patterns (comma-separated) on file stems: besides the neutral, only the shapes matching one are
-        read (None: all).
-    exclude : str or None
-        Shell patterns (comma-separated) on file stems: the shapes matching one are left out.
-    rigid_vertices : str or None
-        Vertex index file of the skull, "auto" or "none" (stabilisation).
-    units : "mm", "cm", "m" or "in"
-        Units of the files; positions are converted to cm (the library's unit) on import.
-    deltas : bool
-        Shape files hold displacements.
-    identity : str or None
-        ``NAME=W,...``: identity modes (``identity*.obj``) blended into the neutral.
-    """
-
-    neutral: str | None = None
-    include: str | None = None
-    exclude: str | None = None
-    rigid_vertices: str | None = "auto"
-    units: str = "cm"
-    deltas: bool = False
-    identity: str | None = None
+    neutral: str | None = option(None, "file stem of the neutral (default: the file named *neutral*)",
+                                 group="inputs", metavar="NAME")
+    include: str | None = option(None, "shell patterns of shapes to import, comma-separated (default: all)",
+                                 group="inputs", metavar="PATTERN")
+    exclude: str | None = option(None, "shell patterns of shapes to leave out, comma-separated (default: none)",
+                                 group="inputs", metavar="PATTERN")
+    rigid_vertices: str | None = option(
+        "auto", "vertex indices that move with the skull (JSON, text or .npy file), 'auto' to find them, 'none' to "
+        "skip stabilisation (default %(default)s)", group="method", metavar="FILE|auto|none")
+    units: str = option("cm", "length unit of the files' coordinates (default %(default)s)", group="inputs",
+                        choices=("mm", "cm", "m", "in"))
+    deltas: bool = option(False, "shape files hold displacements, not full meshes", group="inputs")
+    identity: str | None = option(None, "blend identity modes (identity*.obj) into the neutral with these weights",
+                                  group="inputs", metavar="NAME=W,...")
 
     def __post_init__(self) -> None:
         from lgi.units import check_units
@@ -196,44 +188,44 @@ def import_report(s: dict[str, Any]) -> list[str]:
 
 
 # -------------------------------------------------------------------------------------------- augment
+def _numbers(kind: type) -> Callable[[str], tuple]:
+    """An argparse type: comma-separated numbers of ``kind`` as a tuple."""
+    def parse(text: str) -> tuple:
+        try:
+            return tuple(kind(v) for v in text.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"comma-separated numbers expected, not {text!r}") from None
+    parse.__name__ = f"{kind.__name__} list"
+    return parse
+
+
+@declared
 @dataclass(frozen=True)
 class AugmentOptions:
-    """Options of ``lgi augment`` (see its ``--help``); ``levels`` and ``orders`` as tuples (lists accepted).
-    As a flow parameter (a JSON object), unknown keys are refused.
-
-    Attributes
-    ----------
-    linear, simulate : bool
-        Linear blends and/or simulated in-betweens of the same combinations.
-    budget : int
-        Combinations to add at most, per method.
-    levels : tuple of float
-        Weights a source shape may take, in (0, 1].
-    orders : tuple of int
-        Sources per combination (2 or 3).
-    seed : int
-    include : str or None
-        Shell patterns of the source shapes.
-    requires : str or None
-        ``SHAPE=PARTNER,...``: shapes that appear only with a partner (None: mouthClose=jawOpen).
-    thickness : float, cm
-        Flesh thickness of the simulation.
-    iterations : int
-        Solver iterations of the simulation.
-    """
+    """Options of ``lgi augment`` (:mod:`lgi.options`); ``levels`` and ``orders`` as tuples (lists accepted).
+    As a flow parameter (a JSON object), unknown keys are refused."""
 
     __pydantic_config__ = {"extra": "forbid"}  # flow parameters: a misspelt key is an error, not ignored
 
-    linear: bool = False
-    simulate: bool = False
-    budget: int = 200
-    levels: tuple[float, ...] = (0.25, 0.5, 0.75, 1.0)
-    orders: tuple[int, ...] = (2, 3)
-    seed: int = 0
-    include: str | None = None
-    requires: str | None = None
-    thickness: float = 0.8
-    iterations: int = 60
+    linear: bool = option(False, "linear combinations of dataset shapes", group="method")
+    simulate: bool = option(
+        False, "physically simulated in-betweens (volumetric flesh, volume kept, lips kept apart)", group="method")
+    budget: int = option(200, "combinations to add at most, per method (default %(default)s)", group="combinations",
+                         metavar="N")
+    levels: tuple[float, ...] = option((0.25, 0.5, 0.75, 1.0), "weights a source may take (default %(default)s)",
+                                       group="combinations", metavar="W,...", parse=_numbers(float))
+    orders: tuple[int, ...] = option((2, 3), "sources per combination (default %(default)s)", group="combinations",
+                                     metavar="K,...", parse=_numbers(int))
+    seed: int = option(0, "seed of the choice within the budget (default %(default)s)", group="combinations",
+                       metavar="S")
+    include: str | None = option(None, "only these source shapes (default: all)", group="combinations",
+                                 metavar="PATTERN")
+    requires: str | None = option(None, "shapes that appear only with a partner (default mouthClose=jawOpen)",
+                                  group="combinations", metavar="SHAPE=PARTNER,...")
+    thickness: float = option(0.8, "with --simulate: flesh thickness in dataset units, cm (default %(default)s)",
+                              group="method", metavar="D", units="cm")
+    iterations: int = option(60, "with --simulate: solver iterations (default %(default)s)", group="method",
+                             metavar="N")
 
     def __post_init__(self) -> None:
         try:
@@ -264,13 +256,6 @@ class AugmentOptions:
         if not all("=" in p for p in pairs):
             raise InputError(f"--requires takes SHAPE=PARTNER,..., not {self.requires!r}")
         return dict(p.split("=", 1) for p in pairs)
-
-    @staticmethod
-    def parse_list(text: str, kind: type, flag: str) -> tuple:
-        try:
-            return tuple(kind(v) for v in text.split(","))
-        except ValueError:
-            raise InputError(f"{flag}: comma-separated numbers expected, not {text!r}") from None
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)

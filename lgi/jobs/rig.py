@@ -10,18 +10,23 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
+from lgi.options import REQUIRED, declared, option
 from lgi.units import MM_PER_CM
 
 
+@declared
 @dataclass(frozen=True)
 class RigOptions:
-    """Options of ``lgi rig``: ``jaw_vertices`` (``FIRST:LAST`` inclusive, or an index file) moving rigidly
-    with the jaw, and ``shapes``, the shell pattern of the jaw shapes."""
+    """Options of ``lgi rig`` (:mod:`lgi.options`)."""
 
     __pydantic_config__ = {"extra": "forbid"}  # as a flow parameter: a misspelt key is an error
 
-    jaw_vertices: str
-    shapes: str = "jaw*"
+    jaw_vertices: str = option(
+        REQUIRED, "vertices moving rigidly with the jaw: an inclusive range, or an index file (JSON list, text, or "
+        ".npy of integers)", metavar="FIRST:LAST|FILE")
+    shapes: str = option(
+        "jaw*", "the jaw shapes; the hinge is fitted from the openings among them (the jaw vertices rotate about the "
+        "lateral x axis), the others only get their jaw parameters (default %(default)s)", metavar="PATTERN")
 
     def vertex_indices(self, n_vertices: int) -> np.ndarray:
         """(J,) int64 jaw vertices, checked against the mesh."""

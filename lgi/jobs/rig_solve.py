@@ -34,7 +34,7 @@ import numpy as np
 
 from lgi.errors import InputError
 from lgi.io.atomic import reads
-from lgi.retarget.solve import JAW_CURVES, load_rig, playback  # noqa: F401 - the job's names for its callers
+from lgi.options import declared, option
 
 log = logging.getLogger(__name__)
 
@@ -43,34 +43,31 @@ JAW_MODES = ("fit", "fixed")
 FORMATS = ("csv", "parquet")
 
 
+@declared
 @dataclass(frozen=True)
 class RigSolveOptions:
-    """Options of ``lgi rig-solve``.
+    """Options of ``lgi rig-solve`` (:mod:`lgi.options`)."""
 
-    Attributes
-    ----------
-    smooth : float
-        Temporal regularisation: the period in frames whose wiggles the curves' second-difference penalty
-        halves (a zero-phase low-pass, :mod:`lgi.retarget.solve`); 0 fits each frame on its own.
-    vertices : int
-        Face-region vertices fitted (an even random subsample when the region has more; 0: all of them).
-    robust : float
-        Huber threshold in multiples of each frame's median vertex residual (0: plain least squares).
-    fps : float
-        Time codes per second of the USD animation.
-    jaw : {"fit", "fixed"}
-        With a rig that has a jaw joint: fit the jaw parameters with the weights, started from the
-        reconstruction's (``meshes.npz`` ``jaw``), or hold them at the reconstruction's.
-    format : {"csv", "parquet"}
-        The curves' file: ``curves.csv`` or ``curves.parquet`` (the same columns).
-    """
-
-    smooth: float = 4.0
-    vertices: int = 4000
-    robust: float = 3.0
-    fps: float = 30.0
-    jaw: str = "fit"
-    format: str = "csv"
+    smooth: float = option(
+        4.0, "temporal regularisation: the period in frames whose wiggles the curves' penalty halves (zero-phase, "
+        "so no lag; default %(default)s; 0: each frame fitted on its own)", group="method", metavar="FRAMES",
+        units="frames")
+    vertices: int = option(
+        4000, "face vertices fitted per frame, an even subsample (default %(default)s; 0: every vertex the rig "
+        "moves)", group="method", metavar="N")
+    robust: float = option(
+        3.0, "Huber threshold in multiples of each frame's median vertex residual (default %(default)s; 0: plain "
+        "least squares)", group="method", metavar="TIMES")
+    fps: float = option(30.0, "time codes per second of the USD animation (default %(default)s)", group="outputs",
+                        metavar="F")
+    jaw: str = option(
+        "fit", "for a rig with a jaw joint: fit the jaw's rotation and slide (degrees, cm) per frame with the "
+        "weights, started from the reconstruction's jaw, or hold them at the reconstruction's (default "
+        "%(default)s)", group="method", choices=JAW_MODES)
+    format: str = option(
+        "csv", "the curves' file: curves.csv or curves.parquet, columns frame, control, value (weights in [0, 1]; "
+        "the jaw joint's jaw_open_deg, jaw_yaw_deg, jaw_roll_deg in degrees and jaw_forward_cm in cm; default "
+        "%(default)s)", group="outputs", choices=FORMATS)
 
     def __post_init__(self) -> None:
         if not isinstance(self.smooth, (int, float)) or not math.isfinite(self.smooth) or \
@@ -115,7 +112,7 @@ def rig_solve(recon_dir: str | Path, rig_dir: str | Path, out: str | Path, optio
     from lgi.io.atomic import check_contents, check_distinct, check_not_in_store, check_output, files_in, job_outputs
     from lgi.io.npz import load_meshes
     from lgi.progress import progress
-    from lgi.retarget.solve import RigSolver, solve_shot
+    from lgi.retarget.solve import JAW_CURVES, RigSolver, load_rig, solve_shot
 
     o = options or RigSolveOptions()
     src = Path(recon_dir) / "meshes.npz"
@@ -288,6 +285,7 @@ def _residuals(rig, curves: np.ndarray, meshes, idx: np.ndarray, n_vertices: int
     v_rms, v_max : (V,) float32, mm: each vertex's over the shot (0 outside the region)
     p95 : float, mm: the 95th percentile of every frame's and vertex's distance
     """
+    from lgi.retarget.solve import playback
     from lgi.solve.streamed import frame_blocks, streamed_percentile
 
     n_f = len(curves)
@@ -332,6 +330,8 @@ def _recon_jaw(z, n_frames: int, path: Path) -> np.ndarray | None:
 
 def _jaw_summary(rig, curves: np.ndarray, jaw_in: np.ndarray | None, mode: str) -> dict[str, Any] | None:
     """The jaw joint's part of solve.json: how it was solved and how far from the reconstruction's jaw."""
+    from lgi.retarget.solve import JAW_CURVES
+
     if rig.jaw is None:
         return None
     k = rig.n_controls
@@ -360,3 +360,16 @@ def rig_solve_report(s: dict[str, Any]) -> list[str]:
                    f", {s['jaw']['from_reconstruction_rms']['jaw_open_deg']:.3f} deg RMS from the reconstruction's")]),
             f"outputs: {s['out']}" + (f"  usd: {s['usd']}" if s["usd"] else "")
             + (f"  Blender: run {s['blender_script']}" if s.get("blender_script") else "")]
+
+
+#: The rig's names this job gives its callers, loaded on first use (the command line imports this module for its
+#: options, and lgi.retarget.solve would add a quarter of a second to every lgi --help).
+_RIG_NAMES = ("JAW_CURVES", "load_rig", "playback")
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _RIG_NAMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import lgi.retarget.solve
+
+    return getattr(lgi.retarget.solve, name)

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from lgi.errors import InputError
+from lgi.options import declared, option, same_as
 from lgi.units import MM_PER_CM
 
 #: What ``lgi synth`` writes into its output directory (an earlier run's ``hmc/`` goes when --hmc is not given).
@@ -44,26 +45,46 @@ def parse_size(text: str) -> tuple[int, int]:
 _HMC_ONLY = ("lens", "image_size", "dot_noise", "board_views", "rig_flex", "contour_noise", "slip")
 
 
+@declared
 @dataclass(frozen=True)
 class SynthOptions:
-    """Options of ``lgi synth`` (see its ``--help``): mesh size, performance length and seed, and with ``hmc``
-    the head-mounted camera footage's lens, image size, dot noise (px), board views, rig flex (deg), the pixel
-    noise of the lip contours it traces (px) and how the helmet slips on the head (``smooth`` or ``jolts``);
-    ``template``: also the template rig of :func:`lgi.synthetic.actor.template_dataset`."""
+    """Options of ``lgi synth`` (:mod:`lgi.options`)."""
 
-    vertices: int = 20000
-    frames: int = 240
-    seed: int = 0
-    hmc: bool = False
-    lens: str = "fisheye"
-    image_size: str = "1280x1024"
-    dot_noise: float = 0.3
-    board_views: int = 15
-    rig_flex: float = 0.0
-    contour_noise: float = 0.0
-    actor: int = 0
-    slip: str = "smooth"
-    template: bool = False
+    vertices: int = option(20000, "at least this many mesh vertices (default %(default)s)",
+                           group="actor and performance", metavar="N")
+    frames: int = option(240, "performance length, frames (default %(default)s)", group="actor and performance",
+                         metavar="F", units="frames")
+    seed: int = option(0, "performance seed (default %(default)s)", group="actor and performance", metavar="S")
+    hmc: bool = option(
+        False, "also render head-mounted camera footage into DIR/hmc (frames, board views, true cameras, "
+        "lip_contours.csv)", group="head-mounted camera footage")
+    lens: str = option("fisheye", "with --hmc: lens model (default %(default)s)", group="head-mounted camera footage",
+                       choices=("fisheye", "pinhole"))
+    image_size: str = option("1280x1024", "with --hmc: image size, px (default %(default)s)",
+                             group="head-mounted camera footage", metavar="WxH")
+    dot_noise: float = option(
+        0.3, "with --hmc: random offset of each painted dot per camera and frame, px (default %(default)s)",
+        group="head-mounted camera footage", metavar="PX", units="px")
+    board_views: int = option(15, "with --hmc: calibration board views (default %(default)s)",
+                              group="head-mounted camera footage", metavar="N")
+    rig_flex: float = option(
+        0.0, "with --hmc: turn camera 1 by this angle during the shot, after calibration, deg (default %(default)s; "
+        "see lgi track --helmet)", group="head-mounted camera footage", metavar="DEG", units="deg")
+    contour_noise: float = option(
+        0.0, "with --hmc: Gaussian noise of the true lip contours in DIR/hmc/lip_contours.csv, px (default "
+        "%(default)s)", group="head-mounted camera footage", metavar="PX", units="px")
+    actor: int = option(
+        0, "another actor: proportions and expression details drawn from SEED, same mesh topology (default "
+        "%(default)s: the default actor)", group="actor and performance", metavar="SEED")
+    slip: str = option(
+        "smooth", "with --hmc: how the helmet moves on the head during the shot: smooth (a slow drift of up to 1 deg "
+        "and 1.5 mm) or jolts (that drift plus sudden shifts of 0.5-1.5 deg and 1-3 mm over 1-3 frames, each then "
+        "held, and a vibration of about 0.02 deg / 0.03 mm) (default %(default)s)",
+        group="head-mounted camera footage", choices=("smooth", "jolts"))
+    template: bool = option(
+        False, "also write DIR/template: a template rig for lgi rig-generate on this mesh, the default actor's 13 "
+        "named controls and its combination shapes (a+b, the pairs that are not the sum of their parts: up to 24)",
+        group="actor and performance")
 
     def __post_init__(self) -> None:
         for name, least, most in (("vertices", 1, 2_000_000), ("frames", 1, 1_000_000), ("seed", 0, 2**32 - 1),
@@ -171,13 +192,14 @@ def synth_report(r: dict[str, Any], options: SynthOptions) -> list[str]:
                 + ", ".join(f"{k} {100 * v:.1f} %" for k, v in r["lip_contour_visible"].items())])]
 
 
+@declared
 @dataclass(frozen=True)
 class DemoOptions:
-    """Options of ``lgi demo``: the synthetic actor's size, performance length and seed."""
+    """Options of ``lgi demo`` (:mod:`lgi.options`): those of ``lgi synth``'s actor and performance."""
 
-    vertices: int = 20000
-    frames: int = 240
-    seed: int = 0
+    vertices: int = same_as(SynthOptions, "vertices")
+    frames: int = same_as(SynthOptions, "frames")
+    seed: int = same_as(SynthOptions, "seed")
 
     def __post_init__(self) -> None:
         SynthOptions(vertices=self.vertices, frames=self.frames, seed=self.seed)

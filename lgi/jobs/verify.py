@@ -6,22 +6,28 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import pandas as pd
 
 from lgi.errors import InputError
+from lgi.jobs.reconstruct.options import ReconstructOptions
+from lgi.options import declared, option, same_as
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 
+@declared
 @dataclass(frozen=True)
 class VerifyOptions:
-    """Options of ``lgi verify``: RMS ``tolerance`` (mm) over the marked region, the ``shapes`` to check (shell
-    patterns; None: all), the solver's ``spatial_weight`` (mm)."""
+    """Options of ``lgi verify`` (:mod:`lgi.options`)."""
 
-    tolerance: float = 0.01
-    shapes: str | None = None
-    spatial_weight: float = 1e-3
+    tolerance: float = option(0.01, "RMS tolerance over the marked region, mm (default %(default)s)", group="check",
+                              metavar="MM", units="mm")
+    shapes: str | None = option(None, "only shapes matching these shell patterns (default: all)", group="inputs",
+                                metavar="PATTERN")
+    spatial_weight: float = same_as(ReconstructOptions, "spatial_weight", group="check")
 
     def __post_init__(self) -> None:
         for name in ("tolerance", "spatial_weight"):

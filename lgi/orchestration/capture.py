@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 from prefect import flow, get_run_logger, task
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
@@ -31,6 +32,9 @@ from prefect.cache_policies import NO_CACHE
 from prefect.states import Completed
 
 from lgi.jobs.capture import CalibrateOptions
+from lgi.jobs.compare import SHOT_SCAN_OPTIONS, CompareOptions
+from lgi.jobs.reconstruct.options import ReconstructOptions
+from lgi.options import Subset, flow_parameters, params, take
 from lgi.orchestration import artifact_key, capture_library_logs, transient_only
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
@@ -142,8 +146,15 @@ def rig_review(row: dict, summary: dict, index_dir: str, fps: float, logger) -> 
                        type(exc).__name__, exc)
 
 
+#: The reconstruct options a capture session passes to each shot's reconstruction.
+SESSION_SHOT_OPTIONS = Subset(ReconstructOptions, only=("smooth", "fps", "chunk_size"))
+#: The one scan option a session takes (its scans CSV gives the rest per shot).
+SHOT_SCAN_UNITS = Subset(CompareOptions, SHOT_SCAN_OPTIONS.prefix, ("units",))
+
+
 @flow(name="capture-session")
 @described(
+    SESSION_SHOT_OPTIONS, SHOT_SCAN_UNITS,
     calibration_images="Folder of stereo board images (left*/right* or cam0/ and cam1/), as lgi calibrate reads.",
     board="Board spec for lgi calibrate, e.g. chessboard:9x6:25 or charuco:7x5:30:22:DICT_5X5_100 (mm).",
     shots="A folder whose subfolders are the shots (each with cam0/ and cam1/ frames), or a list of shot folders.",
@@ -154,10 +165,7 @@ def rig_review(row: dict, summary: dict, index_dir: str, fps: float, logger) -> 
     rational="Calibrate with OpenCV's rational pinhole model.",
     helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot.",
     usd="Write each shot's shot.usdc.",
-    fps="USD time codes per second.",
     exr_size="Also write EXR displacement maps of this many texels square per frame (null: none).",
-    smooth="Moving average of each bundle's shape weights over this many frames (1 = none).",
-    chunk_size="Frames per reconstruction task (the results do not depend on it).",
     dask_address="Run the reconstruction chunks on Dask (see reconstruct-shot); null: threads.",
     rig="The actor's rig dataset (lgi rig-generate): each shot is also solved onto it (lgi rig-solve; a failed "
         "solve is reported in rig_status and rig_error, the shot stays reconstructed); null: none.",
@@ -165,8 +173,8 @@ def rig_review(row: dict, summary: dict, index_dir: str, fps: float, logger) -> 
     scans="A CSV of scans to compare shots with (columns shot, frame, scan; scan paths relative to the CSV): each "
           "shot's pairs go to its reconstruct-shot run (shots/<shot>/recon/compare, and its review page); a scan "
           "that fails is reported in the session's table (column scans); null: none.",
-    scan_units="Units of the scan files (mm, cm, m, in).",
 )
+@flow_parameters(SESSION_SHOT_OPTIONS, SHOT_SCAN_UNITS, after=6)
 def capture_session(
     calibration_images: str,
     board: str,
@@ -178,19 +186,19 @@ def capture_session(
     rational: bool = False,
     helmet: str | None = None,
     usd: bool = True,
-    fps: float = 30.0,
     exr_size: int | None = None,
-    smooth: int = 1,
-    chunk_size: int = 60,
     dask_address: str | None = None,
     rig: str | None = None,
     rig_usd: str | None = None,
     scans: str | None = None,
-    scan_units: str = "cm",
+    **options: Any,
 ) -> dict:
     """Calibrate once, then track, reconstruct and export every shot; returns the session summary (``shots``:
     per shot its status, frames, outputs, or the error)."""
     capture_library_logs()
+    shot_options = take(SESSION_SHOT_OPTIONS, options)  # by field name, for each shot's reconstruct-shot run
+    fps = shot_options["fps"]
+    scan = params(SHOT_SCAN_OPTIONS, take(SHOT_SCAN_UNITS, options))
     at = run_paths()  # a deployment run's relative paths go under the data root, never the worker's cwd
     calibration_images, index_dir = at(calibration_images, "calibration_images"), at(index_dir, "index_dir")
     markers, out, helmet = at(markers, "markers"), at(out, "out", output=True), at(helmet, "helmet")
@@ -220,10 +228,10 @@ def capture_session(
         shot_dir = out_dir / "shots" / folder.name
         row: dict = {"shot": folder.name, "status": "failed", "frames": 0, "error": "", "review": "",
                      "rig_status": "" if rig is None else "not run", "rig_error": ""}
-        state = reconstruct_shot(index_dir, str(shot_dir / "bundles.csv"), str(shot_dir / "recon"), smooth=smooth,
-                                 usd=usd, fps=fps, chunk_size=chunk_size, footage=str(folder), calib=calib,
+        state = reconstruct_shot(index_dir, str(shot_dir / "bundles.csv"), str(shot_dir / "recon"), **shot_options,
+                                 usd=usd, footage=str(folder), calib=calib,
                                  markers=markers, helmet=helmet, dask_address=dask_address,
-                                 scans=shot_scans.get(folder.name), scan_units=scan_units, return_state=True)
+                                 scans=shot_scans.get(folder.name), **scan, return_state=True)
         try:
             summary = state.result()
             row.update(status="done", frames=summary["frames"], recon=summary["out"], review=summary.get("review", ""))

@@ -9,7 +9,7 @@ import re
 from collections.abc import Callable
 from typing import Any, TypeVar
 
-from lgi.options import option_help
+from lgi.options import Subset, option_help
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -20,6 +20,8 @@ def option_docs(cls: type) -> dict[str, str]:
     """Field name -> description: the options declared with :func:`lgi.options.option` (their help), and the
     rest from a numpy-style ``Parameters``/``Attributes`` section of ``cls``'s docstring (an entry ``a, b : type``
     describes both)."""
+    if isinstance(cls, Subset):
+        return {k: v.strip(" .") + "." for k, v in option_help(cls).items()}
     docs: dict[str, str] = {}
     current: list[str] = []
     for line in (cls.__doc__ or "").splitlines():

@@ -12,8 +12,9 @@ import functools
 import json
 import re
 import shutil
-from dataclasses import asdict, fields, replace
+from dataclasses import asdict, replace
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 from prefect import flow, get_run_logger, task
@@ -28,6 +29,7 @@ from lgi.jobs import rebuild
 from lgi.jobs.dataset import REBUILD_OUTPUTS, AugmentOptions, ImportOptions, check_rebuild
 from lgi.jobs.rig import RigOptions
 from lgi.jobs.verify import VerifyOptions
+from lgi.options import Subset, flow_parameters, take
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png, transient_only
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
@@ -122,8 +124,13 @@ def publish(src: str, dest: str, kind: str) -> str:
     return str(rebuild.publish(Path(src), dest, kind))
 
 
+#: The verification options the rebuild takes: ``tolerance`` and ``verify_shapes``.
+REBUILD_VERIFY = (Subset(VerifyOptions, only=("tolerance",), help_prefix="verification: "),
+                  Subset(VerifyOptions, "verify_", ("shapes",), "verification: "))
+
+
 @flow(name="rebuild-dataset")
-@described(ImportOptions, shapes_dir="Folder of OBJ shapes (the neutral and one file per expression).",
+@described(ImportOptions, *REBUILD_VERIFY, shapes_dir="Folder of OBJ shapes (the neutral and one file per expression).",
            out="Output folder: dataset/, and with markers index/ and verification/ (dataset_augmented/ with "
                "augmentation); the stage cache in out/.cache unless cache_dir is given.",
            markers="Marker layout CSV: also build the index and verify it (lgi build, lgi verify).",
@@ -131,29 +138,20 @@ def publish(src: str, dest: str, kind: str) -> str:
            jaw_rig="Jaw rig npz (lgi rig): the shapes are unskinned before indexing.",
            rig="Fit the jaw rig here instead (a cached stage, published as rig/): the options of lgi rig, e.g. "
                '{"jaw_vertices": "jaw_vertices.txt", "shapes": "jaw*"}; excludes jaw_rig.',
-           tolerance="Verification: RMS error (mm) over the marked region above which a shape fails.",
-           verify_shapes="Verification: shell patterns of the shapes to check (null: all).",
            cache_dir="Stage cache folder (default out/.cache); lgi cache ls / prune list and trim it.",
            augmentation="In-betweens before indexing, the options of lgi augment as an object, e.g. "
                         '{"simulate": true, "budget": 100} (unknown keys refused; null: none).')
+@flow_parameters(ImportOptions, *REBUILD_VERIFY, after=2)
 def rebuild_dataset(
     shapes_dir: str,
     out: str,
-    neutral: str | None = None,
-    include: str | None = None,
-    exclude: str | None = None,
-    rigid_vertices: str | None = "auto",
-    units: str = "cm",
-    deltas: bool = False,
-    identity: str | None = None,
     markers: str | None = None,
     index_options: dict | None = None,
     jaw_rig: str | None = None,
     rig: RigOptions | None = None,
-    tolerance: float = 0.01,
-    verify_shapes: str | None = None,
     cache_dir: str | None = None,
     augmentation: AugmentOptions | None = None,
+    **options: Any,
 ) -> dict:
     """Build ``OUT/dataset`` and, with ``markers``, ``OUT/index`` and ``OUT/verification/``.
 
@@ -169,18 +167,17 @@ def rebuild_dataset(
     capture_library_logs()
     at = run_paths()  # a deployment run's relative paths go under the data root, never the worker's cwd
     shapes_dir, out, markers = at(shapes_dir, "shapes_dir"), at(out, "out", output=True), at(markers, "markers")
-    rigid_vertices = at(rigid_vertices, "rigid_vertices", ("auto", "none"))
+    options["rigid_vertices"] = at(options.get("rigid_vertices", "auto"), "rigid_vertices", ("auto", "none"))
     jaw_rig, cache_dir = at(jaw_rig, "jaw_rig"), at(cache_dir, "cache_dir", output=True)
     if rig is not None:
         rig = rig if isinstance(rig, RigOptions) else RigOptions(**rig)
         if not re.fullmatch(r"\s*\d+\s*:\s*\d+\s*", rig.jaw_vertices):  # an index file, not FIRST:LAST
             rig = replace(rig, jaw_vertices=at(rig.jaw_vertices, "rig.jaw_vertices"))
-    params = dict(locals())
-    imp = ImportOptions(**{f.name: params[f.name] for f in fields(ImportOptions)})
+    imp = ImportOptions(**take(ImportOptions, options))
     aug_opts = (augmentation if isinstance(augmentation, AugmentOptions) or augmentation is None
                 else AugmentOptions.from_json(augmentation))
     idx_opts = rebuild.options_from(index_options).to_json() if markers else None
-    ver_opts = VerifyOptions(tolerance=tolerance, shapes=verify_shapes).to_json()
+    ver_opts = VerifyOptions(**{k: v for spec in REBUILD_VERIFY for k, v in take(spec, options).items()}).to_json()
     if rig is not None and jaw_rig:
         raise InputError("give either jaw_rig (a fitted rig) or rig (fit one), not both")
     check_rebuild(shapes_dir, out, imp, markers, jaw_rig, cache_dir)

@@ -28,8 +28,16 @@ from prefect.cache_policies import NO_CACHE
 from lgi.errors import InputError
 from lgi.io.atomic import output_lock
 from lgi.jobs import reconstruct as job
-from lgi.jobs.compare import IN_SHOT, REGIONS, CompareOptions, check_scan_frames, scan_inputs, shot_scan_options
-from lgi.options import flow_parameters
+from lgi.jobs.compare import (
+    IN_SHOT,
+    REGIONS,
+    SHOT_SCAN_OPTIONS,
+    CompareOptions,
+    check_scan_frames,
+    scan_inputs,
+    shot_scan_options,
+)
+from lgi.options import flow_parameters, take
 from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
@@ -115,7 +123,7 @@ def compare_task(recon: str, options: dict) -> dict:
 
 
 @flow(name="reconstruct-shot")
-@described(job.ReconstructOptions, index_dir="LGI index folder (lgi build).",
+@described(job.ReconstructOptions, SHOT_SCAN_OPTIONS, index_dir="LGI index folder (lgi build).",
            bundles="Bundles file (CSV or Parquet: frame, marker, x, y, z in cm, head frame); written first when "
                    "footage is given.",
            out="Output folder: meshes.npz, diagnostics.csv, per_frame.csv (and obj/, shot.usdc, per_frame.png "
@@ -135,12 +143,8 @@ def compare_task(recon: str, options: dict) -> dict:
                  "to OUT/compare, linked in the report and shown on the review page. A scan that does not load or "
                  "covers no part of the face is reported (table artifact, error log, report, page) and the "
                  "reconstruction kept; a missing scan file or frame is refused before any work.",
-           scan_units="Units of the scan files (mm, cm, m, in).",
-           scan_align="rigid: move each scan onto its frame by ICP first; none: compare as given.",
-           scan_region="Vertices to compare (lgi compare --region): all, face, marked, lips, FIRST:LAST or a "
-                       "vertex index file.",
-           scan_gate="Closest points farther than this, mm, count as not covered by the scan.")
-@flow_parameters(job.ReconstructOptions, after=3)
+)
+@flow_parameters(job.ReconstructOptions, SHOT_SCAN_OPTIONS, after=3)
 def reconstruct_shot(
     index_dir: str,
     bundles: str,
@@ -151,10 +155,6 @@ def reconstruct_shot(
     dask_address: str | None = None,
     review: bool = True,
     scans: str | list[tuple[int, str]] | None = None,
-    scan_units: str = "cm",
-    scan_align: str = "none",
-    scan_region: str = "all",
-    scan_gate: float = 10.0,
     **options: Any,
 ) -> dict:
     """Reconstruct a shot into ``out``: the options of ``lgi reconstruct`` (:class:`~lgi.jobs.reconstruct.
@@ -174,16 +174,17 @@ def reconstruct_shot(
     calib, contours = options["calib"], options["contours"]
     if scans is not None:
         scans = at(scans, "scans") if isinstance(scans, str) else [(f, at(s, "scans")) for f, s in scans]
-    if isinstance(scan_region, str) and scan_region.strip() not in REGIONS \
-            and not re.fullmatch(r"\s*\d+\s*:\s*\d+\s*", scan_region):
-        scan_region = at(scan_region, "scan_region")  # a vertex index file
+    scan = take(SHOT_SCAN_OPTIONS, options)
+    region = scan.get("region")
+    if isinstance(region, str) and region.strip() not in REGIONS and not re.fullmatch(r"\s*\d+\s*:\s*\d+\s*", region):
+        scan["region"] = at(region, "scan_region")  # a vertex index file
     if footage and not (calib and markers):
         raise InputError("a shot from footage needs calib and markers")
     if footage and not options["observations"]:
         options["calib"] = None  # it calibrates the tracking; without observations there are no rays to make
     opts = job.ReconstructOptions.from_json(options)
     # Scans are checked before any work (files there, frames in the shot), their loading and coverage after.
-    scan_opts = shot_scan_options(scans, index_dir, out, scan_units, scan_align, scan_region, scan_gate)
+    scan_opts = shot_scan_options(scans, index_dir, out, **scan)
     job.check_outputs(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
                            contours, *scan_inputs(scan_opts)))
     # One run at a time in OUT (lgi reconstruct holds it already; a deployment's run takes it here).
