@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from lgi.io.record import RECORD_FILE
+
 #: JSON members whose values are wall-clock figures or stamps: they change between two runs of one tree.
 VOLATILE_KEYS = frozenset({"seconds", "elapsed", "timings", "timings_s", "created", "time", "started", "finished"})
 
@@ -103,6 +105,10 @@ def digest(path: Path, work: Path) -> str:
     """sha256 of a file: canonical JSON without volatile members for ``.json``, the raw bytes otherwise."""
     if path.suffix == ".json":
         doc = _drop_volatile(json.loads(path.read_text()), str(work.resolve()))
+        if path.name == RECORD_FILE:
+            # Each file's [size, mtime_ns, sha256]: the modification time is the run's, not its output; a JSON
+            # file's size and bytes hold its timings (the file itself is compared without them, above).
+            doc = {**doc, "files": {k: None if k.endswith(".json") else [v[0], v[2]] for k, v in doc["files"].items()}}
         doc = _drop_volatile(doc, str(work))
         data = json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()
     else:
