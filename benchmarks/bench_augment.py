@@ -95,7 +95,7 @@ def effect_table(actor, ds, rig, layout, frames: int, seed: int, budget: int) ->
             with tempfile.TemporaryDirectory() as tmp:
                 index.save(Path(tmp) / "idx", reports)
                 mib = sum(p.stat().st_size for p in (Path(tmp) / "idx").rglob("*") if p.is_file()) / 2**20
-            res = LGISolver(index, temporal_weight=0.02).solve_sequence(bundles)
+            res = LGISolver(index).solve_sequence(bundles)
             e = np.linalg.norm(res.vertices - truth, axis=2) * 10
             print(f"| {label} | {jaw_label} | {np.sqrt(np.mean(e**2)):.4f} | {np.percentile(e, 95):.4f} | "
                   f"{e.max():.2f} | {index.manifest['counts']['simplices']} | {mib:.1f} | {bt:.1f} |")

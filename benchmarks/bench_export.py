@@ -43,7 +43,7 @@ def main() -> None:
     t = np.linspace(0, len(keys) - 1, args.frames)
     w = np.stack([np.interp(t, np.arange(len(keys)), keys[:, k]) for k in range(ds.n_shapes)], 1)
     truth = ds.neutral[None] + np.tensordot(w, np.asarray(ds.deltas, np.float64), axes=1)
-    res = LGISolver(index, temporal_weight=0.02).solve_sequence(layout.evaluate(truth))
+    res = LGISolver(index).solve_sequence(layout.evaluate(truth))
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "ict_perf.usdc"
         t0 = time.perf_counter()

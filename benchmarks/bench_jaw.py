@@ -54,7 +54,7 @@ def main() -> None:
           f"{'frames/s':>10}")
     for label, rig in (("LGI without jaw handling", None), ("LGI with jaw (rig, estimated jaw)", synth.jaw_rig(actor))):
         index, _ = build_index(ds, layout, show_progress=False, jaw_rig=rig)
-        sol = LGISolver(index, temporal_weight=0.02)
+        sol = LGISolver(index)
         t = time.perf_counter()
         prev, out, jaws = None, [], []
         for b in bundles:

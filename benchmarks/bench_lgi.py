@@ -54,7 +54,7 @@ t = time.perf_counter()
 index, _ = build_index(ds, layout, show_progress=False)
 build_s = time.perf_counter() - t
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-sol = LGISolver(index, temporal_weight=0.02)
+sol = LGISolver(index)
 P = index.arrays["ptab"]
 rng = np.random.default_rng(1)
 ks = rng.choice(len(P), (cfg["frames"], 2))
@@ -88,7 +88,7 @@ def synthetic_heldout(frames: int) -> None:
     table = verify_index(index)
     acts = synth.random_performance(frames, seed=1)
     truth = actor.evaluate_many(acts)
-    sol = LGISolver(index, temporal_weight=0.02)
+    sol = LGISolver(index)
     t = time.perf_counter()
     res = sol.solve_sequence(layout.evaluate(truth.astype(np.float64)))
     dt = time.perf_counter() - t

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from common import log, write_marked
 
-from lgi.evaluation.accuracy import LGI_DEFAULTS, build_set_index
+from lgi.evaluation.accuracy import build_set_index
 from lgi.evaluation.baselines import RiggedBlendshapeSolver
 from lgi.evaluation.benchsets import load_sets, tracking_noise
 from lgi.evaluation.metrics import vertex_errors
@@ -57,19 +57,18 @@ def errors(vertices: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> tuple[f
 
 def run_one(bs, index, pos: np.ndarray, axes: np.ndarray) -> dict:
     """The four reconstructions of one noisy shot."""
-    opts = {k: v for k, v in LGI_DEFAULTS.items() if k != "max_gap"}
     row: dict = {}
     t = time.perf_counter()
-    solver = LGISolver(index, **opts)
-    res = solver.solve_sequence(pos, max_gap=LGI_DEFAULTS["max_gap"])
+    solver = LGISolver(index)  # lgi reconstruct's defaults
+    res = solver.solve_sequence(pos)
     row["lgi_s"] = time.perf_counter() - t
     row["lgi"] = errors(res.vertices, bs.truth, bs.mask)
     est = solver.noise_estimate
     row["estimate"] = np.full(3, np.nan) if est is None else est.axis_mm
     row["noise_used"] = solver.noise_axes
-    told_lgi = LGISolver(index, **opts)
+    told_lgi = LGISolver(index)
     told_lgi.set_noise(axes)
-    told_res = told_lgi.solve_sequence(pos, max_gap=LGI_DEFAULTS["max_gap"], noise=None)
+    told_res = told_lgi.solve_sequence(pos, noise=None)
     row["lgi_true"] = errors(told_res.vertices, bs.truth, bs.mask)
     fit = RiggedBlendshapeSolver(index)
     row["fit"] = errors(fit.solve_sequence(pos), bs.truth, bs.mask)

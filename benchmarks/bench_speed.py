@@ -374,16 +374,16 @@ from lgi.threads import one_blas_thread
 index, bundles, out = sys.argv[1:4]
 shot = Shot(index, bundles, ReconstructOptions())  # the same reading, checks, noise estimate and smoothing
 sol = shot.solver
-fit, x0, deltas = sol.global_fit, sol._x0.reshape(-1), sol._deltas_flat
-ones = np.ones(len(sol._x0))
-skin_w = sol._skin_w if sol.rig is not None else None
+fit, x0, deltas = sol.global_fit, sol.neutral.reshape(-1), sol.deltas.reshape(len(sol.deltas), -1)
+ones = np.ones(len(sol.neutral))
+skin_w = sol.skin_weights
 
 
 @one_blas_thread
 def run(pos):
-    verts = np.empty((len(pos), len(sol._x0), 3), np.float32)
+    verts = np.empty((len(pos), len(sol.neutral), 3), np.float32)
     prev = None
-    x = np.empty_like(sol._x0)
+    x = np.empty_like(sol.neutral)
     for f in range(len(pos)):
         prev = fit.solve(pos[f], init=prev)
         nz = np.flatnonzero(prev.weights > 0)

@@ -24,7 +24,7 @@ import numpy as np
 from common import synthetic_set
 from scipy.optimize import lsq_linear
 
-from lgi.evaluation.accuracy import LGI_DEFAULTS, build_set_index
+from lgi.evaluation.accuracy import build_set_index
 from lgi.evaluation.baselines import RiggedBlendshapeSolver
 from lgi.solve.solver import LGISolver
 
@@ -67,8 +67,7 @@ def main() -> None:
     print("fitted to the true surface (true jaw):")
     for k, v in out.items():
         print(f"  {k:15s} {_stats(v)}")
-    lgi_sol = LGISolver(index, temporal_weight=LGI_DEFAULTS["temporal_weight"],
-                        spatial_weight=LGI_DEFAULTS["spatial_weight"])
+    lgi_sol = LGISolver(index)  # lgi reconstruct's defaults
     res = lgi_sol.solve_sequence(bs.bundles, noise="auto")
     rigged = RiggedBlendshapeSolver(index).solve_sequence(bs.bundles)
     print("fitted to the bundles (jaw estimated), the same frames:")

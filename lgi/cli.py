@@ -106,8 +106,8 @@ def _reconstruct_options(args: argparse.Namespace):
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from lgi.jobs.compare import scan_inputs, shot_scan_options
-    from lgi.jobs.reconstruct import report_lines
+    from lgi.jobs.compare import shot_scan_options
+    from lgi.jobs.reconstruct import InProcess, ReconstructJob, report_lines
 
     opts = _reconstruct_options(args)
     if args.dask and not args.flow:
@@ -119,18 +119,17 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if not args.scans and scan != {f.name: f.default for f in scan_flags}:
         logging.getLogger(__name__).warning("%s apply to --scans: ignored without it",
                                             ", ".join(flag_name(f, SHOT_SCAN_OPTIONS.prefix) for f in scan_flags))
-    scan_opts = shot_scan_options(args.scans, args.index_dir, args.out, **scan)
+    job = ReconstructJob(args.index_dir, args.bundles, args.out, opts, shot_scan_options(args.scans, args.index_dir,
+                                                                                         args.out, **scan), args.review)
     if args.review:
-        from lgi.io.atomic import check_output as check_dir
+        from lgi.io.atomic import check_output
         from lgi.jobs.review import REVIEW_ENTRIES
 
-        check_dir(f"{args.out}/review", "dir", owned=REVIEW_ENTRIES, what="lgi review folder")  # before the work
-    inputs = (args.index_dir, args.bundles, opts.jaw, opts.observations, opts.calib, opts.contours,
-              *scan_inputs(scan_opts))
+        check_output(f"{args.out}/review", "dir", owned=REVIEW_ENTRIES, what="lgi review folder")  # before the work
     from lgi.io.atomic import output_lock
 
     with output_lock(args.out):  # one run at a time in OUT: the reconstruction, its scans' comparison, its page
-        summary = _reconstruct_in(args, opts, scan, scan_opts, inputs)
+        summary = _on_flow(args, job, scan) if args.flow else job.run(InProcess(show_progress=not args.quiet))
     report = report_lines
     if opts.method == "blendshape":
         from lgi.jobs.reconstruct.blendshape import blendshape_report as report
@@ -148,60 +147,16 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
-def _reconstruct_in(args: argparse.Namespace, opts, scan: dict, scan_opts, inputs: tuple) -> dict:
-    """``lgi reconstruct``'s work in the output folder it holds: the reconstruction (plain or the flow), the scans'
-    comparison, the review page; returns the summary."""
-    from lgi.jobs import compare as compare_job
-    from lgi.jobs import reconstruct as reconstruct_job
-    from lgi.jobs.compare import IN_SHOT, checked_pairs
-    from lgi.jobs.reconstruct import preflight, reconstruct
+def _on_flow(args: argparse.Namespace, job, scan: dict) -> dict:
+    """``lgi reconstruct --flow``: the job checked here (bad input refused before Prefect starts), then run by the
+    reconstruct-shot flow."""
+    from lgi.jobs.reconstruct import preflight
+    from lgi.orchestration.reconstruct import reconstruct_shot
 
-    if args.flow:
-        reconstruct_job.check_outputs(args.out, inputs)
-        preflight(args.index_dir, args.bundles, opts)  # bad input is refused here, before Prefect starts
-        from lgi.orchestration.reconstruct import reconstruct_shot
-
-        summary = reconstruct_shot(args.index_dir, args.bundles, args.out, dask_address=args.dask,
-                                   review=args.review, scans=args.scans,
-                                   **params(SHOT_SCAN_OPTIONS, scan), **opts.to_json())
-    else:
-        from lgi.jobs.review import collected_warnings
-
-        pairs = None
-        if scan_opts is not None:
-            # What can be checked before the work: the scan files, the output folder, the frames in the shot.
-            from lgi.jobs.compare import check_scan_frames
-            from lgi.jobs.reconstruct import forget_shots, prepared_shot
-
-            pairs = checked_pairs(scan_opts)
-            reconstruct_job.check_outputs(args.out, inputs)
-            compare_job.check_outputs(args.out, scan_opts, pairs)
-            check_scan_frames(pairs, prepared_shot(args.index_dir, args.bundles, opts).frames, scan_opts)
-            forget_shots()  # the reconstruction below prepares its own: two at once would double the memory
-        with collected_warnings() as warned:
-            summary = reconstruct(args.index_dir, args.bundles, args.out, opts, show_progress=not args.quiet)
-            if scan_opts is not None:
-                from lgi.jobs.compare import compare_shot
-
-                summary["compare"] = compare_shot(args.out, scan_opts, pairs)
-        done = summary.get("compare", {}).get("status") == "done"
-        if args.review:
-            from lgi.jobs.review import ReviewOptions, review_beside
-
-            summary["review"] = review_beside(
-                args.out, args.index_dir, {**summary, "options": opts.to_json()},
-                ReviewOptions(fps=args.fps, scans=scan_opts.out if done else None),
-                [*warned, *([f"scan comparison failed: {summary['compare']['error']}"]
-                            if scan_opts is not None and not done else [])])["page"]
-        else:
-            from lgi.jobs.review import remove_review
-
-            remove_review(args.out)  # an earlier run's page would show that run, not this one
-        if scan_opts is None:
-            from lgi.jobs.compare import remove_outputs
-
-            remove_outputs(f"{args.out}/{IN_SHOT}")  # as the flow does: they measured the earlier meshes
-    return summary
+    job.check()
+    preflight(job.index_dir, job.bundles, job.options)
+    return reconstruct_shot(job.index_dir, job.bundles, job.out, dask_address=args.dask, review=args.review,
+                            scans=args.scans, **params(SHOT_SCAN_OPTIONS, scan), **job.options.to_json())
 
 
 def cmd_verify(args: argparse.Namespace) -> int:

@@ -3,6 +3,7 @@
 from lgi.orchestration.rebuild import (
     assemble,
     augment,
+    fit_rig,
     natural_neighbours,
     point_clouds,
     publish,
@@ -11,5 +12,5 @@ from lgi.orchestration.rebuild import (
     verify,
 )
 
-__all__ = ["assemble", "augment", "natural_neighbours", "point_clouds", "publish", "read_shapes", "stabilise",
-           "verify"]
+__all__ = ["assemble", "augment", "fit_rig", "natural_neighbours", "point_clouds", "publish", "read_shapes",
+           "stabilise", "verify"]

@@ -160,11 +160,11 @@ def test_track_covariances_are_calibrated(hmc_cov_shot: Path, tmp_path: Path) ->
     squared Mahalanobis distance near 3, the covariance's long axis is the viewing direction, several times the
     short ones; the file holds them in the head frame (cm^2), carried there like the positions."""
     from lgi.capture.camera import StereoRig
-    from lgi.capture.footage import track_to_files
+    from lgi.jobs.capture import track_shot
 
     shot = hmc_cov_shot
     out = tmp_path / "tracked.csv"
-    st, _ = track_to_files(shot / "hmc", shot / "hmc" / "cameras_true.json", shot / "markers.csv", out)
+    st, _ = track_shot(shot / "hmc", shot / "hmc" / "cameras_true.json", shot / "markers.csv", out)
     truth = read_bundles(shot / "bundles.csv")
     true_h = truth.positions[:, [truth.markers.index(m) for m in st.names]] * 10  # mm, head frame
     t2 = np.load(shot / "hmc" / "truth.npz")
@@ -200,7 +200,8 @@ def test_track_covariances_are_calibrated(hmc_cov_shot: Path, tmp_path: Path) ->
 
 def test_pixel_noise_option() -> None:
     """``lgi track --pixel-noise`` reaches the tracker with the measured default, and must be a positive number."""
-    from lgi.capture.tracking import PIXEL_NOISE_PX, TrackOptions
+    from lgi.capture.settings import PIXEL_NOISE_PX
+    from lgi.capture.tracking import TrackOptions
     from lgi.cli import build_parser
     from lgi.jobs.capture import TrackFootageOptions
 

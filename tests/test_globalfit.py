@@ -7,7 +7,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from lgi.solve import _globalfit_kernels as K
-from lgi.solve.globalfit import EXACT_GAIN, THETA_SCALE, GlobalFit
+from lgi.solve.globalfit import EXACT_GAIN, GlobalFit
 from lgi.solve.jaw import JawRig, jaw_matrix
 
 
@@ -108,9 +108,8 @@ def test_joint_jaw_fit_recovers_the_jaw_and_stops_at_its_own_solution() -> None:
     # (not the step) toward zero could never be accepted there and ran to its iteration cap.
     seen_idx = np.arange(len(p))
     w, th, r = np.empty(len(basis)), np.empty(4), np.empty(3 * len(p))
-    steps = K.global_gauss_newton(fit.rest, fit.basis, fit._prod, seen_idx, p, res.weights, res.jaw.copy(),
-                                  fit._pivot, fit._bw, True, True, fit.l2, fit.gain, THETA_SCALE, 30, fit.grow,
-                                  w, th, r)
+    cfg = fit.settings()._replace(max_iter=30)
+    steps = K.global_gauss_newton(fit.model, cfg, seen_idx, p, res.weights, res.jaw.copy(), True, w, th, r)
     assert steps <= 2
     assert np.abs(th - res.jaw).max() < 1e-6
 

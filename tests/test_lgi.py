@@ -32,7 +32,7 @@ def test_heldout_performance_passes_through_bundles(synth_index) -> None:
     acts = synth.random_performance(200, seed=5)
     truth = a.evaluate_many(acts)
     bundles = layout.evaluate(truth.astype(np.float64))
-    res = LGISolver(index, temporal_weight=0.02).solve_sequence(bundles)
+    res = LGISolver(index).solve_sequence(bundles)
     assert res.vertices.shape == truth.shape
     assert gaps_mm(res.vertices, layout, bundles).max() < THROUGH_MM  # measured 5.2e-6 mm
     err = np.linalg.norm(res.vertices - truth, axis=2) * 10

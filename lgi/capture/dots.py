@@ -34,7 +34,8 @@ class DotOptions:
 
     @classmethod
     def for_size(cls, diameter_px: float) -> DotOptions:
-        """Options for dots of about ``diameter_px`` pixels (the defaults are for 9 px)."""
+        """Options for dots of about ``diameter_px`` pixels (the defaults are for
+        :data:`~lgi.capture.settings.DOT_SIZE_PX`)."""
         k = int(round(1.9 * diameter_px)) | 1
         return cls(kernel=max(k, 5), min_area=max(int(round(0.075 * diameter_px**2)), 3),
                    max_area=int(np.ceil(3.2 * diameter_px**2)))

@@ -20,7 +20,7 @@ import pandas as pd
 
 from lgi.capture.camera import StereoRig
 from lgi.capture.dots import DotOptions, Dots, detect_dots
-from lgi.capture.tracking import PIXEL_NOISE_PX, Tracker, TrackOptions, Tracks, thumbnail
+from lgi.capture.tracking import Tracker, TrackOptions, Tracks, thumbnail
 from lgi.errors import InputError
 from lgi.units import MM_PER_CM
 
@@ -359,61 +359,3 @@ def head_pose_counts(shot: ShotTracks) -> dict:
     return {"joint": int(joint.sum()), "stable": int((np.asarray(how) == STABLE).sum()),
             "none": int((np.asarray(how) == NONE).sum()),
             "joint_rms_median_mm": float(np.median(rms[joint])) if joint.any() else float("nan")}
-
-
-def track_to_files(footage: str | os.PathLike[str], calib: str | os.PathLike[str], markers: str | os.PathLike[str],
-                   out: str | os.PathLike[str], tracks: str | os.PathLike[str] | None = None,
-                   dataset: str | os.PathLike[str] | None = None, units: str = "cm",
-                   labels: str | os.PathLike[str] | None = None, reference: int = 0,
-                   helmet: str | os.PathLike[str] | None = None, gate_px: float = 12.0, dot_size: float = 9.0,
-                   index: str | os.PathLike[str] | None = None, pixel_noise: float = PIXEL_NOISE_PX
-                   ) -> tuple[ShotTracks, dict]:
-    """``lgi track``: footage to the bundles file (cm, the library's unit, whatever ``units`` the marker file's
-    positions are in) and the 2D tracks table (Parquet). With ``index`` (the actor's LGI index), the head pose
-    is solved with the face (:mod:`lgi.capture.headpose`) and the layout's neutral positions are the index's.
-    The bundles file carries each bundle's covariance (``cov_*`` columns, cm^2, head frame: :func:`head_covariance`
-    with ``pixel_noise`` px: :data:`lgi.capture.tracking.PIXEL_NOISE_PX`).
-
-    Returns the tracks and a summary (counts, reprojection error, anchors, rejections, speed, paths).
-    """
-    from lgi.capture.bundles import Bundles, write_bundles
-    from lgi.io.atomic import atomic_file
-    from lgi.units import check_units
-
-    rig = StereoRig.load(calib)
-    names, neutral, units = neutral_layout(markers, dataset, units)
-    neutral_mm = neutral * check_units(units, "--units") * MM_PER_CM  # the cameras are calibrated in mm
-    pose_model = None
-    if index is not None:
-        pose_model, neutral_mm = head_pose_model(index, names, neutral_mm, markers)
-    t0 = time.perf_counter()
-    shot = track_footage(footage, rig, neutral_mm, names, labels=labels, reference=reference,
-                         options=TrackOptions(gate_px=gate_px, pixel_noise_px=pixel_noise),
-                         helmet=read_helmet(helmet) if helmet else None,
-                         dot_options=DotOptions.for_size(dot_size), pose_model=pose_model)
-    dt = time.perf_counter() - t0
-    out = Path(out)
-    tracks_out = Path(tracks) if tracks else out.with_name(out.stem + ".tracks.parquet")
-    F, M = shot.head.shape[:2]
-    with atomic_file(tracks_out) as tmp:
-        write_tracks_table(tmp, shot)
-    try:
-        write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / MM_PER_CM,
-                                   covariance=shot.head_cov / MM_PER_CM**2))
-    except BaseException:
-        tracks_out.unlink(missing_ok=True)  # the two files go together, or neither is left
-        raise
-    tr = shot.tracks
-    err = tr.error[np.isfinite(tr.error)]
-    summary = {
-        "frames": F, "markers": M, "triangulated_share": float(np.isfinite(shot.head[..., 0]).mean()),
-        "one_camera_observations": int((np.isfinite(tr.uv[..., 0]).sum(axis=2) == 1).sum()),
-        "anchors": len(tr.anchors), "reprojection_median_px": float(np.median(err)) if len(err) else float("nan"),
-        "reprojection_p95_px": float(np.percentile(err, 95)) if len(err) else float("nan"),
-        "rejected_epipolar": int((tr.rejected == 1).sum()), "rejected_neighbour": int((tr.rejected == 2).sum()),
-        "stable_markers": [n for n, w in zip(names, shot.stable_weights, strict=True) if w > 0.5],
-        "frames_per_second": F / dt, "seconds": shot.seconds, "units": "cm",
-        "head_pose": head_pose_counts(shot), "pixel_noise_px": float(pixel_noise), **bundle_precision(shot.head_cov),
-        "bundles": str(out.resolve()), "tracks": str(tracks_out.resolve()),
-    }
-    return shot, summary

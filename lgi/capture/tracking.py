@@ -26,22 +26,16 @@ from scipy.spatial import cKDTree
 
 from lgi.capture.camera import StereoRig
 from lgi.capture.dots import Dots
+from lgi.capture.settings import GATE_PX, PIXEL_NOISE_PX
 from lgi.dataset.stabilise import rigid_fit
 from lgi.errors import InputError
-
-#: The dot detector's centre error per image coordinate (px, one standard deviation), which sets each bundle's
-#: covariance (:func:`lgi.capture.camera.triangulation_covariance`). Measured on ``lgi synth --hmc`` footage (1280x1024
-#: fisheye, 9 px dots, 0.3 px paint jitter, sensor noise and blur): the detected centres of 12,588 visible dots
-#: (60 frames, both cameras) against their true projections, RMS 0.22 px in x, 0.27 px in y, 0.24 px over both
-#: (robust spread 0.18 / 0.26 px).
-PIXEL_NOISE_PX = 0.25
 
 
 @dataclass
 class TrackOptions:
     """Tracking parameters (pixels unless stated)."""
 
-    gate_px: float = 12.0
+    gate_px: float = GATE_PX
     anchor_gate_px: float = 14.0
     label_gate_px: float = 25.0
     epipolar_px: float = 2.5

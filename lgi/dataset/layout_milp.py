@@ -34,6 +34,7 @@ Lengths are in the dataset's units (cm) unless said otherwise.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -336,6 +337,77 @@ def greedy_packing(points: np.ndarray, weight: np.ndarray, spacing: float) -> in
     return n
 
 
+def _candidates(x0: np.ndarray, allowed: np.ndarray, cs: float, o: DesignOptions):
+    """The candidate marker positions: a subsample of the allowed vertices ``cand`` (spacing ``cs``, cm); with
+    symmetry, chosen on one side and paired by mirroring (``mate``, a midline candidate its own). Returns
+    ``(cand, mate, members, orbit_of, size, plane)``: every candidate vertex of either side, the orbit (pair) each
+    belongs to, each orbit's size, and the symmetry plane's x (cm)."""
+    plane = symmetry_plane(x0) if o.symmetric else 0.0
+    if o.symmetric:
+        folded = x0.copy()
+        folded[:, 0] = np.abs(folded[:, 0] - plane)
+        side = allowed & (x0[:, 0] >= plane - 0.5 * cs)
+        cand = voxel_subsample(folded, cs, side)
+        mate = mirror_partners(x0, cand, plane, tol=0.5 * cs)
+        on_mid = np.abs(x0[cand, 0] - plane) < 0.25 * cs
+        mate[on_mid] = cand[on_mid]
+        ok = (mate >= 0) & allowed[np.maximum(mate, 0)]
+        # A pair closer than the spacing cannot be taken together.
+        ok &= on_mid | (np.linalg.norm(x0[cand] - x0[np.maximum(mate, 0)], axis=1) >= o.min_spacing)
+        cand, mate = cand[ok], mate[ok]
+        orbit_of = np.concatenate([np.arange(len(cand)), np.arange(len(cand))])
+        members = np.concatenate([cand, mate])
+        keep = np.ones(len(members), bool)
+        keep[len(cand):] = mate != cand  # a midline candidate is its own partner: once
+        members, orbit_of = members[keep], orbit_of[keep]
+        size = np.where(mate == cand, 1, 2)
+    else:
+        cand = voxel_subsample(x0, cs, allowed)
+        mate = np.full(len(cand), -1, np.int64)
+        members, orbit_of = cand, np.arange(len(cand))
+        size = np.ones(len(cand), np.int64)
+    return cand, mate, members, orbit_of, size, plane
+
+
+def _spacing_rows(x0: np.ndarray, cand: np.ndarray, members: np.ndarray, orbit_of: np.ndarray, n_var: int,
+                  min_spacing: float, add: Callable[[sp.spmatrix, float, float], None]) -> int:
+    """The spacing constraints, handed to ``add``: conflicting orbits (any members closer than ``min_spacing``,
+    cm) exclude each other, and candidates within half the spacing of one candidate (pairwise conflicting) make a
+    clique cut. Returns the number of conflicting pairs."""
+    n_conf = 0
+    if min_spacing > 0:
+        pi, pj, _ = _pairs_within(x0[members], x0[members], min_spacing * (1 - 1e-9))
+        oa, ob = orbit_of[pi], orbit_of[pj]
+        keep = oa < ob
+        pairs = np.unique(np.stack([oa[keep], ob[keep]], 1), axis=0)
+        n_conf = len(pairs)
+        if n_conf:
+            k = np.arange(n_conf)
+            add(sp.csr_matrix((np.ones(2 * n_conf), (np.concatenate([k, k]), pairs.T.ravel())),
+                              shape=(n_conf, n_var)), -np.inf, 1.0)
+        # Clique cuts: candidates within half the spacing of one candidate are pairwise conflicting.
+        ci, cj, _ = _pairs_within(x0[cand], x0[cand], 0.5 * min_spacing * (1 - 1e-9))
+        if len(ci):
+            cl = sp.csr_matrix((np.ones(len(ci)), (ci, cj)), shape=(len(cand), n_var))
+            big = np.asarray(cl.sum(1)).ravel() > 2
+            if big.any():
+                add(cl[big], -np.inf, 1.0)
+    return n_conf
+
+
+def _no_layout(res, cand_points: np.ndarray, size: np.ndarray, n: int, area: float, o: DesignOptions) -> None:
+    """Raise why the integer program found no layout: infeasible (with how many a greedy packing fits), or out of
+    time."""
+    if res.status == 2 or "infeasible" in str(res.message).lower():
+        most = greedy_packing(cand_points, size, o.min_spacing) if o.min_spacing > 0 else int(size.sum())
+        extra = " with Zell's cover constraints (lower --epsilon)" if o.epsilon > 0 and most >= n else ""
+        raise InputError(f"infeasible: {n} markers cannot be placed at least {o.min_spacing * 10:g} mm apart on "
+                         f"the allowed surface{extra} (a greedy packing fits {most}; about {area:.0f} cm^2 "
+                         "allowed): lower --count or --min-spacing, or allow more surface")
+    raise InputError(f"the integer program found no layout within {o.time_limit:g} s ({res.message}): "
+                     "raise the time limit or lower --count")
+
+
 def design_layout_milp(problem: DesignProblem, triangles: np.ndarray, options: DesignOptions) -> DesignResult:
     """Choose ``options.count`` marker vertices by the integer program in the module docstring (HiGHS).
 
@@ -371,31 +443,7 @@ def design_layout_milp(problem: DesignProblem, triangles: np.ndarray, options: D
     ts = o.target_spacing or 0.8 * cs
     radius = o.radius or 2.5 * mean_gap
 
-    # Candidates: a subsample of the allowed vertices; with symmetry, chosen on one side and paired by mirroring.
-    plane = symmetry_plane(x0) if o.symmetric else 0.0
-    if o.symmetric:
-        folded = x0.copy()
-        folded[:, 0] = np.abs(folded[:, 0] - plane)
-        side = allowed & (x0[:, 0] >= plane - 0.5 * cs)
-        cand = voxel_subsample(folded, cs, side)
-        mate = mirror_partners(x0, cand, plane, tol=0.5 * cs)
-        on_mid = np.abs(x0[cand, 0] - plane) < 0.25 * cs
-        mate[on_mid] = cand[on_mid]
-        ok = (mate >= 0) & allowed[np.maximum(mate, 0)]
-        # A pair closer than the spacing cannot be taken together.
-        ok &= on_mid | (np.linalg.norm(x0[cand] - x0[np.maximum(mate, 0)], axis=1) >= o.min_spacing)
-        cand, mate = cand[ok], mate[ok]
-        orbit_of = np.concatenate([np.arange(len(cand)), np.arange(len(cand))])
-        members = np.concatenate([cand, mate])
-        keep = np.ones(len(members), bool)
-        keep[len(cand):] = mate != cand  # a midline candidate is its own partner: once
-        members, orbit_of = members[keep], orbit_of[keep]
-        size = np.where(mate == cand, 1, 2)
-    else:
-        cand = voxel_subsample(x0, cs, allowed)
-        mate = np.full(len(cand), -1, np.int64)
-        members, orbit_of = cand, np.arange(len(cand))
-        size = np.ones(len(cand), np.int64)
+    cand, mate, members, orbit_of, size, plane = _candidates(x0, allowed, cs, o)
     n_orb = len(cand)
     if size.sum() < n:
         raise InputError(f"{n} markers asked for but only {int(size.sum())} candidate positions are allowed "
@@ -457,25 +505,7 @@ def design_layout_milp(problem: DesignProblem, triangles: np.ndarray, options: D
                          (np.concatenate([np.arange(n_y), y_of]), np.concatenate([n_orb + np.arange(n_y), cols]))),
                         shape=(n_y, n_var))
     add(cov, -np.inf, 0.0)
-    # Spacing: conflicting orbits (any members closer than the spacing) exclude each other.
-    n_conf = 0
-    if o.min_spacing > 0:
-        pi, pj, _ = _pairs_within(x0[members], x0[members], o.min_spacing * (1 - 1e-9))
-        oa, ob = orbit_of[pi], orbit_of[pj]
-        keep = oa < ob
-        pairs = np.unique(np.stack([oa[keep], ob[keep]], 1), axis=0)
-        n_conf = len(pairs)
-        if n_conf:
-            k = np.arange(n_conf)
-            add(sp.csr_matrix((np.ones(2 * n_conf), (np.concatenate([k, k]), pairs.T.ravel())),
-                              shape=(n_conf, n_var)), -np.inf, 1.0)
-        # Clique cuts: candidates within half the spacing of one candidate are pairwise conflicting.
-        ci, cj, _ = _pairs_within(x0[cand], x0[cand], 0.5 * o.min_spacing * (1 - 1e-9))
-        if len(ci):
-            cl = sp.csr_matrix((np.ones(len(ci)), (ci, cj)), shape=(n_orb, n_var))
-            big = np.asarray(cl.sum(1)).ravel() > 2
-            if big.any():
-                add(cl[big], -np.inf, 1.0)
+    n_conf = _spacing_rows(x0, cand, members, orbit_of, n_var, o.min_spacing, add)
     # Zell's cover: every shape seen on the allowed surface gets a marker where it moves >= epsilon of its largest.
     uncovered = []
     if o.epsilon > 0:
@@ -495,14 +525,7 @@ def design_layout_milp(problem: DesignProblem, triangles: np.ndarray, options: D
                options={"time_limit": float(o.time_limit), "mip_rel_gap": float(o.mip_rel_gap), "disp": False})
     t2 = time.perf_counter()
     if res.x is None:
-        if res.status == 2 or "infeasible" in str(res.message).lower():
-            most = greedy_packing(x0[cand], size, o.min_spacing) if o.min_spacing > 0 else int(size.sum())
-            extra = " with Zell's cover constraints (lower --epsilon)" if o.epsilon > 0 and most >= n else ""
-            raise InputError(f"infeasible: {n} markers cannot be placed at least {o.min_spacing * 10:g} mm apart on "
-                             f"the allowed surface{extra} (a greedy packing fits {most}; about {area:.0f} cm^2 "
-                             "allowed): lower --count or --min-spacing, or allow more surface")
-        raise InputError(f"the integer program found no layout within {o.time_limit:g} s ({res.message}): "
-                         "raise the time limit or lower --count")
+        _no_layout(res, x0[cand], size, n, area, o)
     pick = np.flatnonzero(np.round(res.x[:n_orb]) > 0.5)
     chosen = np.concatenate([cand[pick], mate[pick][mate[pick] != cand[pick]]]) if o.symmetric else cand[pick]
     partner = np.full(len(chosen), -1, np.int64)

@@ -56,8 +56,6 @@ from lgi.units import MM_PER_CM
 
 ICT_HELD_OUT = ["mouthFunnel", "mouthSmile_L", "browInnerUp_R", "cheekPuff_R", "noseSneer_L", "jawLeft"]
 
-# What ``lgi reconstruct`` does by default (kept in one place with the CLI's defaults).
-LGI_DEFAULTS = {"temporal_weight": 0.02, "spatial_weight": 1e-3, "max_gap": 0}
 #: L2 weights (cm^2 per unit weight^2) tried by the session sets' blendshape fit, the best chosen on the truth.
 RIDGE_L2 = (0.0, 1e-5, 1e-4, 1e-3)
 #: Vertices farther than this (cm, UV-geodesic) from every marker are "far" (``rms_far_mm``, ``max_far_mm``).
@@ -77,14 +75,14 @@ class Method:
 
 
 def lgi_method(index, label: str = "LGI (default)", **options) -> Method:
-    """LGI through :meth:`LGISolver.solve_sequence` with ``lgi reconstruct``'s defaults, overridden by
-    ``options`` (solver and sequence options together)."""
+    """LGI through :meth:`LGISolver.solve_sequence` with its defaults (those of ``lgi reconstruct``, which declares
+    them from :class:`~lgi.solve.settings.SolverSettings`), overridden by ``options`` (solver and sequence options
+    together)."""
     from lgi.solve.solver import LGISolver
 
     seq_keys = {"smooth", "jaw_smooth", "max_gap", "noise"}
-    opts = {**LGI_DEFAULTS, **options}
-    seq = {k: v for k, v in opts.items() if k in seq_keys}
-    ctor = {k: v for k, v in opts.items() if k not in seq_keys}
+    seq = {k: v for k, v in options.items() if k in seq_keys}
+    ctor = {k: v for k, v in options.items() if k not in seq_keys}
 
     def run(pos: np.ndarray) -> np.ndarray:
         return LGISolver(index, **ctor).solve_sequence(pos, **seq).vertices

@@ -191,7 +191,7 @@ class RBFSolver(_SequenceMixin):
         prev_sel = None if previous is None else previous.fit
         sel = self.lgi.select_frame(bundles, prev_sel)  # LGI's shapes and weights per bundle (and the jaw)
         x = np.empty_like(self.x0)
-        blend(self.x0, self.lgi._deltas, self._indptr, self._indices, self._data, sel.shapes, sel.weights, x)
+        blend(self.x0, self.lgi.deltas, self._indptr, self._indices, self._data, sel.shapes, sel.weights, x)
         if self.lgi.rig is not None:
             x = self.lgi.rig.skin(x, sel.jaw)
         seen = np.all(np.isfinite(sel.bundles), axis=1)
@@ -210,7 +210,7 @@ class RiggedBlendshapeSolver(_SequenceMixin):
         self.lgi = LGISolver(index)
         self.layout = self.lgi.layout
         self.fit = self.lgi.global_fit
-        self.x0 = self.lgi._x0
+        self.x0 = self.lgi.neutral
         self.deltas = np.asarray(index.deltas[1:])
 
     def solve_frame(self, bundles: np.ndarray, previous: SimpleResult | None = None) -> SimpleResult:

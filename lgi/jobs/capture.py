@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from lgi.capture.settings import DOT_SIZE_PX, GATE_PX, PIXEL_NOISE_PX
 from lgi.errors import InputError
 from lgi.options import REQUIRED, declared, option
 
@@ -91,18 +92,17 @@ class TrackFootageOptions:
     helmet: str | None = option(
         None, "markers fixed on the helmet (name,x,y,z in mm, calibration frame): refine the extrinsics for this "
         "shot from them", group="inputs", metavar="CSV")
-    gate: float = option(12.0, "tracking search radius, px (default %(default)s)", group="tracking", metavar="PX",
+    gate: float = option(GATE_PX, "tracking search radius, px (default %(default)s)", group="tracking", metavar="PX",
                          units="px")
     dot_size: float = option(
-        9.0, "typical painted dot diameter in the images, px: sets the detector's scale (default %(default)s)",
+        DOT_SIZE_PX, "typical painted dot diameter in the images, px: sets the detector's scale (default %(default)s)",
         group="tracking", metavar="PX", units="px")
     index: str | None = option(
         None, "the actor's LGI index (lgi build): solve each frame's head pose with the face (the jaw and the shape "
         "weights) instead of assuming the least-moving markers rigid; the bundles are then in the index's head "
         "frame (default: none, the stable-marker fit)", group="inputs", metavar="INDEX_DIR")
-    # lgi.capture.tracking.PIXEL_NOISE_PX is the library's default; a test keeps the two equal.
     pixel_noise: float = option(
-        0.25, "the dot detector's centre error per image coordinate, px (one standard deviation): sets each "
+        PIXEL_NOISE_PX, "the dot detector's centre error per image coordinate, px (one standard deviation): sets each "
         "bundle's covariance, written as the bundles file's cov_* columns (cm^2, head frame); the default was "
         "measured on lgi synth --hmc footage (default %(default)s)", group="tracking", metavar="PX", units="px")
 
@@ -125,10 +125,9 @@ class TrackFootageOptions:
 def track(footage_dir: str | Path, calib: str | Path, markers: str | Path, out: str | Path,
           options: TrackFootageOptions | None = None) -> dict[str, Any]:
     """``lgi track``: footage to the bundles file (cm, with each bundle's covariance) and the 2D tracks table;
-    returns the summary of :func:`lgi.capture.footage.track_to_files`. A median reprojection error above
+    returns the summary of :func:`track_shot`. A median reprojection error above
     :data:`MOVED_RIG_PX` is logged as a warning (the rig may have moved since its calibration) and flagged in the
-    summary."""
-    from lgi.capture.footage import track_to_files
+    summary. The outputs are checked first (:func:`track_shot` does not)."""
     from lgi.io.atomic import IMAGES, check_distinct, check_output, files_in
 
     o = options or TrackFootageOptions()
@@ -138,8 +137,7 @@ def track(footage_dir: str | Path, calib: str | Path, markers: str | Path, out: 
     for path in (out, tracks):
         check_output(path, "file", inputs=[footage_dir, calib, markers, o.dataset, o.labels, o.helmet, o.index,
                                            *files_in(footage_dir, IMAGES, recursive=True)])
-    _, r = track_to_files(footage_dir, calib, markers, out, o.tracks, o.dataset, o.units, o.labels,
-                          o.reference_frame, o.helmet, o.gate, o.dot_size, o.index, o.pixel_noise)
+    _, r = track_shot(footage_dir, calib, markers, out, o)
     r["rig_may_have_moved"] = bool(r["reprojection_median_px"] > MOVED_RIG_PX)
     r["helmet"] = bool(o.helmet)
     if r["rig_may_have_moved"]:
@@ -147,6 +145,77 @@ def track(footage_dir: str | Path, calib: str | Path, markers: str | Path, out: 
                     r["reprojection_median_px"],
                     "" if o.helmet else " (pass --helmet to refine it from the helmet markers)")
     return r
+
+
+def track_shot(footage_dir: str | Path, calib: str | Path, markers: str | Path, out: str | Path,
+               options: TrackFootageOptions | None = None):
+    """Footage to the bundles file ``out`` (cm, the library's unit, whatever ``units`` the marker file's positions
+    are in) and the 2D tracks table (Parquet). With ``options.index`` (the actor's LGI index), the head pose is
+    solved with the face (:mod:`lgi.capture.headpose`) and the layout's neutral positions are the index's. The
+    bundles file carries each bundle's covariance (``cov_*`` columns, cm^2, head frame:
+    :func:`lgi.capture.footage.head_covariance` with ``options.pixel_noise`` px).
+
+    Returns the tracks (:class:`lgi.capture.footage.ShotTracks`) and a summary (counts, reprojection error,
+    anchors, rejections, speed, paths).
+    """
+    import time
+
+    import numpy as np
+
+    from lgi.capture.bundles import Bundles, write_bundles
+    from lgi.capture.camera import StereoRig
+    from lgi.capture.dots import DotOptions
+    from lgi.capture.footage import (
+        bundle_precision,
+        head_pose_counts,
+        head_pose_model,
+        neutral_layout,
+        read_helmet,
+        track_footage,
+        write_tracks_table,
+    )
+    from lgi.capture.tracking import TrackOptions
+    from lgi.io.atomic import atomic_file
+    from lgi.units import MM_PER_CM, check_units
+
+    o = options or TrackFootageOptions()
+    rig = StereoRig.load(calib)
+    names, neutral, units = neutral_layout(markers, o.dataset, o.units)
+    neutral_mm = neutral * check_units(units, "--units") * MM_PER_CM  # the cameras are calibrated in mm
+    pose_model = None
+    if o.index is not None:
+        pose_model, neutral_mm = head_pose_model(o.index, names, neutral_mm, markers)
+    t0 = time.perf_counter()
+    shot = track_footage(footage_dir, rig, neutral_mm, names, labels=o.labels, reference=o.reference_frame,
+                         options=TrackOptions(gate_px=o.gate, pixel_noise_px=o.pixel_noise),
+                         helmet=read_helmet(o.helmet) if o.helmet else None,
+                         dot_options=DotOptions.for_size(o.dot_size), pose_model=pose_model)
+    dt = time.perf_counter() - t0
+    out = Path(out)
+    tracks_out = Path(o.tracks) if o.tracks else out.with_name(out.stem + ".tracks.parquet")
+    F, M = shot.head.shape[:2]
+    with atomic_file(tracks_out) as tmp:
+        write_tracks_table(tmp, shot)
+    try:
+        write_bundles(out, Bundles(frames=np.arange(F), markers=names, positions=shot.head / MM_PER_CM,
+                                   covariance=shot.head_cov / MM_PER_CM**2))
+    except BaseException:
+        tracks_out.unlink(missing_ok=True)  # the two files go together, or neither is left
+        raise
+    tr = shot.tracks
+    err = tr.error[np.isfinite(tr.error)]
+    summary = {
+        "frames": F, "markers": M, "triangulated_share": float(np.isfinite(shot.head[..., 0]).mean()),
+        "one_camera_observations": int((np.isfinite(tr.uv[..., 0]).sum(axis=2) == 1).sum()),
+        "anchors": len(tr.anchors), "reprojection_median_px": float(np.median(err)) if len(err) else float("nan"),
+        "reprojection_p95_px": float(np.percentile(err, 95)) if len(err) else float("nan"),
+        "rejected_epipolar": int((tr.rejected == 1).sum()), "rejected_neighbour": int((tr.rejected == 2).sum()),
+        "stable_markers": [n for n, w in zip(names, shot.stable_weights, strict=True) if w > 0.5],
+        "frames_per_second": F / dt, "seconds": shot.seconds, "units": "cm",
+        "head_pose": head_pose_counts(shot), "pixel_noise_px": float(o.pixel_noise), **bundle_precision(shot.head_cov),
+        "bundles": str(out.resolve()), "tracks": str(tracks_out.resolve()),
+    }
+    return shot, summary
 
 
 def track_report(r: dict[str, Any]) -> list[str]:

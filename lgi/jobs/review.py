@@ -504,6 +504,116 @@ def _curve(key: str, label: str, unit: str, values: np.ndarray, **extra: Any) ->
     return {"key": key, "label": label, "unit": unit, "values": blob(np.asarray(values, np.float32)), **extra}
 
 
+def _per_frame_table(recon: Path, diag: _Diagnostics) -> pd.DataFrame:
+    """The reconstruction's ``per_frame.csv``, or the same table from its diagnostics when it has none."""
+    per_frame_path = recon / "per_frame.csv"
+    if per_frame_path.is_file():
+        try:
+            per_frame = pd.read_csv(per_frame_path)
+        except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as exc:
+            raise InputError(f"not a readable CSV ({exc})", path=per_frame_path) from None
+    else:
+        per_frame = diag.per_frame()
+    return per_frame
+
+
+def _maps(o: ReviewOptions, recon: Path, meshes, frames: np.ndarray, n_v: int, diag: _Diagnostics,
+          a, n_markers: int) -> tuple[list[_Map], Any, Any]:
+    """The page's colour maps (against the truth, the correction, against ``--compare``, the rig's playback),
+    the scans' distances and the rig's map, from the options' files."""
+    from lgi.review.pack import NOT_MEASURED
+
+    maps: list[_Map] = []
+    if o.truth:
+        from lgi.io.npz import load_meshes
+
+        t = Path(o.truth)
+        tz = load_meshes(t, required=("vertices",))
+        truth = _aligned(tz["vertices"], tz.get("frames"), frames, t, n_v, "the truth")
+        maps.append(_Map("truth", "distance to the truth", f"against {t.name}",
+                         lambda lo, v: _distance_mm(v, truth.rows(lo, lo + len(v)))))
+    maps.append(_Map("correction", "correction size (bound)",
+                     "sum over bundles of |correction field| x (residual before - after)",
+                     _correction_map(diag, a, n_markers)))
+    if o.compare:
+        c = Path(o.compare)
+        cm = _read_meshes(c, "--compare")
+        compare = _aligned(cm["vertices"], cm["frames"], frames, c / "meshes.npz", n_v,
+                           "--compare's reconstruction")
+        compare.finite = True
+        maps.append(_Map("compare", "distance from --compare", str(c),
+                         lambda lo, v: _distance_mm(v, compare.rows(lo, lo + len(v)))))
+    scans = None
+    if o.scans:
+        from lgi.review.scans import read_scan_map
+
+        scans = read_scan_map(o.scans, frames, meshes["vertices"])
+    rigmap = None
+    if o.rig_solve:
+        from lgi.review.rigmap import read_rig_map
+
+        rigmap = read_rig_map(o.rig_solve, o.rig, frames, n_v)
+        maps.append(_Map("rig", "rig playback - reconstruction",
+                         f"the rig {rigmap.rig} played with lgi rig-solve's curves ({o.rig_solve})",
+                         rigmap.distance, region=rigmap.region,
+                         gaps=[{"code": NOT_MEASURED, "label": "outside the rig's face region"}]))
+    return maps, scans, rigmap
+
+
+def _first_pass(verts: _Rows, maps: list[_Map], neutral: np.ndarray, n_f: int, block: int):
+    """What must be the shot's, not a block's: the displacements' range (the quantisation) and each map's top (the
+    colour bars'); and the curves that need the meshes (RMS and largest distance to the truth, the rig's RMS)."""
+    from lgi.review.pack import DisplacementRange
+
+    span = DisplacementRange(neutral)
+    error_rms, error_max, rig_rms = (np.full(n_f, np.nan) for _ in range(3))
+    for lo in range(0, n_f, block):
+        v = verts.rows(lo, lo + block)
+        span.add(v)
+        for m in maps:
+            d = m.values(lo, v)
+            m.observe(d)
+            if m.key == "truth":
+                error_rms[lo:lo + len(v)] = np.sqrt(np.mean(d**2, axis=1))
+                error_max[lo:lo + len(v)] = d.max(axis=1)
+            elif m.key == "rig" and m.region.any():
+                rig_rms[lo:lo + len(v)] = np.sqrt(np.nanmean(d[:, m.region].astype(np.float64) ** 2, axis=1))
+    return span, error_rms, error_max, rig_rms
+
+
+def _curves(o: ReviewOptions, meshes, diag: _Diagnostics, per_frame: pd.DataFrame, frames: np.ndarray,
+            n_markers: int, errors: tuple[np.ndarray, np.ndarray, np.ndarray], scans, rigmap) -> list[dict]:
+    """The page's per-frame curves; ``errors``: the first pass's RMS and largest distance to the truth and the
+    rig's RMS, (F,) each."""
+    error_rms, error_max, rig_rms = errors
+    n_f = len(frames)
+    curves = []
+    pf = per_frame.set_index("frame").reindex(frames) if "frame" in per_frame else per_frame
+    jaw = meshes.get("jaw")
+    if jaw is not None and jaw.ndim == 2 and len(jaw) == n_f:
+        curves.append(_curve("jaw", "jaw opening", "deg", jaw[:, 0]))
+    elif diag.jaw() is not None:
+        curves.append(_curve("jaw", "jaw opening", "deg", diag.jaw()))
+    for col, label in (("residual_before_mm", "largest bundle residual before correction"),
+                       ("residual_mm", "largest bundle residual after correction")):
+        if col in pf:
+            curves.append(_curve(col, label, "mm", pf[col].astype(float)))
+    n_m = max(n_markers, 1)
+    if "projected" in pf and "missing" in pf:
+        share = (pf["projected"].astype(float) + pf["missing"].astype(float)) / n_m * 100
+        curves.append(_curve("unsure", "bundles missing or projected", "%", share))
+    if o.truth:
+        curves.append(_curve("error_rms", "error against the truth, RMS", "mm", error_rms))
+        curves.append(_curve("error_max", "error against the truth, max", "mm", error_max))
+    if scans is not None:
+        # Points, not a line: the frames with a scan are usually a few, far apart.
+        curves.append(_curve("scan_rms", "distance to the scan, RMS of the covered vertices", "mm", scans.rms_mm,
+                             points=True, missing="no scan at this frame"))
+    if rigmap is not None:
+        curves.append(_curve("rig_rms", "rig playback - reconstruction, RMS over the face region", "mm", rig_rms))
+    return curves
+
+
 @reads("recon_dir")
 def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, options: ReviewOptions | None = None,
            summary: dict[str, Any] | None = None, warnings: list[str] | None = None) -> dict[str, Any]:
@@ -532,9 +642,7 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     from lgi.index.build import LGIIndex
     from lgi.io.atomic import atomic_dir, check_not_in_store, check_output
     from lgi.review.pack import (
-        NOT_MEASURED,
         PAGE_POLICY,
-        DisplacementRange,
         blob,
         codes_blob,
         with_policy,
@@ -563,93 +671,12 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
                          f"this index ({index_dir})", path=recon / "meshes.npz")
     markers = index.marker_names
     diag = _Diagnostics(recon / "diagnostics.csv", frames, markers, block)
-    per_frame_path = recon / "per_frame.csv"
-    if per_frame_path.is_file():
-        try:
-            per_frame = pd.read_csv(per_frame_path)
-        except (pd.errors.ParserError, UnicodeDecodeError, pd.errors.EmptyDataError) as exc:
-            raise InputError(f"not a readable CSV ({exc})", path=per_frame_path) from None
-    else:
-        per_frame = diag.per_frame()
-    maps: list[_Map] = []
-    if o.truth:
-        from lgi.io.npz import load_meshes
-
-        t = Path(o.truth)
-        tz = load_meshes(t, required=("vertices",))
-        truth = _aligned(tz["vertices"], tz.get("frames"), frames, t, n_v, "the truth")
-        maps.append(_Map("truth", "distance to the truth", f"against {t.name}",
-                         lambda lo, v: _distance_mm(v, truth.rows(lo, lo + len(v)))))
-    maps.append(_Map("correction", "correction size (bound)",
-                     "sum over bundles of |correction field| x (residual before - after)",
-                     _correction_map(diag, a, len(markers))))
-    if o.compare:
-        c = Path(o.compare)
-        cm = _read_meshes(c, "--compare")
-        compare = _aligned(cm["vertices"], cm["frames"], frames, c / "meshes.npz", n_v,
-                           "--compare's reconstruction")
-        compare.finite = True
-        maps.append(_Map("compare", "distance from --compare", str(c),
-                         lambda lo, v: _distance_mm(v, compare.rows(lo, lo + len(v)))))
-    scans = None
-    if o.scans:
-        from lgi.review.scans import read_scan_map
-
-        scans = read_scan_map(o.scans, frames, meshes["vertices"])
-    rigmap = None
-    if o.rig_solve:
-        from lgi.review.rigmap import read_rig_map
-
-        rigmap = read_rig_map(o.rig_solve, o.rig, frames, n_v)
-        maps.append(_Map("rig", "rig playback - reconstruction",
-                         f"the rig {rigmap.rig} played with lgi rig-solve's curves ({o.rig_solve})",
-                         rigmap.distance, region=rigmap.region,
-                         gaps=[{"code": NOT_MEASURED, "label": "outside the rig's face region"}]))
-
-    # ---- first pass: what must be the shot's, not a block's (the quantisation, the colour bars' tops), and the
-    # curves that need the meshes
-    span = DisplacementRange(a["neutral"])
-    error_rms, error_max, rig_rms = (np.full(n_f, np.nan) for _ in range(3))
-    for lo in range(0, n_f, block):
-        v = verts.rows(lo, lo + block)
-        span.add(v)
-        for m in maps:
-            d = m.values(lo, v)
-            m.observe(d)
-            if m.key == "truth":
-                error_rms[lo:lo + len(v)] = np.sqrt(np.mean(d**2, axis=1))
-                error_max[lo:lo + len(v)] = d.max(axis=1)
-            elif m.key == "rig" and m.region.any():
-                rig_rms[lo:lo + len(v)] = np.sqrt(np.nanmean(d[:, m.region].astype(np.float64) ** 2, axis=1))
+    per_frame = _per_frame_table(recon, diag)
+    maps, scans, rigmap = _maps(o, recon, meshes, frames, n_v, diag, a, len(markers))
+    span, error_rms, error_max, rig_rms = _first_pass(verts, maps, a["neutral"], n_f, block)
     layout = span.layout(o.step_um * 1e-4)
-
-    # ---- per-frame curves
-    curves = []
-    pf = per_frame.set_index("frame").reindex(frames) if "frame" in per_frame else per_frame
-    jaw = meshes.get("jaw")
-    if jaw is not None and jaw.ndim == 2 and len(jaw) == n_f:
-        curves.append(_curve("jaw", "jaw opening", "deg", jaw[:, 0]))
-    elif diag.jaw() is not None:
-        curves.append(_curve("jaw", "jaw opening", "deg", diag.jaw()))
-    for col, label in (("residual_before_mm", "largest bundle residual before correction"),
-                       ("residual_mm", "largest bundle residual after correction")):
-        if col in pf:
-            curves.append(_curve(col, label, "mm", pf[col].astype(float)))
-    n_m = max(len(markers), 1)
-    if "projected" in pf and "missing" in pf:
-        share = (pf["projected"].astype(float) + pf["missing"].astype(float)) / n_m * 100
-        curves.append(_curve("unsure", "bundles missing or projected", "%", share))
-    if o.truth:
-        curves.append(_curve("error_rms", "error against the truth, RMS", "mm", error_rms))
-        curves.append(_curve("error_max", "error against the truth, max", "mm", error_max))
-    if scans is not None:
-        # Points, not a line: the frames with a scan are usually a few, far apart.
-        curves.append(_curve("scan_rms", "distance to the scan, RMS of the covered vertices", "mm", scans.rms_mm,
-                             points=True, missing="no scan at this frame"))
-    if rigmap is not None:
-        curves.append(_curve("rig_rms", "rig playback - reconstruction, RMS over the face region", "mm", rig_rms))
-
-    # ---- summary and warnings
+    curves = _curves(o, meshes, diag, per_frame, frames, len(markers), (error_rms, error_max, rig_rms), scans,
+                     rigmap)
     info = _summary(recon, index_dir, index, diag.status_counts, summary, o, n_f, n_v)
     warn = list(warnings or []) + _warnings(diag, per_frame, len(markers), summary)
     if scans is not None:

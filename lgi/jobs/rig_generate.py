@@ -82,12 +82,9 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
                  options: RigGenerateOptions | None = None, usd: str | Path | None = None,
                  show_progress: bool = False) -> dict[str, Any]:
     """Generate the actor's rig; returns a summary (:func:`rig_generate_report`)."""
-    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
-    from lgi.dataset.shapes import ShapeDataset, ShapeMeta
-    from lgi.export.blender import for_blender, script_path, write_blender_script
-    from lgi.index.build import ENTRIES as INDEX_ENTRIES
+    from lgi.dataset.shapes import ShapeDataset
+    from lgi.export.blender import for_blender, write_blender_script
     from lgi.index.build import LGIIndex
-    from lgi.io.atomic import check_output, files_in
     from lgi.progress import progress
     from lgi.retarget.template import (
         TemplateTransfer,
@@ -98,17 +95,7 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
     from lgi.solve.solver import LGISolver
 
     o = options or RigGenerateOptions()
-    inputs = [template_dir, index_dir, *files_in(template_dir, DATASET_ENTRIES), *files_in(index_dir, INDEX_ENTRIES)]
-    check_output(out, "dir", inputs=inputs, owned=DATASET_ENTRIES, what="shape dataset")
-    if usd is not None:
-        if Path(usd).suffix not in (".usd", ".usda", ".usdc"):
-            raise InputError("the rig's USD file must end in .usd, .usda or .usdc", path=usd)
-        check_output(usd, "file", inputs=[*inputs, out])
-        if for_blender(o.convention):
-            check_output(script_path(usd), "file", inputs=[*inputs, out])
-        if Path(out).resolve() in Path(usd).resolve().parents:
-            raise InputError("the rig's USD file cannot be inside the rig's dataset directory (which is replaced "
-                             "whole)", path=usd)
+    _check_outputs(template_dir, index_dir, out, usd, o)
     t0 = time.perf_counter()
     template = ShapeDataset.load(template_dir)
     index = LGIIndex.load(index_dir)
@@ -158,20 +145,7 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
         # are stored unskinned (the jaw closed), as the index stores them, and the joint skins them with the
         # jaw rig's weights; a control's own jaw pose is kept in its metadata ("jaw").
         deltas = np.concatenate(rig.unskinned(jaw)).astype(np.float32)
-    meta = []
-    for i, name in enumerate(names):
-        combo = None if i < len(controls) else list(correctives[i - len(controls)])
-        shape = transfer.template_shape(tuple(combo)) if combo else None
-        from_template = f"combination shape {shape}" if shape else "sum of parts"
-        meta.append(ShapeMeta(
-            source=f"lgi rig-generate: template {Path(template_dir).name}/{name}",
-            tags=["control"] if combo is None else ["corrective", "combination"],
-            extra={"residual_mm": round(float(rig.residual_mm[i]), 6), "transfer": o.transfer,
-                   "outside_clouds_mm": round(float(rig.projection_mm[i]), 4),
-                   **({} if rig.jaw is None else {"jaw": [round(float(v), 6) for v in rig.jaw[i]]}),
-                   **({} if combo is None else {
-                       "combination": combo, "template": from_template, "driver": "product of the controls' weights",
-                       "corrective_from": rig.corrective_source[i - len(controls)]})}))
+    meta = _shape_meta(names, len(controls), correctives, transfer, rig, o.transfer, Path(template_dir).name)
     # A corrective that moves nothing (the sum of its controls is already the shape) would be one more target
     # and one more curve in every DCC for nothing: it is left out, and said so.
     size_mm = np.linalg.norm(rig.corrective_deltas, axis=2).max(axis=1) * 10 if correctives else np.zeros(0)
@@ -231,6 +205,51 @@ def generate_rig(template_dir: str | Path, index_dir: str | Path, out: str | Pat
                                           if src == "template"],
             "jaw": transfer.rig is not None, "transfer": o.transfer, "fit_mm": o.fit_mm,
             "seconds": time.perf_counter() - t0}
+
+
+def _check_outputs(template_dir: str | Path, index_dir: str | Path, out: str | Path, usd: str | Path | None,
+                   o: RigGenerateOptions) -> None:
+    """Refuse, before the work, outputs that cannot be written: the rig's dataset folder and USD file."""
+    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
+    from lgi.export.blender import for_blender, script_path
+    from lgi.index.build import ENTRIES as INDEX_ENTRIES
+    from lgi.io.atomic import check_output, files_in
+
+    inputs = [template_dir, index_dir, *files_in(template_dir, DATASET_ENTRIES), *files_in(index_dir, INDEX_ENTRIES)]
+    check_output(out, "dir", inputs=inputs, owned=DATASET_ENTRIES, what="shape dataset")
+    if usd is None:
+        return
+    if Path(usd).suffix not in (".usd", ".usda", ".usdc"):
+        raise InputError("the rig's USD file must end in .usd, .usda or .usdc", path=usd)
+    check_output(usd, "file", inputs=[*inputs, out])
+    if for_blender(o.convention):
+        check_output(script_path(usd), "file", inputs=[*inputs, out])
+    if Path(out).resolve() in Path(usd).resolve().parents:
+        raise InputError("the rig's USD file cannot be inside the rig's dataset directory (which is replaced whole)",
+                         path=usd)
+
+
+def _shape_meta(names: list[str], n_controls: int, correctives: list[tuple[str, ...]], transfer, rig, how: str,
+                template: str) -> list:
+    """Each generated shape's metadata: where it came from, how well it fits, its jaw pose, and for a corrective
+    its combination and source."""
+    from lgi.dataset.shapes import ShapeMeta
+
+    meta = []
+    for i, name in enumerate(names):
+        combo = None if i < n_controls else list(correctives[i - n_controls])
+        shape = transfer.template_shape(tuple(combo)) if combo else None
+        from_template = f"combination shape {shape}" if shape else "sum of parts"
+        meta.append(ShapeMeta(
+            source=f"lgi rig-generate: template {template}/{name}",
+            tags=["control"] if combo is None else ["corrective", "combination"],
+            extra={"residual_mm": round(float(rig.residual_mm[i]), 6), "transfer": how,
+                   "outside_clouds_mm": round(float(rig.projection_mm[i]), 4),
+                   **({} if rig.jaw is None else {"jaw": [round(float(v), 6) for v in rig.jaw[i]]}),
+                   **({} if combo is None else {
+                       "combination": combo, "template": from_template, "driver": "product of the controls' weights",
+                       "corrective_from": rig.corrective_source[i - n_controls]})}))
+    return meta
 
 
 def rig_generate_report(s: dict[str, Any]) -> list[str]:

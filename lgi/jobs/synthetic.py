@@ -119,13 +119,16 @@ class SynthOptions:
                     f"{', '.join(given)} shape{'s' if len(given) == 1 else ''} the camera footage, which only --hmc "
                     "renders: ignored (add --hmc)")
 
-    def footage(self) -> dict[str, Any] | None:
-        """Keyword arguments of :func:`lgi.synthetic.hmc.write_footage`, or None without ``hmc``."""
+    def footage(self):
+        """The settings of :func:`lgi.synthetic.hmc.write_footage`
+        (:class:`~lgi.synthetic.hmc.FootageSettings`), or None without ``hmc``."""
         if not self.hmc:
             return None
-        return {"model": self.lens, "size": parse_size(self.image_size), "dot_noise_px": self.dot_noise,
-                "board_views": self.board_views, "flex_deg": self.rig_flex, "contour_noise_px": self.contour_noise,
-                "slip": self.slip}
+        from lgi.synthetic.hmc import FootageSettings
+
+        return FootageSettings(model=self.lens, size=parse_size(self.image_size), seed=self.seed,
+                               dot_noise_px=self.dot_noise, board_views=self.board_views, flex_deg=self.rig_flex,
+                               contour_noise_px=self.contour_noise, slip=self.slip)
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -171,8 +174,7 @@ def write_synthetic(out: str | Path, options: SynthOptions, show_progress: bool 
         if hmc is not None:
             from lgi.synthetic.hmc import write_footage
 
-            footage = write_footage(stage / "hmc", actor, layout, acts, seed=o.seed, show_progress=show_progress,
-                                    **hmc)
+            footage = write_footage(stage / "hmc", actor, layout, acts, hmc, show_progress)
     names = ["dataset", "markers.csv", "bundles.csv", "truth.npz", "jaw_rig.npz", *(["template"] if o.template else [])]
     if hmc:
         names += ["hmc/cam0", "hmc/cam1", "hmc/calib", "hmc/cameras_true.json", "hmc/helmet.csv", "hmc/truth.npz",

@@ -31,7 +31,7 @@ from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 from prefect.states import Completed
 
-from lgi.jobs.capture import CalibrateOptions
+from lgi.jobs.capture import CalibrateOptions, TrackFootageOptions
 from lgi.jobs.compare import SHOT_SCAN_OPTIONS, CompareOptions
 from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.options import Subset, flow_parameters, params, take
@@ -150,20 +150,21 @@ def rig_review(row: dict, summary: dict, index_dir: str, fps: float, logger) -> 
 SESSION_SHOT_OPTIONS = Subset(ReconstructOptions, only=("smooth", "fps", "chunk_size"))
 #: The one scan option a session takes (its scans CSV gives the rest per shot).
 SHOT_SCAN_UNITS = Subset(CompareOptions, SHOT_SCAN_OPTIONS.prefix, ("units",))
+#: The lens model of the session's calibration (its board is the flow's second parameter).
+SESSION_LENS = Subset(CalibrateOptions, only=("rational", "fisheye"))
+#: The helmet dots that refine the rig per shot (lgi track --helmet).
+SESSION_HELMET = Subset(TrackFootageOptions, only=("helmet",))
 
 
 @flow(name="capture-session")
 @described(
-    SESSION_SHOT_OPTIONS, SHOT_SCAN_UNITS,
+    SESSION_SHOT_OPTIONS, SHOT_SCAN_UNITS, SESSION_LENS, SESSION_HELMET,
     calibration_images="Folder of stereo board images (left*/right* or cam0/ and cam1/), as lgi calibrate reads.",
     board="Board spec for lgi calibrate, e.g. chessboard:9x6:25 or charuco:7x5:30:22:DICT_5X5_100 (mm).",
     shots="A folder whose subfolders are the shots (each with cam0/ and cam1/ frames), or a list of shot folders.",
     index_dir="The actor's LGI index (lgi build or the rebuild-dataset flow).",
     markers="Marker layout CSV with neutral positions (x, y, z), as lgi track reads.",
     out="Session output folder: calibration.json, shots/<shot>/ (bundles, recon/, exr/).",
-    fisheye="Calibrate with the fisheye lens model.",
-    rational="Calibrate with OpenCV's rational pinhole model.",
-    helmet="Helmet marker CSV (name, x, y, z in mm): refine the rig per shot.",
     usd="Write each shot's shot.usdc.",
     exr_size="Also write EXR displacement maps of this many texels square per frame (null: none).",
     dask_address="Run the reconstruction chunks on Dask (see reconstruct-shot); null: threads.",
@@ -174,7 +175,7 @@ SHOT_SCAN_UNITS = Subset(CompareOptions, SHOT_SCAN_OPTIONS.prefix, ("units",))
           "shot's pairs go to its reconstruct-shot run (shots/<shot>/recon/compare, and its review page); a scan "
           "that fails is reported in the session's table (column scans); null: none.",
 )
-@flow_parameters(SESSION_SHOT_OPTIONS, SHOT_SCAN_UNITS, after=6)
+@flow_parameters(SESSION_LENS, SESSION_HELMET, SESSION_SHOT_OPTIONS, SHOT_SCAN_UNITS, after=6)
 def capture_session(
     calibration_images: str,
     board: str,
@@ -182,9 +183,6 @@ def capture_session(
     index_dir: str,
     markers: str,
     out: str,
-    fisheye: bool = False,
-    rational: bool = False,
-    helmet: str | None = None,
     usd: bool = True,
     exr_size: int | None = None,
     dask_address: str | None = None,
@@ -201,12 +199,13 @@ def capture_session(
     scan = params(SHOT_SCAN_OPTIONS, take(SHOT_SCAN_UNITS, options))
     at = run_paths()  # a deployment run's relative paths go under the data root, never the worker's cwd
     calibration_images, index_dir = at(calibration_images, "calibration_images"), at(index_dir, "index_dir")
-    markers, out, helmet = at(markers, "markers"), at(out, "out", output=True), at(helmet, "helmet")
+    helmet = at(take(SESSION_HELMET, options)["helmet"], "helmet")
+    markers, out = at(markers, "markers"), at(out, "out", output=True)
     shots = [at(s, "shots") for s in shots] if isinstance(shots, (list, tuple)) else at(shots, "shots")
     from lgi.io.atomic import check_output
     from lgi.jobs.export import ExportOptions
 
-    cal_opts = CalibrateOptions(board=board, rational=rational, fisheye=fisheye)
+    cal_opts = CalibrateOptions(board=board, **take(SESSION_LENS, options))
     if exr_size is not None:
         ExportOptions(exr="x", exr_size=exr_size, fps=fps)  # the values checked before any work
     folders = shot_folders(shots)

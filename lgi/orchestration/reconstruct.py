@@ -29,12 +29,9 @@ from lgi.errors import InputError
 from lgi.io.atomic import output_lock
 from lgi.jobs import reconstruct as job
 from lgi.jobs.compare import (
-    IN_SHOT,
     REGIONS,
     SHOT_SCAN_OPTIONS,
     CompareOptions,
-    check_scan_frames,
-    scan_inputs,
     shot_scan_options,
 )
 from lgi.options import flow_parameters, take
@@ -171,7 +168,7 @@ def reconstruct_shot(
     options["jaw"] = at(options.get("jaw", "auto"), "jaw", ("auto", "none"))
     for name in ("observations", "calib", "contours"):
         options[name] = at(options.get(name), name)
-    calib, contours = options["calib"], options["contours"]
+    calib = options["calib"]
     if scans is not None:
         scans = at(scans, "scans") if isinstance(scans, str) else [(f, at(s, "scans")) for f, s in scans]
     scan = take(SHOT_SCAN_OPTIONS, options)
@@ -184,94 +181,102 @@ def reconstruct_shot(
         options["calib"] = None  # it calibrates the tracking; without observations there are no rays to make
     opts = job.ReconstructOptions.from_json(options)
     # Scans are checked before any work (files there, frames in the shot), their loading and coverage after.
-    scan_opts = shot_scan_options(scans, index_dir, out, **scan)
-    job.check_outputs(out, (index_dir, bundles, opts.jaw, footage, calib, markers, helmet, opts.observations,
-                           contours, *scan_inputs(scan_opts)))
+    shot_job = job.ReconstructJob(index_dir, bundles, out, opts, shot_scan_options(scans, index_dir, out, **scan),
+                                  review, (footage, calib, markers, helmet))
+    steps = FlowSteps(footage, calib, markers, helmet, dask_address)
     # One run at a time in OUT (lgi reconstruct holds it already; a deployment's run takes it here).
     with output_lock(out):
-        scan_pairs = None
-        if scan_opts is not None:
-            from lgi.jobs.compare import check_outputs, checked_pairs
+        summary = shot_job.run(steps)
+    _report(summary, out)
+    logger = get_run_logger()
+    for line in job.report_lines(summary):
+        logger.info(line)
+    if steps.tracking:
+        summary["tracking"] = steps.tracking
+    return summary
 
-            scan_pairs = checked_pairs(scan_opts)
-            check_outputs(out, scan_opts, scan_pairs)
-        tracking = None
-        if footage:
-            # The actor's index is at hand: the head pose is solved with the face (lgi track --index).
-            tracking = track_footage(footage, calib, markers, bundles, helmet=helmet, index=index_dir)
-            create_table_artifact(table=[{k: v for k, v in tracking.items() if not isinstance(v, (list, dict))}],
-                                  key=artifact_key("shot-tracking", out),
-                                  description="footage to bundles: tracking summary")
-        n = job.preflight(index_dir, bundles, opts)
-        if scan_pairs:
-            check_scan_frames(scan_pairs, job.prepared_shot(index_dir, bundles, opts).frames, scan_opts)
-        runner = task_runner(dask_address)
-        # One working folder per run: two runs into the same OUT never touch each other's chunk files. A stopped run's
-        # folder (its process gone) is this run's when it was the same job in the same chunks: the chunks it finished
-        # are not done again; any other is removed.
-        work = _chunk_folder(Path(out), f"{job.resume_key(index_dir, bundles, opts)}:{opts.chunk_size}")
-        # What a stopped run of this job left (both passes' chunks, with markers on rays), for the report.
-        kept = {"chosen": len(list(work.rglob("choice_*.npz"))), "finished": len(list(work.rglob("part_*.npz"))),
-                "chunks": len(chunk_bounds(n, opts.chunk_size))}
-        # One progress artifact per shot (keyed by OUT, so `prefect artifact ls` lists it), updated by both passes.
-        progress_key = artifact_key("shot-progress", out)
 
-        def chunks(bundles_file: str, options: dict, into: str, folder: Path) -> dict:
-            folder.mkdir(exist_ok=True)
-            if runner is None:
-                # Prefect's threads in this process: the flow's own task runner, and the finished chunks handed to
-                # the writer in memory.
-                return chunk_work(index_dir, bundles_file, options, n, opts.chunk_size, str(folder), into, keep=True,
-                                  progress_key=progress_key)
-            return reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles_file, options, n,
-                                                                       opts.chunk_size, str(folder), into, progress_key)
+class FlowSteps:
+    """The reconstruct job's steps in the flow (:class:`lgi.jobs.reconstruct.ReconstructJob`): the footage tracked
+    first when given, the shot in chunk tasks (Prefect's threads, or Dask at ``dask_address``), the comparison and
+    the page as tasks."""
 
-        try:
-            if opts.observations:
-                # As lgi reconstruct does: the shot without the markers seen by one camera, then through their points
-                # on their rays.
-                first = job.replace_outputs(opts)
-                chunks(bundles, first.to_json(), str(work / "first"), work / "pass1")
-                constrained = str(work / job.CONSTRAINED)
-                counts = rays_task(index_dir, bundles, opts.to_json(), str(work / "first"), constrained)
-                summary = {**chunks(constrained, opts.to_json(), out, work / "pass2"), **counts}
-            else:
-                summary = chunks(bundles, opts.to_json(), out, work)
-        except (KeyboardInterrupt, SystemExit):
-            job.forget_parts(work)  # stopped: the chunks written wait for the same run again
-            raise
-        except BaseException:
-            job.forget_parts(work)
-            shutil.rmtree(work, ignore_errors=True)
-            raise
+    collects_warnings = False  # the chunk tasks may run in other processes: the page shows only the scans' failure
+
+    def __init__(self, footage: str | None, calib: str | None, markers: str | None, helmet: str | None,
+                 dask_address: str | None):
+        self.footage, self.calib, self.markers, self.helmet = footage, calib, markers, helmet
+        self.dask_address = dask_address
+        self.tracking: dict | None = None
+
+    def before(self, shot_job) -> None:
+        if not self.footage:
+            return
+        # The actor's index is at hand: the head pose is solved with the face (lgi track --index).
+        self.tracking = track_footage(self.footage, self.calib, self.markers, shot_job.bundles,
+                                      helmet=self.helmet, index=shot_job.index_dir)
+        create_table_artifact(table=[{k: v for k, v in self.tracking.items() if not isinstance(v, (list, dict))}],
+                              key=artifact_key("shot-tracking", shot_job.out),
+                              description="footage to bundles: tracking summary")
+
+    def reconstruct(self, shot_job) -> dict:
+        return _reconstruct_in_chunks(shot_job, task_runner(self.dask_address))
+
+    def compare(self, shot_job, pairs: list[tuple[int, Path]]) -> dict:
+        return _compare_scans(shot_job.out, shot_job.scans, pairs)
+
+    def review(self, shot_job, summary: dict, scans: str | None, warnings: list[str]) -> str:
+        return review_task(shot_job.out, shot_job.index_dir, summary, shot_job.options.fps, scans, warnings)
+
+
+def _reconstruct_in_chunks(shot_job, runner) -> dict:
+    """The shot in chunk tasks, both passes with observations; a stopped run's chunks of the same job are not done
+    again."""
+    index_dir, bundles, out, opts = shot_job.index_dir, shot_job.bundles, shot_job.out, shot_job.options
+    n = job.preflight(index_dir, bundles, opts)
+    # One working folder per run: two runs into the same OUT never touch each other's chunk files. A stopped run's
+    # folder (its process gone) is this run's when it was the same job in the same chunks: the chunks it finished
+    # are not done again; any other is removed.
+    work = _chunk_folder(Path(out), f"{job.resume_key(index_dir, bundles, opts)}:{opts.chunk_size}")
+    # What a stopped run of this job left (both passes' chunks, with markers on rays), for the report.
+    kept = {"chosen": len(list(work.rglob("choice_*.npz"))), "finished": len(list(work.rglob("part_*.npz"))),
+            "chunks": len(chunk_bounds(n, opts.chunk_size))}
+    # One progress artifact per shot (keyed by OUT, so `prefect artifact ls` lists it), updated by both passes.
+    progress_key = artifact_key("shot-progress", out)
+
+    def chunks(bundles_file: str, options: dict, into: str, folder: Path) -> dict:
+        folder.mkdir(exist_ok=True)
+        if runner is None:
+            # Prefect's threads in this process: the flow's own task runner, and the finished chunks handed to
+            # the writer in memory.
+            return chunk_work(index_dir, bundles_file, options, n, opts.chunk_size, str(folder), into, keep=True,
+                              progress_key=progress_key)
+        return reconstruct_chunks.with_options(task_runner=runner)(index_dir, bundles_file, options, n,
+                                                                   opts.chunk_size, str(folder), into, progress_key)
+
+    try:
+        if opts.observations:
+            # As lgi reconstruct does: the shot without the markers seen by one camera, then through their points
+            # on their rays.
+            first = job.replace_outputs(opts)
+            chunks(bundles, first.to_json(), str(work / "first"), work / "pass1")
+            constrained = str(work / job.CONSTRAINED)
+            counts = rays_task(index_dir, bundles, opts.to_json(), str(work / "first"), constrained)
+            summary = {**chunks(constrained, opts.to_json(), out, work / "pass2"), **counts}
+        else:
+            summary = chunks(bundles, opts.to_json(), out, work)
+    except (KeyboardInterrupt, SystemExit):
+        job.forget_parts(work)  # stopped: the chunks written wait for the same run again
+        raise
+    except BaseException:
         job.forget_parts(work)
         shutil.rmtree(work, ignore_errors=True)
-        if kept["chosen"] or kept["finished"]:
-            summary["resumed_chunks"] = kept
-        page_warnings = []
-        if scan_opts is not None:
-            summary["compare"] = _compare_scans(out, scan_opts, scan_pairs)
-            if summary["compare"]["status"] != "done":
-                page_warnings.append(f"scan comparison failed: {summary['compare']['error']}")
-        else:
-            from lgi.jobs.compare import remove_outputs
-
-            remove_outputs(Path(out) / IN_SHOT)  # an earlier run's distances were measured on other meshes
-        if review:
-            done = summary.get("compare", {}).get("status") == "done"
-            summary["review"] = review_task(out, index_dir, {**summary, "options": opts.to_json()}, opts.fps,
-                                            scan_opts.out if done else None, page_warnings)
-        else:
-            from lgi.jobs.review import remove_review
-
-            remove_review(out)  # an earlier run's page would show that run, not this one
-        _report(summary, out)
-        logger = get_run_logger()
-        for line in job.report_lines(summary):
-            logger.info(line)
-        if tracking:
-            summary["tracking"] = tracking
-        return summary
+        raise
+    job.forget_parts(work)
+    shutil.rmtree(work, ignore_errors=True)
+    if kept["chosen"] or kept["finished"]:
+        summary["resumed_chunks"] = kept
+    return summary
 
 
 def _chunk_folder(out: Path, key: str) -> Path:

@@ -4,8 +4,19 @@ weights, and adding the smooth residual correction. Called by :mod:`lgi.solve.su
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba as nb
 import numpy as np
+
+
+class BundleReach(NamedTuple):
+    """The natural-neighbour blend weights by bundle (CSC): bundle b reaches vertices ``vert[ptr[b]:ptr[b + 1]]``
+    with weights ``w`` there."""
+
+    ptr: np.ndarray  # (M+1,) int64
+    vert: np.ndarray  # (N,) int64
+    w: np.ndarray  # (N,) float64
 
 
 @nb.njit(parallel=True, cache=True, nogil=True)
@@ -34,7 +45,7 @@ def blend(x0, deltas, w_indptr, w_indices, w_data, shapes, lam, out):  # pragma:
 
 
 @nb.njit(cache=True, nogil=True)
-def blend_on_base(x0, deltas, base_shapes, base_lam, w_sum, c_ptr, c_vert, c_w, ramp, share, rows, d_shapes, d_lam,
+def blend_on_base(x0, deltas, base_shapes, base_lam, w_sum, reach, ramp, share, rows, d_shapes, d_lam,
                   out):  # pragma: no cover - compiled
     """:func:`blend` of bundles whose weights mostly repeat one base blend (the frame's global fit), with the far
     field: ``out[v] = x0[v] + w_sum[v] B[v] + sum_b N[v, b] (1 - ramp[v] share[b]) D_b[v]``, where
@@ -43,8 +54,9 @@ def blend_on_base(x0, deltas, base_shapes, base_lam, w_sum, c_ptr, c_vert, c_w, 
     The far field's share of the global fit is already in the base term: a vertex's weights sum to w_sum.
 
     Both terms stream over shape rows, one row at a time (the base over every vertex, a difference over the
-    vertices its bundle reaches, from the weights by bundle: CSC ``c_ptr`` (M+1,), ``c_vert``, ``c_w``): reading
+    vertices its bundle reaches, from the weights by bundle, ``reach`` a :class:`BundleReach`): reading
     memory in order, as :func:`blend_uniform` does. Flat arrays: ``x0``, ``out`` (3V,), ``deltas`` (S, 3V)."""
+    c_ptr, c_vert, c_w = reach
     blend_uniform(x0, deltas, w_sum, base_shapes, base_lam, out)
     for b in rows:
         sb = share[b]

@@ -4,11 +4,34 @@ the whole fit of a frame in one compiled call (:func:`global_fit_frame`).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba as nb
 import numpy as np
 
 from lgi.solve._jaw_kernels import jaw_map, jaw_map_derivatives
 from lgi.solve.qp import box_qp
+
+
+class FitModel(NamedTuple):
+    """The global fit's model of M bundles and S shapes (:class:`lgi.solve.globalfit.GlobalFit`), made once."""
+
+    rest: np.ndarray  # (M, 3) float64, cm: the bundles on the neutral (unskinned with a rig)
+    basis: np.ndarray  # (S, M, 3) float64, cm: each shape's displacement of each bundle
+    prod: np.ndarray  # (S, M, 6): :func:`shape_products` of ``basis``
+    pivot: np.ndarray  # (3,) cm: the jaw's pivot
+    bw: np.ndarray  # (M,): each bundle's jaw skinning weight (zeros without a rig)
+    has_rig: bool
+    theta_scale: np.ndarray  # (4,): the jaw parameters' units in the solve
+
+
+class FitSettings(NamedTuple):
+    """The global fit's settings, read at each frame (the gain may change between frames)."""
+
+    l2: float  # ridge on the weights, cm^2
+    gain: float  # least decrease of the objective (cm^2) for which a shape joins the working set
+    max_iter: int  # Gauss-Newton steps at most
+    grow: int  # shapes joining the working set per round
 
 
 # The global fit's linearisation (lgi.solve.globalfit.GlobalFit). Bundle i = seen_idx[e] is modelled as
@@ -101,10 +124,11 @@ def global_col2(prod, seen_idx, rot, bw, out):  # pragma: no cover - compiled
 # working-set box QP. In Python the bookkeeping around the kernels above (row caches, sets, small arrays) cost
 # 20 ms per frame at 500 shapes, ten times the arithmetic.
 @nb.njit(cache=True)
-def _gf_system(rest, basis, seen_idx, p, w, theta, pivot, bw, has_rig, with_jaw, theta_scale, r,
-               jaw_rows, rot):  # pragma: no cover - compiled
+def _gf_system(model, seen_idx, p, w, theta, with_jaw, r, jaw_rows, rot):  # pragma: no cover - compiled
     """Residuals ``r`` (3m,) of the seen bundles at (theta, w), the jaw map's rotation ``rot`` (3, 3) and,
-    with ``with_jaw``, the jaw's Jacobian rows (4, 3m) per unit of ``theta_scale``."""
+    with ``with_jaw``, the jaw's Jacobian rows (4, 3m) per unit of the model's ``theta_scale``."""
+    rest, basis, pivot, bw, has_rig, theta_scale = (model.rest, model.basis, model.pivot, model.bw, model.has_rig,
+                                                    model.theta_scale)
     t = np.zeros((3, 4))
     if has_rig:
         jaw_map(theta, pivot, t)
@@ -134,8 +158,10 @@ def _gf_system(rest, basis, seen_idx, p, w, theta, pivot, bw, has_rig, with_jaw,
 
 
 @nb.njit(cache=True)
-def _gf_row(basis, seen_idx, rot, bw, jaw_rows, nj, k, out):  # pragma: no cover - compiled
+def _gf_row(model, seen_idx, rot, jaw_rows, k, out):  # pragma: no cover - compiled
     """Jacobian row (3m,) of variable k (the jaw's first, then the shapes)."""
+    basis, bw = model.basis, model.bw
+    nj = jaw_rows.shape[0]
     if k < nj:
         out[:] = jaw_rows[k]
         return
@@ -147,9 +173,10 @@ def _gf_row(basis, seen_idx, rot, bw, jaw_rows, nj, k, out):  # pragma: no cover
 
 
 @nb.njit(cache=True)
-def _gf_gradient(basis, seen_idx, rot, bw, jaw_rows, nj, r, dz, z, reg, damp, row_pos, rowbuf, g):  # pragma: no cover
+def _gf_gradient(model, seen_idx, rot, jaw_rows, r, dz, z, reg, damp, row_pos, rowbuf, g):  # pragma: no cover
     """g = J^T (r + J dz) + reg (z + dz) + damp dz: the objective's gradient at the step ``dz`` (rows of its
     nonzero entries cached in ``rowbuf`` at ``row_pos``)."""
+    nj = jaw_rows.shape[0]
     v = r.copy()
     for k in range(dz.shape[0]):
         if dz[k] != 0.0:
@@ -161,7 +188,7 @@ def _gf_gradient(basis, seen_idx, rot, bw, jaw_rows, nj, r, dz, z, reg, damp, ro
         for j in range(v.shape[0]):
             acc += jaw_rows[q, j] * v[j]
         g[q] = acc
-    global_gradient(basis, seen_idx, rot, bw, v, g[nj:])
+    global_gradient(model.basis, seen_idx, rot, model.bw, v, g[nj:])
     for k in range(g.shape[0]):
         g[k] += reg[k] * (z[k] + dz[k]) + damp * dz[k]
 
@@ -182,7 +209,7 @@ def _gf_top(score, cand, count, work):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True)
-def working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, damp, col2, gain, grow):  # pragma: no cover
+def working_set_step(model, seen_idx, rot, jaw_rows, r, w, reg, damp, col2, gain, grow):  # pragma: no cover
     """The step dz minimising ``|r + J dz|^2 + sum reg (z + dz)^2 + damp |dz|^2`` (z: 0 for the jaw, ``w`` for
     the weights; ``damp``: Levenberg-Marquardt damping of the step) with ``0 <= w + dz_w <= 1``, solved on a
     working set of variables.
@@ -192,8 +219,10 @@ def working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, damp, co
     wants them, then the optimality of every other shape is checked and violators join; the dense problem
     over all shapes (its normal matrix alone is 500^2 x 3m flops) is never formed. It stops when no shape
     outside the set could lower the objective by more than ``gain`` (cm^2) on its own. ``col2`` (n,): the
-    Jacobian's squared column norms (without ``reg``).
+    Jacobian's squared column norms (without ``reg``). ``jaw_rows`` (nj, 3m): the jaw's Jacobian rows (none
+    without the jaw).
     """
+    nj = jaw_rows.shape[0]
     n = nj + w.shape[0]
     m3 = r.shape[0]
     z = np.zeros(n)
@@ -209,7 +238,7 @@ def working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, damp, co
     n_rows = 0
     g = np.empty(n)
     col2r = col2 + reg + damp
-    _gf_gradient(basis, seen_idx, rot, bw, jaw_rows, nj, r, dz, z, reg, damp, row_pos, rowbuf, g)
+    _gf_gradient(model, seen_idx, rot, jaw_rows, r, dz, z, reg, damp, row_pos, rowbuf, g)
     work = np.zeros(n, np.bool_)
     dropped = np.zeros(n, np.bool_)
     for k in range(n):
@@ -238,7 +267,7 @@ def working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, damp, co
                     r2 = np.empty(2 * n_rows)
                     r2[:n_rows] = rdot[:n_rows]
                     rdot = r2
-                _gf_row(basis, seen_idx, rot, bw, jaw_rows, nj, k, rowbuf[n_rows])
+                _gf_row(model, seen_idx, rot, jaw_rows, k, rowbuf[n_rows])
                 row_pos[k] = n_rows
                 n_rows += 1
         if n_rows > n_gram:
@@ -262,7 +291,7 @@ def working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, damp, co
         dz[:] = 0.0
         for a in range(nw):
             dz[ws[a]] = sub[a]
-        _gf_gradient(basis, seen_idx, rot, bw, jaw_rows, nj, r, dz, z, reg, damp, row_pos, rowbuf, g)
+        _gf_gradient(model, seen_idx, rot, jaw_rows, r, dz, z, reg, damp, row_pos, rowbuf, g)
         # Outside the set a variable sits at its starting value: optimal only at a bound the gradient pushes
         # it against (weights at 0 with g >= 0, at 1 with g <= 0). A shape joins only if moving it alone would
         # lower the objective by more than ``gain``: with redundant shapes the ridge alone would otherwise pull
@@ -295,20 +324,20 @@ def working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, damp, co
 
 
 @nb.njit(cache=True, nogil=True)
-def global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_rig, with_jaw, l2, gain,
-                        theta_scale, max_iter, grow, w_out, theta_out, r_out):  # pragma: no cover - compiled
+def global_gauss_newton(model, cfg, seen_idx, p, w0, theta0, with_jaw, w_out, theta_out,
+                        r_out):  # pragma: no cover - compiled
     """Minimise |r|^2 + l2 |w|^2 over the weights in [0, 1] (and, with ``with_jaw``, the jaw) by Gauss-Newton
     steps from (w0, theta0), each a box QP on a working set (:func:`working_set_step`) with
-    Levenberg-Marquardt damping of the jaw (``grow``: shapes joining the working set per round). ``prod``:
-    :func:`shape_products` of ``basis``. Writes ``w_out``
-    (S,), ``theta_out`` (4,) and the residuals ``r_out`` (3m,) of the seen bundles at the result. Returns the
-    Gauss-Newton steps taken.
+    Levenberg-Marquardt damping of the jaw. ``model``: a :class:`FitModel`; ``cfg``: :class:`FitSettings`.
+    ``seen_idx`` (m,) the seen bundles, ``p`` (M, 3) cm the bundles. Writes ``w_out`` (S,), ``theta_out`` (4,)
+    and the residuals ``r_out`` (3m,) of the seen bundles at the result. Returns the Gauss-Newton steps taken.
 
     Alternating between the jaw and the weights stalls where a shape and the jaw move the same bundles
     (ICT's mouthLowerDown and a degree of opening): each step undoes the other's gain; a joint step moves
     both along that valley. Without the jaw the problem is linear and one step solves it.
     """
-    n_s = basis.shape[0]
+    l2, gain, max_iter, grow, theta_scale = cfg.l2, cfg.gain, cfg.max_iter, cfg.grow, model.theta_scale
+    n_s = model.basis.shape[0]
     nj = 4 if with_jaw else 0
     m3 = 3 * seen_idx.shape[0]
     w = np.minimum(np.maximum(w0, 0.0), 1.0)
@@ -318,10 +347,10 @@ def global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, h
     r = np.empty(m3)
     rot = np.empty((3, 3))
     jaw_rows = np.zeros((nj, m3))
-    _gf_system(rest, basis, seen_idx, p, w, th, pivot, bw, has_rig, with_jaw, theta_scale, r, jaw_rows, rot)
+    _gf_system(model, seen_idx, p, w, th, with_jaw, r, jaw_rows, rot)
     # The shapes' column norms serve only the joining test; a step's change of the jaw barely moves them.
     col2 = np.empty(nj + n_s)
-    global_col2(prod, seen_idx, rot, bw, col2[nj:])
+    global_col2(model.prod, seen_idx, rot, model.bw, col2[nj:])
     for q in range(nj):
         col2[q] = np.sum(jaw_rows[q] ** 2)
     c = np.sum(r**2) + l2 * np.sum(w**2)
@@ -332,13 +361,12 @@ def global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, h
     steps = 0
     for _ in range(max_iter):
         steps += 1
-        dz = working_set_step(basis, seen_idx, rot, bw, jaw_rows, nj, r, w, reg, mu, col2, gain, grow)
+        dz = working_set_step(model, seen_idx, rot, jaw_rows, r, w, reg, mu, col2, gain, grow)
         w_new = np.minimum(np.maximum(w + dz[nj:], 0.0), 1.0)
         th_new = th.copy()
         for q in range(nj):
             th_new[q] += dz[q] * theta_scale[q]
-        _gf_system(rest, basis, seen_idx, p, w_new, th_new, pivot, bw, has_rig, with_jaw, theta_scale, r_new,
-                   jaw_new, rot_new)
+        _gf_system(model, seen_idx, p, w_new, th_new, with_jaw, r_new, jaw_new, rot_new)
         c_new = np.sum(r_new**2) + l2 * np.sum(w_new**2)
         if not with_jaw:
             w, th = w_new, th_new
@@ -376,18 +404,16 @@ def global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, h
 
 
 @nb.njit(cache=True, nogil=True)
-def global_fit_frame(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_rig, with_jaw, l2, gain,
-                     theta_scale, max_iter, grow, w_out, theta_out, r_out):  # pragma: no cover - compiled
+def global_fit_frame(model, cfg, seen_idx, p, w0, theta0, with_jaw, w_out, theta_out,
+                     r_out):  # pragma: no cover - compiled
     """One frame's global fit (:class:`lgi.solve.globalfit.GlobalFit`): :func:`global_gauss_newton` over the jaw
     and the weights, then (with ``with_jaw``) the weights again at the final jaw exactly, since the joint
     solve stops at a tolerance. Arguments as for :func:`global_gauss_newton`."""
-    steps = global_gauss_newton(rest, basis, prod, seen_idx, p, w0, theta0, pivot, bw, has_rig, with_jaw, l2,
-                                gain, theta_scale, max_iter, grow, w_out, theta_out, r_out)
+    steps = global_gauss_newton(model, cfg, seen_idx, p, w0, theta0, with_jaw, w_out, theta_out, r_out)
     if with_jaw:
         w1 = w_out.copy()
         th1 = theta_out.copy()
         # ``not with_jaw`` (False) rather than the literal: a literal argument is a type of its own, and numba
         # would compile the whole fit a second time for it.
-        steps += global_gauss_newton(rest, basis, prod, seen_idx, p, w1, th1, pivot, bw, has_rig, not with_jaw, l2,
-                                     gain, theta_scale, max_iter, grow, w_out, theta_out, r_out)
+        steps += global_gauss_newton(model, cfg, seen_idx, p, w1, th1, not with_jaw, w_out, theta_out, r_out)
     return steps

@@ -63,7 +63,8 @@ class Finishing:
                 self.select_sequence(rows_from(fit_pos, start), frames[start:], None if jaw is None else jaw[start:],
                                      False, lambda f, sel: put((f + start, sel)),
                                      previous=carried[1][-1] if carried else None,
-                                     left=None if left is None else rows_from(left, start), keep=False)
+                                     left=None if left is None else rows_from(left, start), keep=False,
+                                     serial=True)
             except _Stopped:
                 return
             except BaseException as exc:  # handed to the consumer, which raises it
@@ -74,14 +75,16 @@ class Finishing:
 
         n = len(pos)
         left = self.noise_left if self.noise_left is not None and len(self.noise_left) == n else None
+        # The shot is chosen on one thread and blended on another: both run the kernels' one-thread twins
+        # (``serial``), the same bits, so no parallel region is launched from two threads (the "workqueue" threading
+        # layer aborts on that) or competes for the two cores.
         worker = threading.Thread(target=produce, name="lgi-select", daemon=True)
-        self._serial = True
         worker.start()
         try:
             bar = iter(progress(range(start, n), "reconstructing", disable=not show_progress))
             for lo in range(start, n, block):
                 hi = min(n, lo + block)
-                fin = _Finisher(self, pos[lo:hi], fit_pos[lo:hi], None if left is None else left[lo:hi])
+                fin = _Finisher(self, pos[lo:hi], fit_pos[lo:hi], None if left is None else left[lo:hi], True)
                 sels: list[FrameResult] = []
                 for _ in range(lo, hi):
                     next(bar, None)
@@ -101,11 +104,9 @@ class Finishing:
             # only computes choices, and as a daemon thread it ends with the process.
             stop.set()
             worker.join(timeout=1.0)
-            self._serial = False
             raise
         stop.set()
         worker.join()
-        self._serial = False
 
     def _stream_smoothed(self, fit_pos: np.ndarray, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray,
                          smooth: int, jaw_smooth: int | None, jaw: np.ndarray | None, show_progress: bool,
@@ -248,9 +249,9 @@ class _Finisher:
     distance before (``before``) and after (``r_final``) the correction (F, M), cm. ``solver`` is the
     :class:`~lgi.solve.solver.LGISolver` whose :class:`Finishing` stage runs it."""
 
-    def __init__(self, solver: Finishing, pos: np.ndarray, fit_pos: np.ndarray, left: np.ndarray | None = None
-                 ) -> None:
-        self.solver, self.pos, self.fit_pos, self.left = solver, pos, fit_pos, left
+    def __init__(self, solver: Finishing, pos: np.ndarray, fit_pos: np.ndarray, left: np.ndarray | None = None,
+                 serial: bool = False) -> None:
+        self.solver, self.pos, self.fit_pos, self.left, self.serial = solver, pos, fit_pos, left, serial
         n_f, n_m = len(pos), solver.index.n_markers
         self.out = np.empty((n_f, solver.index.n_vertices, 3), np.float32)
         self.seen = np.all(np.isfinite(pos), axis=2)
@@ -273,8 +274,8 @@ class _Finisher:
         s, seen = self.solver, self.seen[f]
         step = s.correction_step(resid, None if self.left is None else self.left[f])
         target = np.where(seen[:, None], s.layout.evaluate(x) + step, np.nan)
-        s.correct(x, target, seen)
-        s.correct_far(x, step, seen, 1.0, t)
+        s.correct(x, target, seen, self.serial)
+        s.correct_far(x, step, seen, 1.0, t, self.serial)
         self.out[f] = x
         self.r_final[f] = np.where(seen, np.linalg.norm(np.nan_to_num(self.pos[f]) - s.layout.evaluate(x), axis=1),
                                    np.nan)

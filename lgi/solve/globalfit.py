@@ -186,9 +186,14 @@ class GlobalFit:
             self.jaw_note = ""
         # What the compiled fit takes in place of a missing rig: no bundle moves with a jaw.
         self._bw = np.zeros(self.n_markers) if self.bw is None else np.ascontiguousarray(self.bw)
-        self._pivot = np.zeros(3) if rig is None else np.asarray(rig.pivot, np.float64).reshape(3)
+        pivot = np.zeros(3) if rig is None else np.asarray(rig.pivot, np.float64).reshape(3)
+        self.model = K.FitModel(self.rest, self.basis, self._prod, pivot, self._bw, rig is not None, THETA_SCALE)
 
     # ------------------------------------------------------------------ the model
+    def settings(self) -> K.FitSettings:
+        """The compiled fit's settings as they stand (``l2``, ``gain`` and ``grow`` may change between frames)."""
+        return K.FitSettings(self.l2, self.gain, MAX_STEPS, self.grow)
+
     def _maps(self, theta: np.ndarray) -> np.ndarray:
         """(M, 3, 4) blended skinning maps of the bundles."""
         if self.rig is None:
@@ -237,9 +242,8 @@ class GlobalFit:
         w = np.empty(self.n_shapes)
         th = np.zeros(N_PARAMS) if theta is None else np.asarray(theta, np.float64).copy()
         r = np.empty(3 * len(seen_idx))
-        K.global_fit_frame(self.rest, self.basis, self._prod, seen_idx, np.where(seen[:, None], p, 0.0),
-                           np.asarray(w0, np.float64), th.copy(), self._pivot, self._bw, self.rig is not None, with_jaw,
-                           self.l2, self.gain, THETA_SCALE, MAX_STEPS, self.grow, w, th, r)
+        K.global_fit_frame(self.model, self.settings(), seen_idx, np.where(seen[:, None], p, 0.0),
+                           np.asarray(w0, np.float64), th.copy(), with_jaw, w, th, r)
         theta = None if theta is None else th
         r = np.linalg.norm(r.reshape(-1, 3), axis=1)
         res = np.full(self.n_markers, np.nan)

@@ -12,9 +12,12 @@ from lgi.errors import InputError
 from lgi.progress import progress
 from lgi.solve._select_kernels import (
     OWN_WEIGHT,
+    FramePass,
+    SearchSettings,
     agreement,
     local_fits,
     local_fits_serial,
+    new_choice,
     solve_bundles,
     solve_bundles_serial,
     weight_misfits,
@@ -48,8 +51,10 @@ class Selection:
     pairs ``_pair_i``/``_pair_j``, ``layout``, ``rig``, ``global_fit``, ...).
     """
 
-    def select(self, bundles: np.ndarray, previous: FrameResult | None = None, needed: np.ndarray | None = None):
-        """Choose each bundle's shapes and weights (no blending).
+    def select(self, bundles: np.ndarray, previous: FrameResult | None = None, needed: np.ndarray | None = None,
+               serial: bool = False):
+        """Choose each bundle's shapes and weights (no blending); ``serial``: on the calling thread alone (the
+        kernels' one-thread twins, the same bits: a shot chosen on one thread while another blends).
 
         ``needed`` (M,) bool: the bundles whose choice is used (all by default); the simplex search runs for
         them and, since their second pass reads their natural neighbours' first choices, for those too.
@@ -61,7 +66,6 @@ class Selection:
             ``(p, seen, shapes, weights, n_containing, status, projection, score, fallback)`` as in
             :class:`FrameResult`, ``p`` the bundles as float64 and ``seen`` (M,) bool.
         """
-        a = self._a
         p = np.asarray(bundles, np.float64)
         if p.shape != (self.index.n_markers, 3):
             raise InputError(f"bundles have shape {p.shape}, the index has {self.index.n_markers} markers")
@@ -69,11 +73,7 @@ class Selection:
         pk = np.where(seen[:, None], p, 0.0)
         prev = previous.shapes if previous is not None else np.full((len(p), 4), -1, np.int64)
         mu = self.temporal_weight / MM_PER_CM if previous is not None else 0.0
-        args = (pk, seen, a["dim"], a["origin"], a["basis"], a["pts"], a["pt_off"], a["pt_shape"], a["alias_off"],
-                a["class_off"], a["alias_shape"], a["sx"], a["tinv"], a["hull"], a["hull_off"], a["grid_lo"],
-                a["grid_h"], a["grid_dims"], a["cell_off"], a["cell_start"], a["cell_items"], a["ptab"],
-                a["nb_off"], a["nb_idx"], a["snap_radius"], prev, mu)
-        tail = (self.alias_min_weight, self.tolerance, self._dist_tol, self.n_project, self.top_k)
+        cfg = SearchSettings(self.alias_min_weight, self.tolerance, self._dist_tol, self.n_project, self.top_k)
         if needed is None:
             needed = first = np.ones(len(p), bool)
         else:
@@ -82,21 +82,22 @@ class Selection:
             needed[self._pair_j[(needed & ~seen)[self._pair_i]]] = True
             first = needed.copy()
             first[self._pair_j[needed[self._pair_i]]] = True
-        search = solve_bundles_serial if self._serial else solve_bundles
-        shapes, lam, pts, n_contain, status, proj, score, cand, cand_score = search(
-            *args, self._no_agree, 0.0, self._no_shapes, self._no_lam, *tail, self._scan, self._no_scores,
-            self._no_first, first)
+        search = solve_bundles_serial if serial else solve_bundles
+        out = new_choice(len(p), self.top_k)
+        search(self._ix, cfg, FramePass(pk, seen, prev, mu, self._no_agree, 0.0, self._no_shapes, self._no_lam,
+                                        self._scan, self._no_scores, self._no_first, first), out)
+        shapes, lam, pts, n_contain, status, proj, score, cand, cand_score = out
         # Second pass: break near-ties toward the shapes the neighbours and the frame agree on. A noisy bundle's
         # simplex only lends its shapes to the bundle's local fit, where the tie-break changed the synthetic actor's
         # and the 400-scan session's RMS by under 0.5 % (0.02-0.3 mm): it costs a third of the frame and is skipped.
         if self.spatial_weight > 0 and self.noise == 0:
-            agree = agreement(pts, lam, seen, a["alias_off"], a["class_off"], a["alias_shape"], a["nb_off"],
-                                a["nb_idx"], self._n_ext)
+            agree = agreement(self._ix, pts, lam, seen, self._n_ext)
             # Bundles with no containing simplex in the first pass scan again (their projection).
             cand[cand[:, 0] < 0] = -2
-            shapes, lam, pts, n_contain, status, proj, score, _, _ = search(
-                *args, agree, self.spatial_weight / MM_PER_CM, shapes, lam, *tail, cand, cand_score,
-                np.nan_to_num(score, nan=np.inf), needed)
+            out = new_choice(len(p), self.top_k)
+            search(self._ix, cfg, FramePass(pk, seen, prev, mu, agree, self.spatial_weight / MM_PER_CM, shapes, lam,
+                                            cand, cand_score, np.nan_to_num(score, nan=np.inf), needed), out)
+            shapes, lam, pts, n_contain, status, proj, score, _, _ = out
         fallback = self._fill_missing(seen, shapes, lam, previous)
         return p, seen, shapes, lam, n_contain, status, proj, score, fallback
 
@@ -107,11 +108,12 @@ class Selection:
 
     def select_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,
                      jaw: np.ndarray | None = None, left: np.ndarray | None = None,
-                     fit: GlobalFitResult | None = None) -> FrameResult:
+                     fit: GlobalFitResult | None = None, serial: bool = False) -> FrameResult:
         """Choose shapes and weights (unskinning the bundles first with a jaw rig); no vertices yet. ``left``
         (M, 3) cm^2: the noise variance left in ``bundles`` (default: all of the solver's noise, none for exact
         bundles), which holds each bundle's local fit toward the global weights (:data:`LOCAL_WEIGHT_SPREAD`).
-        ``fit``: the frame's global fit of these bundles when already made (:meth:`cached_fits`)."""
+        ``fit``: the frame's global fit of these bundles when already made (:meth:`cached_fits`). ``serial``: as for
+        :meth:`select`."""
         p = np.asarray(bundles, np.float64)
         if p.shape != (self.index.n_markers, 3):
             raise InputError(f"bundles have shape {p.shape}, the index has {self.index.n_markers} markers")
@@ -144,7 +146,7 @@ class Selection:
             global_score = self._shared_misfits(q, seen, fit.weights)
             keep = global_score <= LOCAL_MIN_MISFIT
         q, seen, shapes, lam, n_contain, status, proj, score, fallback = self.select(
-            q, prev_simplex, None if keep is None else ~keep)
+            q, prev_simplex, None if keep is None else ~keep, serial)
         if keep is not None:
             met = keep & seen
             status[met] = FITTED
@@ -158,7 +160,7 @@ class Selection:
             if left is None and self.noise > 0:
                 left = (self.noise_sigma / MM_PER_CM) ** 2
             shapes, lam, score, source, fallback = self._local(q, seen, fit, shapes, lam, score, fallback,
-                                                               global_score, left)
+                                                               global_score, left, serial)
         for i in np.flatnonzero(left_out):
             fallback[i] = f"left out for its noise ({np.sqrt(np.mean(self.noise_sigma[i] ** 2)):.3f} mm): {fallback[i]}"
         share = None
@@ -194,7 +196,7 @@ class Selection:
 
     def _local(self, q: np.ndarray, seen: np.ndarray, fit: GlobalFitResult, shapes: np.ndarray, lam: np.ndarray,
                score: np.ndarray, fallback: list[str], global_score: np.ndarray | None = None,
-               left: np.ndarray | None = None):
+               left: np.ndarray | None = None, serial: bool = False):
         """Local fits (see ``method``); returns shapes and weights as slots (M, K), scores, sources, notes.
         ``global_score`` (M,) cm: :meth:`_shared_misfits` of the global weights, when already computed; ``left``
         (M, 3) cm^2 the noise variance left in the bundles (None: exact)."""
@@ -229,7 +231,7 @@ class Selection:
             # A measured bundle's weights are trusted no more than its noise allows: a ridge of the noise variance
             # over the weights' spread about the global fit (a Gaussian prior on their difference).
             beta += np.nan_to_num(np.mean(left, axis=1)) / LOCAL_WEIGHT_SPREAD**2
-        fits = local_fits_serial if self._serial else local_fits
+        fits = local_fits_serial if serial else local_fits
         fits(resid, seen, self._basis, self._a["nb_off"], self._a["nb_idx"], col_off, flat, wg, beta, OWN_WEIGHT,
              w_local)
         local_score = self._misfits(q, seen, w_local, todo)
@@ -301,13 +303,13 @@ class Selection:
                         show_progress: bool = False,
                         emit: Callable[[int, FrameResult], None] | None = None,
                         previous: FrameResult | None = None, left: np.ndarray | None = None,
-                        keep: bool = True) -> list[FrameResult]:
+                        keep: bool = True, serial: bool = False) -> list[FrameResult]:
         """Each frame's choice of shapes and weights, in order (the previous frame's carried into the next);
         ``emit(f, choice)`` is called with each as it is made (with ``keep`` False, the only place they go: a long
         shot's choices are not held). ``previous``: the choice of the frame before
         ``pos[0]`` when a shot is chosen in chunks (the result is then the one a single call gives). ``left``
         (F, M, 3) cm^2: the noise variance left in ``pos`` (default: the solver's, :meth:`denoise`, when it covers
-        these frames)."""
+        these frames). ``serial``: as for :meth:`select`."""
         if left is None and self.noise_left is not None and len(self.noise_left) == len(pos):
             left = self.noise_left
         sels = []
@@ -323,7 +325,7 @@ class Selection:
                 fits = self.cached_fits(p, frames[lo:hi]) if jaw is None else [None] * len(p)
             try:
                 prev = self.select_frame(p[f - lo], prev, None if jaw is None else jaw[f],
-                                         None if lf is None else lf[f - lo], fits[f - lo])
+                                         None if lf is None else lf[f - lo], fits[f - lo], serial)
             except InputError as exc:
                 raise InputError(exc.message, frame=int(frames[f])) from None
             if keep:

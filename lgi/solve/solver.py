@@ -19,8 +19,10 @@ The solver composes the stages a frame goes through, each in its own module: the
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import scipy.sparse
@@ -29,15 +31,15 @@ from threadpoolctl import threadpool_limits
 from lgi.capture.bundles import Bundles
 from lgi.errors import InputError
 from lgi.index.build import LGIIndex
-from lgi.solve._select_kernels import (
-    OWN_WEIGHT,
-)
+from lgi.solve._blend_kernels import BundleReach
+from lgi.solve._select_kernels import OWN_WEIGHT, IndexArrays
 from lgi.solve.finish import Finishing, slot_labels
 from lgi.solve.globalfit import GlobalFit
 from lgi.solve.noise import NoiseHandling
 from lgi.solve.results import FITTED, STATUS, FrameResult, SequenceResult, join_results
 from lgi.solve.selection import LOCAL_MIN_MISFIT, Selection
-from lgi.solve.surface import FAR_FIELD, FAR_MARGIN, Surface, _FarField
+from lgi.solve.settings import FAR_FIELD, SolverSettings
+from lgi.solve.surface import FAR_MARGIN, Surface, _FarField
 from lgi.solve.temporal import NoiseEstimate
 from lgi.threads import one_blas_thread
 
@@ -54,68 +56,21 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
     ----------
     index
         The built index.
-    temporal_weight : float, mm
-        Added to a candidate's score per unit share of its shapes not used by the previous frame's
-        choice for the bundle (0 disables; used by :meth:`solve_sequence`).
-    alias_min_weight : float
-        A candidate's corner tries the shapes merged into its cloud point when its weight is at least this.
-    correct_residuals : bool
-        Interpolate remaining bundle residuals smoothly so the surface passes through every bundle.
-    tolerance : float
-        Barycentric tolerance of the containment test.
-    n_project : int
-        Hull facets tried when projecting a bundle.
-    top_k : int
-        Containing simplices are pre-screened by their neighbour misfit; this many distinct ones get the
-        full score (alias sweep, temporal and agreement terms).
-    jaw : "auto" or "none"
-        With an index built with a jaw rig: "auto" estimates each frame's jaw parameters from the bundles
-        that move with the jaw (or takes them from ``solve_frame(jaw=...)``); "none" is refused for such
-        an index (its shapes are unskinned).
-    spatial_weight : float, mm
-        Weight of a second pass preferring shapes chosen by the bundle's natural neighbours and by the
-        whole frame in the first pass; the second pass also lets a bundle take a neighbour's first-pass
-        mixture when that keeps the bundle within its snap radius (a bundle that barely moves cannot
-        tell its shapes apart, its neighbours can). The default weight is a tie-break: it decides only
-        between candidates whose misfits differ by less than about a micrometre. 0 disables
-        the second pass.
-    method : "local" or "simplex"
-        "local" (default): every frame first gets a global fit (bounded shape weights, and the jaw with a
-        rig, :class:`~lgi.solve.globalfit.GlobalFit`); then each bundle's weights are refitted locally to the
-        bundle and its natural neighbours over the shapes the global fit uses and the shapes of the
-        bundle's best containing simplex (so additive combinations outside the cloud's hull are
-        reachable), and the simplex candidate is kept where it fits the neighbourhood better.
-        "simplex": the paper's choice among containing simplices only (the jaw from the global fit).
-    local_prior : float, cm^2
-        Ridge of the local fits toward the global weights, per unit weight squared.
-    noise : float or (3,) float, mm
-        Standard deviation of the bundles' measurement noise per coordinate (or per axis). 0: the bundles are
-        exact and the surface passes through every one of them. Above 0 the bundles are measurements: a
-        sequence's trajectories are smoothed first (:meth:`denoise`), each bundle's local fit is held toward the
-        global weights by the noise left (:data:`~lgi.solve.selection.LOCAL_WEIGHT_SPREAD`), no simplex (which
-        passes through the noisy bundle) is taken, and the surface is taken through each bundle only by the
-        share of its residual that is the face rather than the noise (:meth:`correction_gain`).
-    far_field : (float, float) or None, cm
-        Vertices farther than the first distance from every bundle (UV-geodesic, the natural-neighbour
-        metric) blend toward the frame's global fit, reached at the second distance (a smoothstep ramp),
-        as far as their bundles' weights predict the bundles beyond their neighbourhood worse than the
-        global fit (:meth:`far_shares`). A bundle's local geometry is fitted to the bundle and its natural
-        neighbours only; carried past them it can extrapolate, while the global fit is held by every bundle
-        (measured on captured datasets: ``docs/indexing.md`` 0b). The global fit's share is not taken
-        through the bundles by the residual correction, which only extrapolates that far. Bundles' own
-        triangles never blend, so the surface still passes through them. None: the bundles' weights
-        everywhere (the paper's blend).
+    settings
+        How frames are chosen and blended (default: :class:`~lgi.solve.settings.SolverSettings`' defaults).
+    **changes
+        Settings to change from ``settings``, by name (``LGISolver(index, method="simplex")``).
     """
 
-    def __init__(self, index: LGIIndex, temporal_weight: float = 0.0, alias_min_weight: float = 0.1,
-                 correct_residuals: bool = True, tolerance: float = 1e-9, n_project: int = 3,
-                 spatial_weight: float = 1e-3, top_k: int = 4, jaw: str = "auto", method: str = "local",
-                 local_prior: float = 1e-6, noise: float = 0.0,
-                 far_field: tuple[float, float] | None = FAR_FIELD) -> None:
-        if method not in ("local", "simplex"):
-            raise InputError(f"unknown method {method!r}: use 'local' or 'simplex'")
-        self.method = method
-        self.local_prior = float(local_prior)
+    def __init__(self, index: LGIIndex, settings: SolverSettings | None = None, **changes: Any) -> None:
+        unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(SolverSettings)})
+        if unknown:
+            raise TypeError(f"LGISolver got unknown settings {unknown}")
+        self.settings = st = dataclasses.replace(settings or SolverSettings(), **changes)
+        if st.method not in ("local", "simplex"):
+            raise InputError(f"unknown method {st.method!r}: use 'local' or 'simplex'")
+        self.method = st.method
+        self.local_prior = float(st.local_prior)
         self.noise_estimate: NoiseEstimate | None = None
         self.noise_left: np.ndarray | None = None
         self.denoise_windows: np.ndarray | None = None
@@ -124,13 +79,13 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         self.index = index
         a = index.arrays
         self._a = a
-        self.temporal_weight = float(temporal_weight)
-        self.alias_min_weight = float(alias_min_weight)
-        self.correct_residuals = correct_residuals
-        self.tolerance = float(tolerance)
-        self.n_project = int(n_project)
-        self.spatial_weight = float(spatial_weight)
-        self.top_k = int(top_k)
+        self.temporal_weight = float(st.temporal_weight)
+        self.alias_min_weight = float(st.alias_min_weight)
+        self.correct_residuals = st.correct_residuals
+        self.tolerance = float(st.tolerance)
+        self.n_project = int(st.n_project)
+        self.spatial_weight = float(st.spatial_weight)
+        self.top_k = int(st.top_k)
         self._n_ext = len(index.manifest["shapes"]) + 1
         self._no_agree = np.zeros((1, 1))
         self._no_shapes = np.zeros((index.n_markers, 4), np.int64)
@@ -143,26 +98,21 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         self._deltas = np.ascontiguousarray(index.deltas)  # read once: the blend touches all of it every frame
         self._deltas_flat = self._deltas.reshape(len(self._deltas), -1)  # a view: rows of 3V for blend_uniform
         self._w_sum: np.ndarray | None = None  # (V,) total blend weight per vertex, for uniform blends
-        # Set while a shot is chosen on one thread and blended on another (:meth:`_stream_unsmoothed`): each
-        # thread then runs the kernels' one-thread twins, the same bits, so no parallel region is launched from
-        # two threads (the "workqueue" threading layer aborts on that) or competes for the two cores.
-        self._serial = False
         # The natural-neighbour weights by bundle (CSC), for blending each bundle's own weights over the vertices
         # it reaches (:func:`lgi.solve._blend_kernels.blend_on_base`).
         csc = scipy.sparse.csr_matrix((a["w_data"], a["w_indices"], a["w_indptr"]),
                                       shape=(len(self._x0), index.n_markers)).tocsc()
         csc.sort_indices()
-        self._csc_ptr = csc.indptr.astype(np.int64)
-        self._csc_vert = csc.indices.astype(np.int64)
-        self._csc_w = csc.data.astype(np.float64)
+        self._reach = BundleReach(csc.indptr.astype(np.int64), csc.indices.astype(np.int64),
+                                  csc.data.astype(np.float64))
         self._no_ramp = np.zeros(len(self._x0))
-        self.far_field = None if far_field is None else (float(far_field[0]), float(far_field[1]))
+        self.far_field = None if st.far_field is None else (float(st.far_field[0]), float(st.far_field[1]))
         self._far = _FarField(a, index.n_markers, self.far_field)
         nb_off, nb_idx = a["nb_off"], a["nb_idx"]
         self._neighbours = [nb_idx[nb_off[i]:nb_off[i + 1]] for i in range(index.n_markers)]
         self._rest = a["ptab"][0]
         self.rig = index.jaw_rig()
-        if self.rig is not None and jaw == "none":
+        if self.rig is not None and st.jaw == "none":
             raise InputError("the index was built with a jaw rig (its shapes are unskinned): use jaw 'auto' or "
                              "given parameters, or rebuild the index without a rig")
         self._bundle_w = None
@@ -170,7 +120,7 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
             self._skin_w = np.ascontiguousarray(self.rig.weights, np.float64)
             self._bundle_w = self.layout.evaluate(self.rig.weights[:, None])[:, 0]
         self.global_fit = GlobalFit(a["ptab"], self.rig, self._bundle_w)
-        self.set_noise(noise)
+        self.set_noise(st.noise)
         if self.rig is not None and not self.global_fit.jaw_observable:
             log.warning("%s", self.global_fit.jaw_note)
         self._basis = self.global_fit.basis
@@ -196,6 +146,10 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         self._ring_j = np.asarray(ring_j, np.int64)
         # A bundle off a flat cloud's plane by less than the flatness tolerance is still inside it.
         self._dist_tol = float(index.manifest["options"]["cloud"]["flat_tol"])
+        self._ix = IndexArrays(a["dim"], a["origin"], a["basis"], a["pts"], a["pt_off"], a["pt_shape"], a["alias_off"],
+                               a["class_off"], a["alias_shape"], a["sx"], a["tinv"], a["hull"], a["hull_off"],
+                               a["grid_lo"], a["grid_h"], a["grid_dims"], a["cell_off"], a["cell_start"],
+                               a["cell_items"], a["ptab"], a["nb_off"], a["nb_idx"], a["snap_radius"])
 
     @one_blas_thread
     def solve_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,

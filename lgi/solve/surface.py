@@ -15,9 +15,6 @@ from lgi.solve.jaw import jaw_matrix
 from lgi.solve.results import FrameResult
 from lgi.units import MM_PER_CM
 
-# Far field (cm of UV-geodesic distance to the nearest bundle): up to the first value every vertex mixes the
-# bundles' own weights; beyond the second it takes the frame's global fit; in between a smooth ramp.
-FAR_FIELD = (0.5, 1.5)
 # A bundle's weights give way to the global fit in the far field where they predict the bundles beyond their
 # neighbourhood this many times worse (RMS) than the global fit does (measured on captured-scan datasets: 1
 # left the rigged session 12 % above its local-only error, 4 within 5 %, with the scans' extrapolation caught).
@@ -32,6 +29,21 @@ class Surface:
     ``LGISolver.__init__`` sets up from the index (``_a`` its arrays, ``_basis``, ``_rest``, the natural-neighbour
     pairs ``_pair_i``/``_pair_j``, ``layout``, ``rig``, ``global_fit``, ...).
     """
+
+    @property
+    def neutral(self) -> np.ndarray:
+        """(V, 3) float64, cm: the mesh the shapes' deltas are added to (read only: the solver's own array)."""
+        return self._x0
+
+    @property
+    def deltas(self) -> np.ndarray:
+        """(S+1, V, 3), cm: each extended shape's displacement of the vertices, row 0 the neutral's (zeros)."""
+        return self._deltas
+
+    @property
+    def skin_weights(self) -> np.ndarray | None:
+        """(V,) float64: each vertex's jaw skinning weight (None without a rig)."""
+        return self._skin_w if self.rig is not None else None
 
     def surface(self, shapes: np.ndarray, weights: np.ndarray, jaw: np.ndarray | None,
                 far_share: np.ndarray | None = None) -> np.ndarray:
@@ -59,8 +71,7 @@ class Surface:
             d_shapes, d_lam = _differences(shapes, weights)
             rows = np.flatnonzero(d_lam[:m, 0] != 0)
             blend_on_base(self._x0.reshape(-1), self._deltas_flat, shapes[-1], weights[-1], self._blend_w_sum(),
-                            self._csc_ptr, self._csc_vert, self._csc_w, ramp, share, rows, d_shapes, d_lam,
-                            x.reshape(-1))
+                            self._reach, ramp, share, rows, d_shapes, d_lam, x.reshape(-1))
         else:
             blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes[:self.index.n_markers],
                     weights[:self.index.n_markers], x)
@@ -98,8 +109,9 @@ class Surface:
         return dataclasses.replace(sel, vertices=x.astype(np.float32), residual=residual, jaw=jaw, bundles=p,
                                    residual_before=before)
 
-    def correct(self, x: np.ndarray, p: np.ndarray, seen: np.ndarray) -> np.ndarray:
-        """Take surface ``x`` (V, 3) through the seen bundles (in place); returns the residuals (M,) cm."""
+    def correct(self, x: np.ndarray, p: np.ndarray, seen: np.ndarray, serial: bool = False) -> np.ndarray:
+        """Take surface ``x`` (V, 3) through the seen bundles (in place); returns the residuals (M,) cm.
+        ``serial``: on the calling thread alone (the same bits)."""
         a = self._a
         resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
         if self.correct_residuals:
@@ -108,12 +120,13 @@ class Surface:
                 fix = np.flatnonzero(np.abs(resid_vec).max(axis=1) > 1e-7)
                 if not fix.size:
                     break
-                self._add_correction(x, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, resid_vec[fix])
+                _add_correction(serial, x, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix,
+                                resid_vec[fix])
                 resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
         return np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
 
     def correct_far(self, x: np.ndarray, resid: np.ndarray, seen: np.ndarray, gain: float | np.ndarray,
-                    t: np.ndarray | None) -> None:
+                    t: np.ndarray | None, serial: bool = False) -> None:
         """Leave the far field's share of the global fit uncorrected (in place): :meth:`correct` took ``x``
         through the bundles by the smooth field of the blend's residuals ``resid`` (M, 3); where the far field
         gives the global fit the share t (V,), that share of the field is taken off again, so those vertices
@@ -129,11 +142,8 @@ class Surface:
             return
         a = self._a
         y = np.zeros_like(x)
-        self._add_correction(y, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, d[fix])
+        _add_correction(serial, y, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, d[fix])
         x += t[:, None] * y
-
-    def _add_correction(self, *args) -> None:
-        (add_correction_serial if self._serial else add_correction)(*args)
 
     def _blend_w_sum(self) -> np.ndarray:
         """(V,) each vertex's total natural-neighbour weight (1 where bundles reach, 0 elsewhere)."""
@@ -278,3 +288,8 @@ def _stack_slots(shapes: list[np.ndarray], weights: list[np.ndarray]) -> tuple[n
         out_s[f, :, :s.shape[1]] = s
         out_w[f, :, :w.shape[1]] = w
     return out_s, out_w
+
+
+def _add_correction(serial: bool, *args) -> None:
+    """:func:`~lgi.solve._blend_kernels.add_correction`, or its one-thread twin with ``serial``."""
+    (add_correction_serial if serial else add_correction)(*args)

@@ -443,17 +443,30 @@ def write_json(path: str | os.PathLike[str], doc: dict) -> None:
     Path(path).write_text(json.dumps(doc, indent=1))
 
 
-def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.ndarray, model: str = "fisheye",
-                  size: tuple[int, int] = (1280, 1024), seed: int = 0, dot_noise_px: float = 0.3,
-                  board_views: int = 15, slip_deg: float = 1.0, slip_mm: float = 1.5, flex_deg: float = 0.0,
-                  contour_noise_px: float = 0.0, show_progress: bool = True, slip: str = "smooth") -> dict:
+@dataclass(frozen=True)
+class FootageSettings:
+    """How :func:`write_footage` films the performance."""
+
+    model: str = "fisheye"  # the cameras' lens model (:func:`hmc_rig`)
+    size: tuple[int, int] = (1280, 1024)  # px
+    seed: int = 0
+    dot_noise_px: float = 0.3  # the paint's jitter of each dot's centre
+    board_views: int = 15  # calibration board views per camera
+    slip_deg: float = 1.0  # the helmet's slip on the head, largest turn
+    slip_mm: float = 1.5  # and shift
+    #: the rig flexed since its calibration: during the shot camera 1 is turned by this angle (the board views are
+    #: rendered with the calibrated rig)
+    flex_deg: float = 0.0
+    contour_noise_px: float = 0.0  # Gaussian pixel noise of each lip contour point
+    slip: str = "smooth"  # how the helmet moves on the head (:func:`helmet_slip`: smooth or jolts)
+
+
+def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.ndarray,
+                  settings: FootageSettings | None = None, show_progress: bool = True) -> dict:
     """Render the performance (activations (F, C)) and board views into ``out`` (see the module docstring).
 
-    ``slip``: how the helmet moves on the head (:func:`helmet_slip`: ``smooth`` or ``jolts``). ``flex_deg``: the
-    rig flexed since its calibration: during the shot camera 1 is turned by this angle
-    (the board views are rendered with the calibrated rig). ``helmet.csv`` gives the helmet dots in the
-    calibration's frame, for ``lgi track --helmet``. ``lip_contours.csv`` gives the lips' inner contours as
-    each camera sees them (:func:`contour_rows`), with ``contour_noise_px`` Gaussian pixel noise per point.
+    ``helmet.csv`` gives the helmet dots in the calibration's frame, for ``lgi track --helmet``.
+    ``lip_contours.csv`` gives the lips' inner contours as each camera sees them (:func:`contour_rows`).
 
     Returns a summary: the rig, the head motion and per-camera visibility counts.
     """
@@ -462,6 +475,9 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     from lgi.capture.calibration import Board
     from lgi.progress import progress
 
+    st = settings or FootageSettings()
+    model, size, seed, dot_noise_px, board_views = st.model, st.size, st.seed, st.dot_noise_px, st.board_views
+    flex_deg, contour_noise_px = st.flex_deg, st.contour_noise_px
     out = Path(out)
     for sub in ("cam0", "cam1", "calib"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -477,7 +493,7 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     rng = np.random.default_rng(seed + 11)
     renderer = Renderer(actor.triangles, actor.neutral, layout.vertices, layout.weights, seed=seed)
     F, D = len(activations), len(layout)
-    R, t, jolting = helmet_slip(F, seed, slip, slip_deg, slip_mm)
+    R, t, jolting = helmet_slip(F, seed, st.slip, st.slip_deg, st.slip_mm)
     centers = np.full((F, 2, D, 2), np.nan)
     visible = np.zeros((F, 2, D), bool)
     png = [cv2.IMWRITE_PNG_COMPRESSION, 1]
@@ -512,7 +528,7 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     table.to_csv(out / "lip_contours.csv", index=False, float_format="%.4f")
     from lgi.io.npz import save_npz
 
-    save_npz(out / "truth.npz", head_rotation=R, head_translation=t, jolting=jolting, slip=np.asarray(slip),
+    save_npz(out / "truth.npz", head_rotation=R, head_translation=t, jolting=jolting, slip=np.asarray(st.slip),
              centers=centers.astype(np.float32), visible=visible, markers=np.asarray(layout.names),
              units=np.asarray("mm"))
     seen = {k: float(table[table.curve == k].shape[0] / (2 * F * len(ids))) for k, ids in lips.items()}

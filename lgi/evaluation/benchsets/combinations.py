@@ -242,8 +242,8 @@ def ict_combination_set(ict_dir: str | os.PathLike[str], frames: int = 120, seed
         f"The rotating-jaw ICT actor, {frames} frames (seed {seed}), about 2/3 of them holding one of 12 "
         "overlapping mouth/cheek/nose shape pairs whose combination adds a corrective bump, with single "
         "expressions and a moving jaw.",
-        ds, _ict_layout(ds.triangles), actor.rig, truth, mask, _ict_lip_line(ds.triangles, ds.n_vertices), theta[:, 0],
-        float(actor.jaw_open_params[0]), theta, seed,
+        ds, _ict_layout(ds.triangles), actor.rig, truth, mask, _ict_lip_line(ds.triangles, ds.n_vertices),
+        (theta[:, 0], float(actor.jaw_open_params[0])), theta, seed,
         {"shapes": ca.names, "weights": weights, "pairs": ca.pairs, "pair_index": ca.pair_index,
          "correctives": corr.astype(np.float32), "pair_active": pair_active,
          "jaw_open_params": actor.jaw_open_params},
@@ -318,7 +318,7 @@ def ict_session_set(ict_dir: str | os.PathLike[str], n_scans: int = 150, frames:
         f"with its pair correctives (scan seed {scan_seed}), so the truth is nonlinear beyond what the dataset "
         "spans and no frame is a dataset shape.",
         ds, _ict_layout(ds.triangles), actor.rig, truth, ca.mask, _ict_lip_line(ds.triangles, ds.n_vertices),
-        theta[:, 0], float(actor.jaw_open_params[0]), theta, seed,
+        (theta[:, 0], float(actor.jaw_open_params[0])), theta, seed,
         {"scan_seed": scan_seed, "scan_frames": scan_frames, "scan_weights": s_weights[scan_frames],
          "scan_jaw": s_theta[scan_frames], "shapes": ca.names, "weights": weights, "pairs": ca.pairs,
          "pair_index": ca.pair_index, "correctives": ca.correctives.astype(np.float32), "pair_active": pair_active,

@@ -167,9 +167,11 @@ def wide_open_threshold(widest_deg: float) -> float:
 
 
 def _finish(name: str, description: str, dataset: ShapeDataset, layout: MarkerLayout, rig: JawRig | None,
-            truth: np.ndarray, mask: np.ndarray, lip_line: np.ndarray, opening_deg: np.ndarray,
-            widest_deg: float, true_jaw: np.ndarray | None, seed: int, info: dict[str, Any]) -> BenchSet:
-    """Assemble a set: bundles, noisy bundles, lips and wide-open frames from the truth."""
+            truth: np.ndarray, mask: np.ndarray, lip_line: np.ndarray, opening: tuple[np.ndarray, float],
+            true_jaw: np.ndarray | None, seed: int, info: dict[str, Any]) -> BenchSet:
+    """Assemble a set: bundles, noisy bundles, lips and wide-open frames from the truth. ``opening``: each frame's
+    jaw opening (F,) and the dataset's widest (degrees)."""
+    opening_deg, widest_deg = opening
     truth = np.asarray(truth, np.float64)
     bundles = layout.evaluate(truth)
     threshold = wide_open_threshold(widest_deg)

@@ -188,8 +188,8 @@ def ict_jaw_set(ict_dir: str | os.PathLike[str], frames: int = 200, seed: int = 
         f"An ICT actor whose jaw rotates about a fitted hinge, {frames} frames (seed {seed}): 1-4 "
         "overlapping non-jaw expressions rising and falling smoothly, carried by a jaw opening up to 25 "
         "degrees with a slight sideways turn.",
-        ds, _ict_layout(ds.triangles), actor.rig, truth, mask, _ict_lip_line(ds.triangles, ds.n_vertices), theta[:, 0],
-        float(actor.jaw_open_params[0]), theta, seed,
+        ds, _ict_layout(ds.triangles), actor.rig, truth, mask, _ict_lip_line(ds.triangles, ds.n_vertices),
+        (theta[:, 0], float(actor.jaw_open_params[0])), theta, seed,
         {"shapes": names, "weights": weights, "jaw_open_params": actor.jaw_open_params},
     )
 
@@ -265,6 +265,6 @@ def ict_heldout_set(ict_dir: str | os.PathLike[str], n_combinations: int = 400, 
         f"{len(truth)} independent ICT poses (held-out shapes at weight 1 and mixes of 2-3 shapes at "
         "0.3/0.6/0.9 involving one), none in the dataset, ordered as a nearest-neighbour path.",
         train, _ict_layout(full.triangles), None, truth, mask, _ict_lip_line(full.triangles, full.n_vertices),
-        opening, widest, None, seed,
+        (opening, widest), None, seed,
         {"frame_names": frame_names, "teeth_opening_deg": opening, "held_out": list(ICT_HELD_OUT)},
     )

@@ -118,7 +118,7 @@ def ict_livelink_set(ict_dir: str | os.PathLike[str], real_dir: str | os.PathLik
         f"ICT with rotating jaw and combination correctives, driven by real iPhone ARKit curves of another "
         f"performer (Live Link Face take {take}, frames {start}-{start + frames - 1} at {fps:.0f} fps).",
         ds, _ict_layout(ds.triangles), actor.rig, truth, ca.mask, _ict_lip_line(ds.triangles, ds.n_vertices),
-        theta[:, 0], float(actor.jaw_open_params[0]), theta, seed,
+        (theta[:, 0], float(actor.jaw_open_params[0])), theta, seed,
         {"take": take, "start": int(start), "frames": int(frames), "fps": fps, "times_s": times,
          "source": LIVELINK_SOURCE, "unused_curves": list(LIVELINK_UNUSED_CURVES), "shapes": ca.names,
          "weights": weights, "pairs": ca.pairs, "pair_index": idx, "correctives": ca.correctives.astype(np.float32),

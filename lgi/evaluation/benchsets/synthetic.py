@@ -39,8 +39,8 @@ def synthetic_set(frames: int = 300, seed: int = 1, n_vertices: int = 20000) -> 
         f"The synthetic actor's random performance of {frames} frames (seed {seed}): smooth, overlapping "
         "expression events and a jaw rotating about its hinge, evaluated by the nonlinear model, so no frame "
         "is one of the 47 dataset shapes (frames with no control active are the neutral).",
-        ds, layout, synth.jaw_rig(actor), truth, np.ones(actor.n_vertices, bool), lip_line, true_jaw[:, 0],
-        widest, true_jaw, seed, {"activations": acts, "controls": list(synth.CONTROLS),
+        ds, layout, synth.jaw_rig(actor), truth, np.ones(actor.n_vertices, bool), lip_line,
+        (true_jaw[:, 0], widest), true_jaw, seed, {"activations": acts, "controls": list(synth.CONTROLS),
                                  "at_rest": ~(acts > 0).any(1)},
     )
 
@@ -119,7 +119,7 @@ def session_set(n_scans: int, frames: int = 160, seed: int = 3, scan_seed: int =
         f"performance, seed {scan_seed}), so no frame is a dataset shape (frames with no control active are the "
         "neutral).",
         ds, layout, synth.jaw_rig(actor) if rig else None, truth, mask, _synthetic_lip_line(actor.neutral),
-        true_jaw[:, 0], widest,
-        true_jaw, seed, {"scan_seed": scan_seed, "scan_frames": scan_frames, "activations": acts,
-                         "controls": list(synth.CONTROLS), "at_rest": ~(acts > 0).any(1)},
+        (true_jaw[:, 0], widest), true_jaw, seed,
+        {"scan_seed": scan_seed, "scan_frames": scan_frames, "activations": acts, "controls": list(synth.CONTROLS),
+         "at_rest": ~(acts > 0).any(1)},
     )

@@ -15,8 +15,9 @@ Results do not depend on the schedule: any chunk size, task runner or ``--flow``
 The package's modules follow the job: :mod:`~lgi.jobs.reconstruct.options` (the flags and their checks),
 :mod:`~lgi.jobs.reconstruct.shot` (a prepared shot and its stages), :mod:`~lgi.jobs.reconstruct.rays` (the
 bundles file of markers seen by one camera), :mod:`~lgi.jobs.reconstruct.chunks` (the flow's chunk stages),
-:mod:`~lgi.jobs.reconstruct.outputs` (the writer), :mod:`~lgi.jobs.reconstruct.summary` and
-:mod:`~lgi.jobs.reconstruct.run` (the whole job in this process).
+:mod:`~lgi.jobs.reconstruct.outputs` (the writer), :mod:`~lgi.jobs.reconstruct.summary`,
+:mod:`~lgi.jobs.reconstruct.run` (the reconstruction in this process) and :mod:`~lgi.jobs.reconstruct.job` (the
+job composed once: checks, reconstruction, scans, review page, for the command line and the flow).
 """
 
 import importlib
@@ -25,14 +26,15 @@ from typing import Any
 # The names below are loaded from their modules on first use: the command line imports the options to build its
 # parser, and the job's other modules (pandas among them) would make every `lgi --help` 0.6 s slower.
 _WHERE = {
-    "ReconstructOptions": "options", "parse_far_field": "options", "read_jaw_file": "options", "OUTPUTS": "outputs",
-    "OUTPUT_CONTENTS": "outputs", "check_outputs": "outputs", "per_frame_table": "outputs", "plot_per_frame":
-    "outputs", "resume_key": "outputs", "write_reconstruction": "outputs", "CONSTRAINED": "rays", "RAY_COLUMNS":
-    "rays", "read_constraints": "rays", "reconstruct": "run", "Shot": "shot", "chunk_needs": "shot",
-    "constrain_to_rays": "shot", "assemble": "chunks", "choose_chunk": "chunks", "finish_chunk": "chunks",
-    "forget_parts": "chunks", "forget_shots": "chunks", "load_choices": "chunks", "load_part": "chunks",
-    "preflight": "chunks", "prepared_shot": "chunks", "replace_outputs": "chunks", "save_choices": "chunks",
-    "save_part": "chunks", "report_lines": "summary", "summarise": "summary"
+    "ReconstructJob": "job", "InProcess": "job", "ReconstructOptions": "options", "parse_far_field": "options",
+    "read_jaw_file": "options", "OUTPUTS": "outputs", "OUTPUT_CONTENTS": "outputs", "check_outputs": "outputs",
+    "per_frame_table": "outputs", "plot_per_frame": "outputs", "resume_key": "outputs",
+    "write_reconstruction": "outputs", "CONSTRAINED": "rays", "RAY_COLUMNS": "rays", "read_constraints": "rays",
+    "reconstruct": "run", "Shot": "shot", "chunk_needs": "shot", "constrain_to_rays": "shot", "assemble": "chunks",
+    "choose_chunk": "chunks", "finish_chunk": "chunks", "forget_parts": "chunks", "forget_shots": "chunks",
+    "load_choices": "chunks", "load_part": "chunks", "preflight": "chunks", "prepared_shot": "chunks",
+    "replace_outputs": "chunks", "save_choices": "chunks", "save_part": "chunks", "report_lines": "summary",
+    "summarise": "summary"
 }
 
 

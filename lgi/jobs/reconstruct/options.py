@@ -15,7 +15,8 @@ from lgi.errors import InputError
 from lgi.export.clips import USD_CLIP_FRAMES
 from lgi.export.convention import convention_option
 from lgi.jobs import options_from_dict
-from lgi.options import declared, option
+from lgi.options import declared, option, same_as
+from lgi.solve.settings import FAR_FIELD, SolverSettings
 from lgi.units import MM_PER_CM
 
 #: Options whose values below the least are taken as the least (no smoothing, no bridging), as they always were.
@@ -43,12 +44,8 @@ class ReconstructOptions:
     """Options of the reconstruct job: the ``lgi reconstruct`` flags, and the reconstruct-shot flow's parameters
     (:mod:`lgi.options`)."""
 
-    temporal_weight: float = option(
-        0.02, "preference for the previous frame's shapes, mm of neighbour misfit (default %(default)s; 0 = none)",
-        group="method", metavar="MM", units="mm")
-    spatial_weight: float = option(
-        1e-3, "tie-break toward shapes the neighbours agree on, mm (default %(default)s; 0 = none)", group="method",
-        metavar="MM", units="mm")
+    temporal_weight: float = same_as(SolverSettings, "temporal_weight")
+    spatial_weight: float = same_as(SolverSettings, "spatial_weight")
     smooth: int = option(
         1, "central moving average of each bundle's shape weights over WINDOW frames (default %(default)s = none; "
         "0 and below also mean none, and 'auto' means 1)", group="noise and time", metavar="WINDOW", parse=window,
@@ -108,7 +105,8 @@ class ReconstructOptions:
         "bundles (needs --observations for the head pose and rig); adds contour_px_before/after to the "
         "diagnostics", group="constraints from the cameras", metavar="CONTOURS_CSV")
     far_field: str = option(
-        "5:15", "mm from the nearest marker over the skin: beyond START, a bundle whose weights predict the markers "
+        f"{FAR_FIELD[0] * MM_PER_CM:g}:{FAR_FIELD[1] * MM_PER_CM:g}",
+        "mm from the nearest marker over the skin: beyond START, a bundle whose weights predict the markers "
         "beyond its neighbourhood clearly worse than the frame's global fit gives way to that fit, wholly beyond "
         "END; off = the bundles' weights everywhere (default %(default)s)", group="method",
         metavar="START:END|off", units="mm")

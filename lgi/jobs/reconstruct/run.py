@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from lgi.jobs.reconstruct.chunks import replace_outputs
+from lgi.jobs.reconstruct.chunks import forget_shots, prepared_shot, replace_outputs
 from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.jobs.reconstruct.outputs import check_outputs, reconstruction_outputs, resume_key
 from lgi.jobs.reconstruct.rays import CONSTRAINED
@@ -30,17 +30,26 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
     :data:`BLOCK_FRAMES` frames.
 
     With ``options.observations``, twice: without the markers seen by one camera, then through their points on
-    their rays (:func:`constrain_to_rays`)."""
+    their rays (:func:`constrain_to_rays`). A shot already prepared in this process (:func:`prepared_shot`, by
+    the job's checks) is taken, and dropped at the end."""
+    options = options or ReconstructOptions()
+    try:
+        return _reconstruct(index_dir, bundles, out, options, show_progress)
+    finally:
+        forget_shots()
+
+
+def _reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path, options: ReconstructOptions,
+                 show_progress: bool) -> dict[str, Any]:
     from lgi._debug_stages import stage
 
-    options = options or ReconstructOptions()
     if options.method == "blendshape":
         from lgi.jobs.reconstruct.blendshape import reconstruct_blendshape
 
         return reconstruct_blendshape(index_dir, bundles, out, options, show_progress)
     check_outputs(out, (index_dir, bundles, options.jaw, options.observations, options.calib, options.contours))
     t0 = time.perf_counter()
-    shot = Shot(index_dir, bundles, options)
+    shot = prepared_shot(index_dir, bundles, options)
     t1 = time.perf_counter()
     stage("solve")
     if not options.observations:
@@ -59,6 +68,7 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
         t2 = time.perf_counter()
         counts = constrain_to_rays(shot, npz_member(work / "first" / "meshes.npz", "vertices"), work / CONSTRAINED)
         t3 = time.perf_counter()
+        forget_shots()  # the first pass's shot: not kept beside the second's
         shot = Shot(index_dir, work / CONSTRAINED, options)
         tally, solve2, write2 = write_shot(shot, out, options, shot.constrained_file, show_progress)
     finally:
