@@ -19,6 +19,8 @@ from collections.abc import Iterable
 import numpy as np
 
 from lgi.dataset.shapes import ShapeDataset, ShapeMeta
+from lgi.index.cloud import CloudOptions, build_cloud
+from lgi.progress import progress
 
 # Words whose swap turns a shape into its opposite motion (jawLeft/jawRight, eyeLookIn_L/eyeLookOut_L).
 # Sides (_L/_R) are not opposites: a left and a right smile make a smile.
@@ -188,7 +190,6 @@ def simulated_combinations(
     "target_distance", "lip_contacts"}``.
     """
     from lgi.augment.flesh import FleshModel
-    from lgi.progress import progress
 
     src = dataset.select(include=include) if include else dataset
     if picks is None:
@@ -233,8 +234,6 @@ def augmentation_report(original: ShapeDataset, augmented: ShapeDataset, layout,
     method's shapes alone added to the original).
     """
     import pandas as pd
-
-    from lgi.index.cloud import CloudOptions, build_cloud
 
     opts = options or CloudOptions()
     methods: dict[str, list[int]] = {}

@@ -19,6 +19,7 @@ The file is read a batch of rows at a time (:data:`BATCH_ROWS`), so reading hold
 
 from __future__ import annotations
 
+import csv
 import os
 import tempfile
 from collections.abc import Iterator
@@ -31,6 +32,7 @@ import pandas as pd
 
 from lgi.errors import InputError, cell_text
 from lgi.io.atomic import atomic_file
+from lgi.io.csvio import check_field_counts
 from lgi.io.stored import ScratchArray, scratch_space
 from lgi.memory import release_free_memory
 
@@ -126,8 +128,6 @@ class _Batch:
 
 def _csv_header(path: Path) -> list[str]:
     """The CSV's column names (stripped), from its first line; empty if it cannot be read."""
-    import csv
-
     try:
         with open(path, encoding="utf-8-sig", newline="") as fh:
             return [c.strip() for c in next(csv.reader([fh.readline()]), [])]
@@ -236,7 +236,6 @@ def read_bundles(path: str | os.PathLike[str], markers: list[str] | None = None,
         pass
     # A file pyarrow cannot type (a field that is not a number, blanks around a number, an empty frame) is read
     # whole as text: the checks then say which row is wrong and how.
-    from lgi.io.csvio import check_field_counts
 
     check_field_counts(path, "bundles file")
     try:

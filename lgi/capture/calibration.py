@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lgi.capture.camera import StereoRig
 from lgi.errors import InputError
 from lgi.io.atomic import atomic_file
 
@@ -252,8 +253,6 @@ class StereoCalibration:
 
     def rig(self):
         """The calibrated :class:`lgi.capture.camera.StereoRig` (world frame = camera 0)."""
-        from lgi.capture.camera import StereoRig
-
         return StereoRig.from_calibration(self.to_json())
 
 

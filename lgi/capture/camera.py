@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lgi.errors import InputError
+from lgi.io.atomic import atomic_file
 
 MODELS = ("pinhole", "pinhole-rational", "fisheye")
 
@@ -389,7 +390,5 @@ class StereoRig:
         return cls.from_calibration(doc, path)
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        from lgi.io.atomic import atomic_file
-
         with atomic_file(path) as tmp:
             tmp.write_text(json.dumps(self.to_json(), indent=1))

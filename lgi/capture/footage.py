@@ -7,6 +7,7 @@ camera is an error (it would shift every later frame's number).
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -17,11 +18,18 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from scipy.spatial.transform import Rotation
 
-from lgi.capture.camera import StereoRig
+from lgi.capture.calibration import pair_images, read_gray
+from lgi.capture.camera import StereoRig, triangulation_covariance
 from lgi.capture.dots import DotOptions, Dots, detect_dots
+from lgi.capture.headpose import JOINT, MIN_MARKERS, NONE, STABLE, HeadPoseSolver
+from lgi.capture.headstab import stabilise_bundles
 from lgi.capture.tracking import Tracker, TrackOptions, Tracks, thumbnail
+from lgi.dataset.markers import read_layout
 from lgi.errors import InputError
+from lgi.index.build import LGIIndex
+from lgi.io.csvio import read_table
 from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
@@ -67,15 +75,11 @@ def head_covariance(X: np.ndarray, cameras, R: np.ndarray, pixel_noise: float) -
     -------
     (F, M, 3, 3) float64, mm^2, head frame
     """
-    from lgi.capture.camera import triangulation_covariance
-
     C = np.einsum("fji,fmjk,fkl->fmil", R, triangulation_covariance(cameras, X, pixel_noise), R)
     return 0.5 * (C + np.swapaxes(C, -1, -2))  # symmetric to the last bit, as the file stores it
 
 
 def _detect(path: Path, frame: int, size: tuple[int, int] | None, options: DotOptions) -> tuple[Dots, np.ndarray]:
-    from lgi.capture.calibration import read_gray
-
     img = read_gray(path, frame)
     if size is not None and (img.shape[1], img.shape[0]) != tuple(size):
         raise InputError(f"image is {img.shape[1]}x{img.shape[0]}, the calibration is {size[0]}x{size[1]}",
@@ -91,8 +95,6 @@ def detect_footage(folder: str | os.PathLike[str], size: tuple[int, int] | None 
     Returns the frame names, the detections of cameras 0 and 1 per frame, and the camera-0 thumbnails
     (F, P) float32.
     """
-    from lgi.capture.calibration import pair_images
-
     pairs = pair_images(folder, strict=True)
     o = options or DotOptions()
     jobs = [(p, f, size, o) for f, (_, p0, p1) in enumerate(pairs) for p in (p0, p1)]
@@ -110,9 +112,6 @@ def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots
     Each labelled point takes the nearest detection within ``max_px``; a label with none is left out with a
     warning, unless most are (then the file is refused). Returns (M, 2, 2), NaN where unlabelled.
     """
-    import logging
-
-    from lgi.io.csvio import read_table
 
     df = read_table(path, "label file", ("camera", "x", "y", "marker"), numeric=("camera", "x", "y"), key="marker")
 
@@ -143,8 +142,6 @@ def read_labels(path: str | os.PathLike[str], names: list[str], dots: tuple[Dots
 
 def read_helmet(path: str | os.PathLike[str]) -> np.ndarray:
     """Helmet marker positions (H, 3), mm in the calibration's frame, from a CSV ``name,x,y,z``."""
-    from lgi.io.csvio import read_table
-
     df = read_table(path, "helmet marker file", ("name", "x", "y", "z"), numeric=("x", "y", "z"), key="name")
     pts = df[["x", "y", "z"]].to_numpy(np.float64)
     if len(pts) < 4:
@@ -200,8 +197,6 @@ def track_footage(folder: str | os.PathLike[str], rig: StereoRig, layout_mm: np.
     :class:`~lgi.capture.headpose.HeadPoseSolver` and, per tracked marker, its row in the model or -1), each
     frame's head pose is solved with the face, starting from the stable-marker pose.
     """
-    from lgi.capture.headstab import stabilise_bundles
-
     t0 = time.perf_counter()
     frames, dots, thumbs = detect_footage(folder, rig.cameras[0].size, dot_options, workers)
     if helmet is not None:
@@ -253,8 +248,6 @@ def tracks_table(shot: ShotTracks) -> pd.DataFrame:
     head frame (the bundles') to the rig's frame (NaN where the frame had too few markers to fit it), with
     ``head_pose`` saying how it was found (``joint``: with the face, ``stable markers``, ``none``) and
     ``head_pose_rms_mm`` the joint fit's residual (NaN without it)."""
-    from scipy.spatial.transform import Rotation
-
     tr = shot.tracks
     f, m, c = np.nonzero(np.isfinite(tr.uv[..., 0]))
     src = np.array(["none", "forward", "backward", "anchor"])
@@ -278,7 +271,6 @@ def tracks_table(shot: ShotTracks) -> pd.DataFrame:
 def write_tracks_table(path: str | os.PathLike[str], shot: ShotTracks) -> None:
     """Write :func:`tracks_table` as Parquet, with the rig it was triangulated with in the schema metadata
     (:data:`RIG_METADATA`), so the observations can be turned into rays later without the calibration file."""
-    import json
 
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -295,15 +287,12 @@ def neutral_layout(markers: str | os.PathLike[str], dataset: str | os.PathLike[s
                    units: str = "cm") -> tuple[list[str], np.ndarray, str]:
     """Marker names, neutral positions (M, 3) and their units: from ``dataset``'s neutral if given, else the
     marker file's ``x, y, z`` columns (in ``units``)."""
-    from lgi.dataset.markers import read_layout
-
     if dataset:
         from lgi.dataset.shapes import ShapeDataset
 
         ds = ShapeDataset.load(dataset)
         layout = read_layout(markers, ds.triangles)
         return layout.names, layout.evaluate(ds.neutral[None].astype(np.float64))[0], ds.units
-    from lgi.io.csvio import read_table
 
     layout = read_layout(markers)
     head = read_table(markers, "marker file", ("name",), need_rows=False)
@@ -318,9 +307,6 @@ def head_pose_model(index: str | os.PathLike[str], names: list[str], neutral_mm:
     """The joint head-pose solver of an index and, per tracked marker, its row in the index (-1: not in it);
     with the tracking layout's neutral positions replaced by the index's (the head frame the bundles are
     written in, mm) where the index has the marker."""
-    from lgi.capture.headpose import MIN_MARKERS, HeadPoseSolver
-    from lgi.index.build import LGIIndex
-
     idx = LGIIndex.load(index)
     where = {n: k for k, n in enumerate(idx.marker_names)}
     rows = np.array([where.get(n, -1) for n in names], np.int64)
@@ -350,8 +336,6 @@ def bundle_precision(cov_mm2: np.ndarray) -> dict:
 
 def head_pose_counts(shot: ShotTracks) -> dict:
     """Frames per head-pose source and the joint fit's median residual (mm), for the summary."""
-    from lgi.capture.headpose import JOINT, NONE, STABLE
-
     ok = np.all(np.isfinite(shot.head_R), axis=(1, 2))
     how = shot.head_source if shot.head_source is not None else np.where(ok, STABLE, NONE)
     rms = shot.head_rms_mm if shot.head_rms_mm is not None else np.full(len(ok), np.nan)

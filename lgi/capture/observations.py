@@ -21,7 +21,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from lgi.capture.camera import StereoRig
 from lgi.errors import InputError, cell_text
+from lgi.io.csvio import read_table
+from lgi.solve.contours import CURVES
 from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
@@ -76,7 +79,6 @@ def read_rig(path: str | os.PathLike[str], calib: str | os.PathLike[str] | None 
     warning says the two differ, if they do."""
     import pyarrow.parquet as pq
 
-    from lgi.capture.camera import StereoRig
     from lgi.capture.footage import RIG_METADATA
 
     try:
@@ -258,9 +260,6 @@ def read_contours(path: str | os.PathLike[str], frames: np.ndarray) -> dict[int,
 
     Refused, naming the line: text or non-finite numbers, a camera other than 0 or 1, an unknown curve, a
     repeated point. Frames outside the shot are left out with a warning; a curve of one point is left out."""
-    from lgi.io.csvio import read_table
-    from lgi.solve.contours import CURVES
-
     df = read_table(path, "lip contours file", CONTOUR_COLUMNS, numeric=("frame", "camera", "point", "x", "y"))
 
     def bad(r: int, why: str) -> InputError:

@@ -23,11 +23,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from lgi.capture.camera import StereoRig
 from lgi.capture.dots import Dots
 from lgi.capture.settings import GATE_PX, PIXEL_NOISE_PX
-from lgi.dataset.stabilise import rigid_fit
+from lgi.dataset.stabilise import kabsch, rigid_fit
 from lgi.errors import InputError
 
 
@@ -162,9 +163,6 @@ class Tracker:
 
     def fit_layout(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """Rigid (R, t, trimmed RMS mm) mapping the layout onto unlabelled 3D points (K, 3)."""
-        from scipy.spatial.transform import Rotation
-
-        from lgi.dataset.stabilise import kabsch
 
         tree = cKDTree(points)
         src = self.layout
@@ -186,8 +184,6 @@ class Tracker:
 
     def label_reference(self, dots: tuple[Dots, Dots]) -> np.ndarray:
         """(M, 2, 2) labelled pixel positions of the reference frame (NaN where not found)."""
-        from lgi.dataset.stabilise import kabsch
-
         pts = self._stereo_points(dots[0].xy, dots[1].xy)
         if len(pts) < 4:
             raise InputError(f"only {len(pts)} dots could be matched between the cameras in the reference frame")

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lgi.dataset.meshcheck import check_mesh
 from lgi.dataset.shapes import ShapeDataset, ShapeMeta, _match
 from lgi.dataset.stabilise import find_rigid_vertices, stabilise
 from lgi.errors import InputError
@@ -172,7 +173,6 @@ def read_shape_folder(
     # lgi's reader, not pymeshlab's: it keeps quads, UV seams and the vertex order every shape shares (pymeshlab
     # triangulates and splits seam vertices) and names the line of a bad value; pymeshlab checks the result.
     mesh = read_obj(neutral_path)
-    from lgi.dataset.meshcheck import check_mesh
 
     mesh_check = check_mesh(mesh, neutral_path)  # before the shapes are read: a mesh the index cannot use is refused
     ident_files = [f for f in files if f != neutral_path and fnmatch.fnmatchcase(f.stem, identity_pattern)]

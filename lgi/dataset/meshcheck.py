@@ -27,11 +27,13 @@ Counted and reported (not refused): pieces, boundary loops (holes and outlines),
 from __future__ import annotations
 
 import os
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from lgi.dataset.mesh import triangulate
 from lgi.errors import InputError
 from lgi.io.obj import PolyMesh
 
@@ -87,8 +89,6 @@ def check_mesh(mesh: PolyMesh, path: str | os.PathLike[str]) -> dict[str, Any]:
         ``vertices``, ``faces``, ``triangles`` and ``checked_by``.
     """
     import pymeshlab
-
-    from lgi.dataset.mesh import triangulate
 
     path = Path(path)
     tris, tri_face = triangulate(mesh.face_vertices, mesh.face_offsets)
@@ -170,8 +170,6 @@ def check_mesh(mesh: PolyMesh, path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version("pymeshlab")
     except PackageNotFoundError:

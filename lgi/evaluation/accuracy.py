@@ -52,6 +52,8 @@ import pandas as pd
 
 from lgi.evaluation.baselines import BlendshapeSolver, RBFSolver, RiggedBlendshapeSolver, SmoothSolver
 from lgi.evaluation.metrics import jitter, normal_angle_errors, vertex_errors
+from lgi.index.build import build_index
+from lgi.solve.solver import LGISolver
 from lgi.units import MM_PER_CM
 
 ICT_HELD_OUT = ["mouthFunnel", "mouthSmile_L", "browInnerUp_R", "cheekPuff_R", "noseSneer_L", "jawLeft"]
@@ -78,8 +80,6 @@ def lgi_method(index, label: str = "LGI (default)", **options) -> Method:
     """LGI through :meth:`LGISolver.solve_sequence` with its defaults (those of ``lgi reconstruct``, which declares
     them from :class:`~lgi.solve.settings.SolverSettings`), overridden by ``options`` (solver and sequence options
     together)."""
-    from lgi.solve.solver import LGISolver
-
     seq_keys = {"smooth", "jaw_smooth", "max_gap", "noise"}
     seq = {k: v for k, v in options.items() if k in seq_keys}
     ctor = {k: v for k, v in options.items() if k not in seq_keys}
@@ -102,8 +102,6 @@ def smoothed_bundles(index, solver) -> Callable[[np.ndarray], np.ndarray]:
     (:meth:`~lgi.solve.solver.LGISolver.denoise`); rows of missing markers stay NaN, which the baselines' fits
     leave out frame by frame.
     """
-    from lgi.solve.solver import LGISolver
-
     def run(pos: np.ndarray) -> np.ndarray:
         s = LGISolver(index)
         s.resolve_noise(pos, "auto")
@@ -253,8 +251,6 @@ def run_set(bench_set, methods: list[Method], noisy: bool = False, frames: int |
 
 def build_set_index(bench_set, show_progress: bool = False):
     """The LGI index of a set's dataset and layout (with its rig when it has one)."""
-    from lgi.index.build import build_index
-
     index, _ = build_index(bench_set.dataset, bench_set.layout, show_progress=show_progress, jaw_rig=bench_set.rig)
     return index
 

@@ -23,6 +23,7 @@ Everything here is in cm, the library's unit; reports convert to mm (:mod:`lgi.u
 
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lgi.dataset.mesh import triangle_normals
 from lgi.errors import InputError
 from lgi.units import MM_PER_CM, check_units
 
@@ -217,8 +219,6 @@ def signed_distances(points: np.ndarray, surface: tuple[np.ndarray, np.ndarray],
     bary : (N, 3) float64
         The closest point, as ``ClosestPointQuery.query`` gives it.
     """
-    from lgi.dataset.mesh import triangle_normals
-
     p = np.asarray(points, np.float64)
     tri, bary, dist = query.query(p)
     v, t = np.asarray(surface[0], np.float64), np.asarray(surface[1], np.int64)[tri]
@@ -563,7 +563,5 @@ def write_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
 def frame_fingerprint(vertices: np.ndarray) -> str:
     """SHA-256 of a frame's vertices as ``meshes.npz`` stores them (float32, little-endian): ``lgi review --scans``
     checks with it that the distances were measured on the frames it shows."""
-    import hashlib
-
     v = np.ascontiguousarray(vertices, np.dtype("<f4"))
     return hashlib.sha256(v.tobytes()).hexdigest()

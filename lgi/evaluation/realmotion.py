@@ -27,7 +27,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from lgi.dataset.stabilise import kabsch
 from lgi.errors import InputError
+from lgi.paths import shared_data
 
 # ARKit's 52 blendshape curves (the order of ARKit's enum; Live Link Face writes them in another order, so columns
 # are always mapped by name).
@@ -60,8 +62,6 @@ def real_performances_dir_or_none() -> Path | None:
     """The real-performances folder (``$LGI_SHARED_DATA/real-performances``, else
     ``../shared/data/real-performances`` beside the repository, as :func:`lgi.evaluation.benchsets.ict_dir_or_none`
     finds ICT), or None when it is absent."""
-    from lgi.paths import shared_data
-
     path = shared_data("real-performances")
     return path if (path / "ABOUT.md").is_file() else None
 
@@ -212,8 +212,6 @@ class Stabilised(NamedTuple):
 
 
 def _fit_all(raw: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    from lgi.dataset.stabilise import kabsch
-
     fits = [kabsch(p, ref) for p in raw]
     return np.stack([r for r, _ in fits]), np.stack([t for _, t in fits])
 

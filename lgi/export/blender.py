@@ -16,6 +16,7 @@ import os
 from pathlib import Path
 
 from lgi.export.convention import DCC_PRESETS, Convention
+from lgi.io.atomic import atomic_file
 
 SUFFIX = ".blender.py"
 
@@ -119,8 +120,6 @@ def write_blender_script(usd: str | os.PathLike[str], fps: float, first: int, la
                          path: str | os.PathLike[str] | None = None) -> Path:
     """Write :func:`blender_script` to ``path`` (default :func:`script_path` of ``usd``; a job's staging folder
     names its own), atomically; returns its path."""
-    from lgi.io.atomic import atomic_file
-
     path = script_path(usd) if path is None else Path(path)
     with atomic_file(path, suffix=".py") as tmp:
         Path(tmp).write_text(blender_script(usd, fps, first, last, correctives))

@@ -5,7 +5,9 @@ Every writer works on plain arrays and writes atomically (a temporary name, then
 
 from __future__ import annotations
 
+import hashlib
 import os
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -246,9 +248,6 @@ def exr_header(convention: Convention, neutral_name: str, neutral: np.ndarray, f
     neutral : (V, 3) float, cm
     fps : float, frames per second
     """
-    import hashlib
-    from fractions import Fraction
-
     digest = hashlib.sha256(np.ascontiguousarray(neutral, "<f4").tobytes()).hexdigest()
     return {"lgi:content": "displacement of the reconstructed face from the neutral, per texel of its UV layout "
                            "(RGB = x, y, z)",

@@ -19,18 +19,24 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
+import scipy.sparse as sp
 
 from lgi.dataset.markers import MarkerLayout
 from lgi.dataset.shapes import ShapeDataset
 from lgi.errors import InputError
 from lgi.index._grid_kernels import build_grids
 from lgi.index.cloud import BundleCloud, CloudOptions, barycentric_inverse, build_cloud
+from lgi.index.natural import natural_neighbour_weights
+from lgi.index.smooth import SmoothInterpolator
+from lgi.io.arrays import check_grouped, check_kind, check_mesh, check_offsets, check_range
 from lgi.io.atomic import atomic_dir
-from lgi.io.npz import save_npz
+from lgi.io.manifest import read_manifest
+from lgi.io.npz import load_npy, load_npz, save_npz
 from lgi.solve.jaw import JawRig, fit_shape_parameters, unskin_deltas
 
 if TYPE_CHECKING:
@@ -132,7 +138,6 @@ class LGIIndex:
 
     def nn_weights(self) -> scipy.sparse.csr_matrix:
         a = self.arrays
-        import scipy.sparse as sp
 
         return sp.csr_matrix((a["w_data"], a["w_indices"], a["w_indptr"]), shape=(self.n_vertices, self.n_markers))
 
@@ -154,9 +159,6 @@ class LGIIndex:
     def load(cls, directory: str | os.PathLike[str], mmap: bool = True) -> LGIIndex:
         """Read an index directory; a damaged one (missing or inconsistent files, arrays of the wrong kind, shape
         or range) is refused with :class:`~lgi.errors.InputError` naming the file."""
-        from lgi.io.manifest import read_manifest
-        from lgi.io.npz import load_npy, load_npz
-
         directory = Path(directory)
         mpath = directory / "manifest.json"
         manifest = read_manifest(directory, FORMAT, FORMAT_VERSION, "LGI index")
@@ -196,8 +198,6 @@ def check_structure(a: dict[str, np.ndarray], n_shapes: int, path: Path) -> None
     """Refuse index arrays the compiled kernels would read out of bounds: kinds, shapes, offsets and the range
     of every index array (each marker's simplices, hull and grid cells pointing at its own points and
     simplices). ``n_shapes`` counts the neutral. Cost: a few passes over the arrays (milliseconds)."""
-    from lgi.io.arrays import check_grouped, check_kind, check_mesh, check_offsets, check_range
-
     check_kind(a, path, _INTS, _FLOATS)
     present = set(a)
     if "nn_distance" in present and (a["nn_distance"].dtype.kind != "f" or np.isnan(a["nn_distance"]).any()):
@@ -364,14 +364,8 @@ def natural_stage(dataset: ShapeDataset, layout: MarkerLayout, opts: IndexOption
     so a pruning or simplex change never recomputes it. It sees only those options: reading another would
     fail here rather than leave the cached stage keyed without it.
     """
-    from types import SimpleNamespace
-
     opts = SimpleNamespace(**{k: getattr(opts, k) for k in NATURAL_FIELDS})
     # Build-time modules (scipy.sparse, csgraph, spatial): imported here so that loading an index does not.
-    import scipy.sparse as sp
-
-    from lgi.index.natural import natural_neighbour_weights
-    from lgi.index.smooth import SmoothInterpolator
 
     layout.check_mesh(dataset.triangles)
     nn = natural_neighbour_weights(dataset.neutral, dataset.face_vertices, dataset.face_offsets, dataset.uvs,

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from lgi.errors import InputError
+
 
 @dataclass
 class CloudOptions:
@@ -52,8 +54,6 @@ class CloudOptions:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        from lgi.errors import InputError
-
         # (name, CLI flag, least, most, whole number)
         checks = (("min_motion_rel", "--min-motion-rel", 0.0, 1.0, False),
                   ("min_motion_abs", "--min-motion-abs", 0.0, None, False),

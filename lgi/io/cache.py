@@ -11,10 +11,15 @@ Nothing is pickled.
 
 from __future__ import annotations
 
+import ast
 import contextlib
+import fcntl
 import hashlib
+import inspect
 import json
 import os
+import shutil
+import time
 from collections.abc import Callable, Iterator
 from functools import cache
 from pathlib import Path
@@ -39,8 +44,6 @@ def _module_file(name: str) -> Path | None:
 @cache
 def _imports(path: Path) -> tuple[str, ...]:
     """The lgi modules a source file imports, at module level or inside functions (lazy imports count)."""
-    import ast
-
     found = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
@@ -116,8 +119,6 @@ def stage_key(stage: str, inputs: dict[str, Any], code: tuple[str, ...] = ("lgi"
 def locked(path: Path) -> Iterator[None]:
     """An exclusive lock on ``path`` (created if absent) for the block: two runs computing or publishing the same
     thing take turns, the second then finds the first's result. The OS drops the lock of a killed process."""
-    import fcntl
-
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "a") as f:
         fcntl.flock(f, fcntl.LOCK_EX)
@@ -156,8 +157,6 @@ class StageCache:
         hit : bool
             True if the result was already there (nothing was computed).
         """
-        import inspect
-
         # The make function's own source too: the stage's code around the library calls it makes.
         try:
             maker = hashlib.sha256(inspect.getsource(make).encode()).hexdigest()
@@ -196,9 +195,6 @@ class StageCache:
         """Remove results: all but the ``keep`` most recently used of each stage, and/or those not used for
         ``older_than_days``. Returns the removed entries. A result being computed or read under its lock by
         another run is left alone."""
-        import shutil
-        import time
-
         now = time.time() if now is None else now
         by_stage: dict[str, int] = {}
         removed = []
@@ -214,8 +210,6 @@ class StageCache:
 
 
 def _try_lock_and_remove(lock: Path, path: Path, remove: Callable[[Path], None]) -> bool:
-    import fcntl
-
     with open(lock, "a") as f:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -8,10 +8,13 @@ quoted only where needed.
 
 from __future__ import annotations
 
+import csv
 import os
 
 import numpy as np
 import pandas as pd
+
+from lgi.errors import InputError, cell_text
 
 
 def write_csv(table: pd.DataFrame, path: str | os.PathLike[str]) -> None:
@@ -101,9 +104,6 @@ def check_field_counts(path: str | os.PathLike[str], what: str) -> None:
     InputError
         Naming the file and line.
     """
-    import csv
-
-    from lgi.errors import InputError, cell_text
 
     with open(path, "rb") as fh:
         header = fh.readline(HEADER_BYTES)
@@ -174,8 +174,6 @@ def read_table(path: str | os.PathLike[str], what: str, columns: tuple[str, ...]
     -------
     DataFrame, numeric columns float64, the others str.
     """
-    from lgi.errors import InputError, cell_text
-
     if not os.path.isfile(path):
         raise InputError(f"{what} not found", path=path)
     check_field_counts(path, what)

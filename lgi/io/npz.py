@@ -18,6 +18,7 @@ import zipfile
 
 import numpy as np
 
+from lgi.errors import InputError
 from lgi.io.stored import StoredArray
 
 _EPOCH = (1980, 1, 1, 0, 0, 0)
@@ -141,8 +142,6 @@ def npz_member(path: str | os.PathLike[str], name: str) -> StoredArray | np.ndar
     """Entry ``name`` of a stored (uncompressed) npz, read by row range as it is used (a :class:`StoredArray`),
     so that a frame range of a long shot's meshes costs its own size. An :class:`~lgi.errors.InputError` names
     the file when it is not such an archive or has no such entry."""
-    from lgi.errors import InputError
-
     try:
         with zipfile.ZipFile(path) as zf:
             info = zf.getinfo(f"{name}.npy")
@@ -182,8 +181,6 @@ def npz_member(path: str | os.PathLike[str], name: str) -> StoredArray | np.ndar
 def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> dict[str, np.ndarray]:
     """Every array of an npz (never unpickling), or an :class:`~lgi.errors.InputError` naming the file:
     unreadable, truncated, holding a pickled object, or missing one of ``required``."""
-    from lgi.errors import InputError
-
     try:
         with np.load(path, allow_pickle=False) as z:
             out = {k: z[k] for k in z.files}
@@ -237,8 +234,6 @@ def _with_frames(out: dict[str, np.ndarray], path: str | os.PathLike[str]) -> di
 
 def load_npy(path: str | os.PathLike[str], mmap: bool = False) -> np.ndarray:
     """An ``.npy`` array (memory-mapped with ``mmap``, never unpickled), or an InputError naming the file."""
-    from lgi.errors import InputError
-
     try:
         return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except FileNotFoundError:

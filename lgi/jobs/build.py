@@ -7,16 +7,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
+from lgi.dataset.shapes import ShapeDataset
+from lgi.io.atomic import check_output, files_in
+
 
 def build(dataset_dir: str | Path, markers: str | Path, out: str | Path, options=None,
           jaw_rig: str | Path | None = None, show_progress: bool = False) -> dict[str, Any]:
     """``lgi build``: the index of a dataset for a marker layout (options: :class:`~lgi.index.build.IndexOptions`)
     saved to ``out``; returns a summary (:func:`build_report`)."""
     from lgi.dataset.markers import read_layout
-    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
-    from lgi.dataset.shapes import ShapeDataset
     from lgi.index.build import ENTRIES, build_index
-    from lgi.io.atomic import check_output, files_in
 
     check_output(out, "dir", inputs=[dataset_dir, markers, jaw_rig, *files_in(dataset_dir, DATASET_ENTRIES)],
                  owned=ENTRIES, what="lgi index")

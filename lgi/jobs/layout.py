@@ -31,7 +31,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lgi.dataset.markers import MarkerLayout, read_layout, write_layout
+from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
+from lgi.dataset.shapes import ShapeDataset, _match
 from lgi.errors import InputError
+from lgi.io.atomic import atomic_file, check_output, files_in
 from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
@@ -170,7 +174,6 @@ def held_out_names(names: list[str], pattern: str | None) -> list[str]:
     meant only with ``jawOpen`` that no other shape resembles, whose error then is most of the total); otherwise
     ``every5``.
     """
-    from lgi.dataset.shapes import _match
     from lgi.evaluation.accuracy import ICT_HELD_OUT
 
     p = "" if pattern is None else pattern.strip()
@@ -293,8 +296,6 @@ def vertex_layout(names: list[str], vertices: np.ndarray, triangles: np.ndarray)
     """A :class:`~lgi.dataset.markers.MarkerLayout` with each marker on a vertex (a triangle incident to it, weight 1
     at that corner). Not by closest point: where the mesh has coincident vertices (the synthetic actor's lip slit)
     that could attach a marker to the other side's vertex."""
-    from lgi.dataset.markers import MarkerLayout
-
     t = np.asarray(triangles, np.int64)
     tri_of = np.full(int(t.max()) + 1, -1, np.int64)
     tri_of[t.ravel()] = np.repeat(np.arange(len(t)), 3)
@@ -306,11 +307,6 @@ def vertex_layout(names: list[str], vertices: np.ndarray, triangles: np.ndarray)
 def design(dataset_dir: str | Path, out: str | Path, options: DesignOptions) -> dict[str, Any]:
     """``lgi layout design``: write the designed layout (markers CSV, as :func:`~lgi.dataset.markers.write_layout`,
     with neutral positions) to ``out``; returns a summary (:func:`design_report`)."""
-    from lgi.dataset.markers import write_layout
-    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
-    from lgi.dataset.shapes import ShapeDataset
-    from lgi.io.atomic import check_output, files_in
-
     given = [i.strip() for i in str(options.exclude).split(",") if i.strip() and Path(i.strip()).exists()]
     check_output(out, "file", inputs=[dataset_dir, *files_in(dataset_dir, DATASET_ENTRIES), *given])
     t0 = time.perf_counter()
@@ -414,11 +410,6 @@ def evaluate(dataset_dir: str | Path, markers: str | Path, options: EvaluateOpti
              ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """``lgi layout evaluate``: the per-shape table (:func:`heldout_errors`) and a summary; writes the table to
     ``options.out`` when given."""
-    from lgi.dataset.markers import read_layout
-    from lgi.dataset.shapes import ENTRIES as DATASET_ENTRIES
-    from lgi.dataset.shapes import ShapeDataset
-    from lgi.io.atomic import atomic_file, check_output, files_in
-
     o = options or EvaluateOptions()
     if o.out:
         check_output(o.out, "file", inputs=[dataset_dir, markers, *files_in(dataset_dir, DATASET_ENTRIES)])

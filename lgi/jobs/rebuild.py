@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -30,13 +31,17 @@ import pandas as pd
 from lgi.dataset.importing import RawShapes
 from lgi.dataset.markers import read_layout
 from lgi.dataset.shapes import ShapeDataset
+from lgi.errors import InputError
 from lgi.index.build import NATURAL_FIELDS, IndexOptions, assemble_index, clouds_stage, natural_stage
-from lgi.io.cache import StageCache, hash_file, hash_tree
+from lgi.index.cloud import CloudOptions
+from lgi.io.atomic import atomic_dir
+from lgi.io.cache import StageCache, hash_file, hash_tree, locked
 from lgi.io.npz import save_npz
 from lgi.io.obj import PolyMesh
 from lgi.jobs.dataset import AugmentOptions, ImportOptions, augment, published, read_shapes, stabilise_shapes
 from lgi.jobs.rig import RigOptions, fit_jaw_rig
 from lgi.jobs.verify import VerifyOptions, verify
+from lgi.solve.jaw import JawRig
 
 # The modules whose source (with every lgi module they import) keys each stage's results, besides the stage's
 # own make function: the code that computes them, not the whole package.
@@ -130,8 +135,6 @@ def clouds_stage_cached(cache: StageCache, dataset_dir: Path, markers: str, natu
               "jaw_rig": None if not jaw_rig else hash_file(jaw_rig)}
 
     def make(out: Path) -> None:
-        from lgi.solve.jaw import JawRig
-
         ds = ShapeDataset.load(dataset_dir, mmap=True)
         rig = JawRig.load(jaw_rig, ds.n_vertices) if jaw_rig else None
         arrays, reports = clouds_stage(ds, read_layout(markers, ds.triangles), opts,
@@ -151,8 +154,6 @@ def index_stage(cache: StageCache, dataset_dir: Path, markers: str, natural_dir:
               "markers": hash_file(markers), "jaw_rig": None if not jaw_rig else hash_file(jaw_rig)}
 
     def make(out: Path) -> None:
-        from lgi.solve.jaw import JawRig
-
         ds = ShapeDataset.load(dataset_dir, mmap=True)
         rig = JawRig.load(jaw_rig, ds.n_vertices) if jaw_rig else None
         index = assemble_index(ds, read_layout(markers, ds.triangles), opts, _load_npz(natural_dir / "natural.npz"),
@@ -194,9 +195,6 @@ def verify_stage(cache: StageCache, index_dir: Path, options: VerifyOptions) -> 
 
 def options_from(params: dict[str, Any] | None) -> IndexOptions:
     """IndexOptions from a flat dict (cloud options and index options mixed, unknown keys refused)."""
-    from lgi.errors import InputError
-    from lgi.index.cloud import CloudOptions
-
     params = dict(params or {})
     cloud_keys = set(asdict(CloudOptions()))
     index_keys = set(IndexOptions.__dataclass_fields__) - {"cloud"}
@@ -210,10 +208,6 @@ def options_from(params: dict[str, Any] | None) -> IndexOptions:
 def publish(src: Path, dest: str | os.PathLike[str], kind: str) -> Path:
     """Copy a cached result directory of ``kind`` (see :func:`published`) to its user-facing place,
     atomically."""
-    import shutil
-
-    from lgi.io.atomic import atomic_dir
-    from lgi.io.cache import locked
 
     dest = Path(dest)
     # Two rebuilds into one OUT publish in turn (each replaces the folder whole; without the lock one could

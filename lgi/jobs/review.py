@@ -34,10 +34,26 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lgi.dataset.mesh import triangulate
 from lgi.errors import InputError, cell_text
-from lgi.io.atomic import reads
+from lgi.io.atomic import atomic_dir, check_not_in_store, check_output, reads, remove_recorded
+from lgi.io.npz import load_meshes
 from lgi.io.stored import ScratchArray
-from lgi.review.pack import ColourTop
+from lgi.review.pack import (
+    NOT_MEASURED,
+    PAGE_POLICY,
+    TOP_WITH_GAPS,
+    ColourTop,
+    DisplacementRange,
+    blob,
+    codes_blob,
+    json_blob,
+    quantise_gaps,
+    quantise_map,
+    with_policy,
+    write_block_page,
+    write_script,
+)
 from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
@@ -124,8 +140,6 @@ class ReviewOptions:
 def _read_meshes(recon_dir: Path, what: str) -> dict[str, Any]:
     """A reconstruction's ``meshes.npz``: ``vertices`` (F, V, 3) float cm read by frame range (a
     :class:`~lgi.io.stored.StoredArray`; its values are checked block by block as they are read), ``frames`` (F,)."""
-    from lgi.io.npz import load_meshes
-
     path = recon_dir / "meshes.npz"
     if not recon_dir.is_dir():
         raise InputError(f"{what} is not a folder", path=recon_dir)
@@ -353,8 +367,6 @@ class _Diagnostics:
     def block_payload(self, rows: pd.DataFrame, lo: int, n: int) -> dict[str, Any]:
         """A block's diagnostics for the page: which (frame, marker) has a row (``present``, (n, M) uint8) and
         every other column in (frame, marker) order as blobs (:func:`_diag_columns`)."""
-        from lgi.review.pack import blob
-
         n_m = len(self.markers)
         slot = np.full((n, n_m), -1, np.int64)
         if len(rows):
@@ -383,8 +395,6 @@ class _Diagnostics:
 def _diag_columns(d: pd.DataFrame, order: np.ndarray) -> list[dict[str, Any]]:
     """The diagnostics' columns in (frame, marker) order as page blobs: numbers as float32, text as codes into
     its distinct values (a gzip-compressed JSON list: a block's shape lists repeat, and pack many times)."""
-    from lgi.review.pack import blob, json_blob
-
     cols = []
     for name in d.columns:
         if name in ("frame", "marker"):
@@ -441,8 +451,6 @@ class _Map:
 
     def codes(self, values: np.ndarray) -> np.ndarray:
         """(B, V) uint8: the page's codes of a block's values."""
-        from lgi.review.pack import quantise_gaps, quantise_map
-
         if self.region is None:
             return quantise_map(values, self.vmax)
         measured = np.broadcast_to(self.region, values.shape)
@@ -450,8 +458,6 @@ class _Map:
 
     def entry(self) -> dict[str, Any]:
         """The map's entry in the page's header (its blocks' codes go in the block files)."""
-        from lgi.review.pack import TOP_WITH_GAPS
-
         e = {"key": self.key, "label": self.label, "note": self.note, "vmax_mm": self.vmax,
              "max_mm": self.top.largest}
         if self.region is not None:
@@ -499,8 +505,6 @@ def _overview_frames(n_f: int) -> np.ndarray:
 def _curve(key: str, label: str, unit: str, values: np.ndarray, **extra: Any) -> dict[str, Any]:
     """A per-frame curve for the page: (F,) values as a float32 blob (NaN where the frame has none), 4 bytes a
     frame however long the take (a JSON list of 36,000 numbers was 0.7 MB a curve)."""
-    from lgi.review.pack import blob
-
     return {"key": key, "label": label, "unit": unit, "values": blob(np.asarray(values, np.float32)), **extra}
 
 
@@ -521,8 +525,6 @@ def _maps(o: ReviewOptions, recon: Path, meshes, frames: np.ndarray, n_v: int, d
           a, n_markers: int) -> tuple[list[_Map], Any, Any]:
     """The page's colour maps (against the truth, the correction, against ``--compare``, the rig's playback),
     the scans' distances and the rig's map, from the options' files."""
-    from lgi.review.pack import NOT_MEASURED
-
     maps: list[_Map] = []
     if o.truth:
         from lgi.io.npz import load_meshes
@@ -563,8 +565,6 @@ def _maps(o: ReviewOptions, recon: Path, meshes, frames: np.ndarray, n_v: int, d
 def _first_pass(verts: _Rows, maps: list[_Map], neutral: np.ndarray, n_f: int, block: int):
     """What must be the shot's, not a block's: the displacements' range (the quantisation) and each map's top (the
     colour bars'); and the curves that need the meshes (RMS and largest distance to the truth, the rig's RMS)."""
-    from lgi.review.pack import DisplacementRange
-
     span = DisplacementRange(neutral)
     error_rms, error_max, rig_rms = (np.full(n_f, np.nan) for _ in range(3))
     for lo in range(0, n_f, block):
@@ -640,15 +640,6 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
     :data:`DIAG_CHUNK_ROWS` rows at a time, twice.
     """
     from lgi.index.build import LGIIndex
-    from lgi.io.atomic import atomic_dir, check_not_in_store, check_output
-    from lgi.review.pack import (
-        PAGE_POLICY,
-        blob,
-        codes_blob,
-        with_policy,
-        write_block_page,
-        write_script,
-    )
 
     o = options or ReviewOptions()
     t0 = time.perf_counter()
@@ -688,8 +679,6 @@ def review(recon_dir: str | Path, index_dir: str | Path, out: str | Path, option
         from lgi.review import rigmap as rm
 
         info += rm.summary_rows(rigmap, o.rig_solve)
-
-    from lgi.dataset.mesh import triangulate
 
     tris = triangulate(a["face_vertices"], a["face_offsets"])[0].astype(np.int32)
     meta = {
@@ -871,6 +860,4 @@ def collected_warnings() -> Iterator[list[str]]:
 def remove_review(out: str | Path) -> None:
     """Remove ``out/review`` if it is a review folder (a re-run without ``--review``: the old page would show
     another run)."""
-    from lgi.io.atomic import remove_recorded
-
     remove_recorded(Path(out) / "review", REVIEW_ENTRIES, "earlier review page")

@@ -4,9 +4,14 @@ library's algorithms and jobs do not need Prefect. The top-level ``flows/`` and 
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import logging
+import re
 import threading
 from pathlib import Path
+
+from lgi.errors import LgiError
 
 #: Set by the command line's Ctrl-C handler during a flow run. Prefect may swallow the KeyboardInterrupt where
 #: it lands (inside its engine's own exception handling); the chunk tasks also check this and stop, and the
@@ -47,9 +52,6 @@ capture_library_logs()
 def artifact_key(kind: str, path: str | Path) -> str:
     """A Prefect artifact key unique to one output folder (a shot, a dataset) and stable across its re-runs, so
     the UI keeps each shot's report history apart: ``KIND-NAME-HASH`` (lowercase letters, digits, dashes)."""
-    import hashlib
-    import re
-
     p = Path(path).resolve()
     name = re.sub(r"[^a-z0-9]+", "-", p.name.lower()).strip("-")[:40] or "out"
     return f"{kind}-{name}-{hashlib.sha256(str(p).encode()).hexdigest()[:8]}"
@@ -58,8 +60,6 @@ def artifact_key(kind: str, path: str | Path) -> str:
 def embedded_png(path: Path, alt: str) -> str:
     """Markdown for a picture carried inside the artifact (a data URI): a remote UI shows it, where a link to
     the worker's disk would be broken."""
-    import base64
-
     data = base64.b64encode(Path(path).read_bytes()).decode()
     return f"![{alt}](data:image/png;base64,{data})"
 
@@ -67,8 +67,6 @@ def embedded_png(path: Path, alt: str) -> str:
 def transient_only(task, task_run, state) -> bool:
     """A task's retry condition: retry for what may pass (a file system or network hiccup), never for bad
     input or a bug, which would fail the same way again."""
-    from lgi.errors import LgiError
-
     try:
         state.result()
     except LgiError:

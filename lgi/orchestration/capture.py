@@ -23,6 +23,7 @@ Layout of ``out``::
 from __future__ import annotations
 
 import shutil
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -31,21 +32,27 @@ from prefect.artifacts import create_markdown_artifact, create_table_artifact
 from prefect.cache_policies import NO_CACHE
 from prefect.states import Completed
 
-from lgi.jobs.capture import CalibrateOptions, TrackFootageOptions
-from lgi.jobs.compare import SHOT_SCAN_OPTIONS, CompareOptions
+from lgi.errors import InputError
+from lgi.io.atomic import atomic_file, check_output
+from lgi.io.cache import StageCache, hash_tree
+from lgi.io.csvio import read_table
+from lgi.jobs.capture import CalibrateOptions, TrackFootageOptions, calibrate
+from lgi.jobs.compare import IN_SHOT, SHOT_SCAN_OPTIONS, CompareOptions
+from lgi.jobs.export import ExportOptions, export
 from lgi.jobs.reconstruct.options import ReconstructOptions
+from lgi.jobs.review import ReviewOptions, review_beside
+from lgi.jobs.rig_solve import RigSolveOptions
 from lgi.options import Subset, flow_parameters, params, take
 from lgi.orchestration import artifact_key, capture_library_logs, transient_only
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
 from lgi.orchestration.reconstruct import reconstruct_shot
+from lgi.orchestration.rig import rig_solve_shot
 
 
 def shot_folders(shots: str | list[str]) -> list[Path]:
     """The shots of a session: a list of footage folders, or one folder whose subfolders are the shots (those
     holding ``cam0/`` and ``cam1/``, or ``left*``/``right*`` images), in name order."""
-    from lgi.errors import InputError
-
     if isinstance(shots, (list, tuple)):
         folders = [Path(s) for s in shots]
     else:
@@ -65,9 +72,6 @@ def shot_folders(shots: str | list[str]) -> list[Path]:
 def session_scans(path: str, shots: list[str]) -> dict[str, list[tuple[int, str]]]:
     """Per shot name, its ``(frame, scan path)`` pairs from a session's scans CSV (columns ``shot, frame, scan``;
     scan paths relative to the CSV's folder); a shot the session does not have is refused."""
-    from lgi.errors import InputError
-    from lgi.io.csvio import read_table
-
     d = read_table(path, "scans file", ("shot", "frame", "scan"), numeric=("frame",))
     out: dict[str, list[tuple[int, str]]] = {}
     for r, (shot, f, scan) in enumerate(zip(d["shot"].astype(str), d["frame"], d["scan"].astype(str), strict=True)):
@@ -85,10 +89,6 @@ def session_scans(path: str, shots: list[str]) -> dict[str, list[tuple[int, str]
 def calibrate_session(images: str, options: dict, out: str, cache_dir: str):
     """Calibrate the camera pair (``lgi calibrate``), cached by the images' content and the options; the result
     is copied to ``out``. A cache hit ends in a state named Cached."""
-    from lgi.io.atomic import atomic_file
-    from lgi.io.cache import StageCache, hash_tree
-    from lgi.jobs.capture import calibrate
-
     opts = CalibrateOptions(**options)
 
     def make(d: Path) -> None:
@@ -105,8 +105,6 @@ def calibrate_session(images: str, options: dict, out: str, cache_dir: str):
 @task(name="export-shot", cache_policy=NO_CACHE, persist_result=False, timeout_seconds=6 * 3600)
 def export_shot(recon: str, index_dir: str, exr: str, exr_size: int, fps: float) -> dict:
     """Displacement maps of a reconstructed shot (``lgi export --exr``)."""
-    from lgi.jobs.export import ExportOptions, export
-
     return export(recon, index_dir, ExportOptions(exr=exr, exr_size=exr_size, fps=fps))
 
 
@@ -115,10 +113,6 @@ def solve_rig_row(row: dict, recon: str, rig: str, shot_dir: Path, rig_usd: str 
     """Solve a reconstructed shot onto the rig and record it in the shot's ``row``: ``rig_status`` done, with
     ``anim`` and ``rig_rms_mm``, or failed, with ``rig_error`` and a warning. A failed solve does not fail the
     shot: its reconstruction is written and usable."""
-    from dataclasses import asdict
-
-    from lgi.jobs.rig_solve import RigSolveOptions
-    from lgi.orchestration.rig import rig_solve_shot
 
     try:
         anim = rig_solve_shot(recon, rig, str(shot_dir / "anim"), str(shot_dir / "anim.usda") if rig_usd else None,
@@ -133,9 +127,6 @@ def solve_rig_row(row: dict, recon: str, rig: str, shot_dir: Path, rig_usd: str 
 def rig_review(row: dict, summary: dict, index_dir: str, fps: float, logger) -> None:
     """Write the shot's review page again with the rig map (where the rig falls short, lgi review --rig-solve)
     and its scans; the page reconstruct-shot wrote stays when this fails (said in the log)."""
-    from lgi.jobs.compare import IN_SHOT
-    from lgi.jobs.review import ReviewOptions, review_beside
-
     scans = Path(summary["out"]) / IN_SHOT
     done = summary.get("compare", {}).get("status") == "done"
     try:
@@ -202,8 +193,6 @@ def capture_session(
     helmet = at(take(SESSION_HELMET, options)["helmet"], "helmet")
     markers, out = at(markers, "markers"), at(out, "out", output=True)
     shots = [at(s, "shots") for s in shots] if isinstance(shots, (list, tuple)) else at(shots, "shots")
-    from lgi.io.atomic import check_output
-    from lgi.jobs.export import ExportOptions
 
     cal_opts = CalibrateOptions(board=board, **take(SESSION_LENS, options))
     if exr_size is not None:

@@ -16,7 +16,12 @@ from __future__ import annotations
 
 import logging
 import os
+from datetime import timedelta
 from pathlib import Path
+from uuid import UUID
+
+from lgi.errors import InputError
+from lgi.paths import REPO_ROOT, shared_data, shipped
 
 #: The Prefect Variable holding the folder a deployment run's relative paths are taken under.
 DATA_ROOT_VARIABLE = "lgi_data_root"
@@ -51,8 +56,6 @@ def record_project() -> dict[str, str]:
     ProjectDirectoryError
         ``prefect deploy`` was not run from the lgi repository root (the entry points would not be found).
     """
-    from lgi.paths import shared_data, shipped
-
     here = Path.cwd().resolve()
     if missing := _missing(here):
         raise ProjectDirectoryError(f"prefect deploy runs from the lgi repository root (the folder holding "
@@ -73,7 +76,6 @@ def crash_silent_runs() -> dict[str, str]:
     process killed with the worker's, a node lost). Without it such a run stays Running for ever, and the
     rebuild's concurrency limit of one would then queue every later nightly rebuild behind it. Made once (an
     automation of that name already there is left as it is); returns its id."""
-    from datetime import timedelta
 
     from prefect.automations import Automation, ChangeFlowRunState, EventTrigger, Posture
     from prefect.client.schemas.objects import StateType
@@ -145,8 +147,6 @@ def _tell_the_run(message: str) -> None:
     console, and the run then ends Crashed with "Process exited with status code: 1" and an unrelated
     FileNotFoundError in its log. The worker's Crashed state that follows is refused by the server (a Failed
     run's state is final)."""
-    from uuid import UUID
-
     run_id = os.environ.get("PREFECT__FLOW_RUN_ID")
     if not run_id:
         return
@@ -178,8 +178,6 @@ def data_root() -> Path:
     tree lgi runs from."""
     from prefect.variables import Variable
 
-    from lgi.errors import InputError
-
     value = Variable.get(DATA_ROOT_VARIABLE, default=None)
     if value is None:
         log.warning("Prefect variable %s is not set: relative paths go under %s (set it with: prefect variable "
@@ -191,7 +189,6 @@ def data_root() -> Path:
     root = Path(value.strip()).expanduser()
     if not root.is_absolute():
         raise InputError(f"Prefect variable {DATA_ROOT_VARIABLE} must be an absolute path, not {value!r}")
-    from lgi.paths import REPO_ROOT
 
     # A nightly run writing into the source tree is what the root is there to prevent.
     if (REPO_ROOT / "prefect.yaml").is_file() and Path(os.path.realpath(root)).is_relative_to(REPO_ROOT):
@@ -204,8 +201,6 @@ def output_roots() -> list[Path]:
     """The folders besides the data root a deployment run may write into (Prefect Variable
     :data:`OUTPUT_ROOTS_VARIABLE`), each absolute."""
     from prefect.variables import Variable
-
-    from lgi.errors import InputError
 
     value = Variable.get(OUTPUT_ROOTS_VARIABLE, default=None)
     if value is None:
@@ -247,8 +242,6 @@ class PathResolver:
                  output: bool = False) -> str | None:
         """``value`` of the parameter ``name`` resolved; None, and the ``keywords`` it may take instead of a
         path (``auto``, ``none``), as given."""
-        from lgi.errors import InputError
-
         if self.root is None or value is None or not isinstance(value, str) or value in keywords:
             return value
         if not value.strip():

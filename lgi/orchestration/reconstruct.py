@@ -9,6 +9,7 @@ task_runner=DaskTaskRunner(...))``) give the files ``lgi reconstruct`` writes, b
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -16,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from prefect import flow, get_run_logger, task
 from prefect.artifacts import (
     create_markdown_artifact,
@@ -24,18 +26,24 @@ from prefect.artifacts import (
     update_progress_artifact,
 )
 from prefect.cache_policies import NO_CACHE
+from prefect.futures import as_completed
 
 from lgi.errors import InputError
-from lgi.io.atomic import output_lock
+from lgi.io.atomic import RESUME_FILE, make_temp_dir, output_lock, staged_key, stopped, sweep
+from lgi.io.npz import npz_member
 from lgi.jobs import reconstruct as job
+from lgi.jobs.capture import TrackFootageOptions, track
 from lgi.jobs.compare import (
     REGIONS,
     SHOT_SCAN_OPTIONS,
     CompareOptions,
+    compare,
+    compare_shot,
     shot_scan_options,
 )
+from lgi.jobs.review import ReviewOptions, review_beside
 from lgi.options import flow_parameters, take
-from lgi.orchestration import artifact_key, capture_library_logs, embedded_png
+from lgi.orchestration import INTERRUPTED, artifact_key, capture_library_logs, embedded_png
 from lgi.orchestration.deploy import run_paths
 from lgi.orchestration.params import described
 
@@ -48,8 +56,6 @@ def track_footage(footage: str, calib: str, markers: str, bundles: str, dataset:
                   index: str | None = None) -> dict:
     """Stereo footage to the bundles file and the 2D tracks table: ``lgi track``'s job
     (:func:`lgi.jobs.capture.track`); with ``index``, the head pose solved with the face."""
-    from lgi.jobs.capture import TrackFootageOptions, track
-
     return track(footage, calib, markers, bundles, TrackFootageOptions(
         dataset=dataset, units=units, labels=labels, reference_frame=reference, helmet=helmet, index=index))
 
@@ -60,8 +66,6 @@ _STOP = ".stopped"
 def _stopped(out: str) -> bool:
     """True once the flow has been interrupted: its chunk tasks still queued then return at once instead of
     running (or failing on the working folder the flow is about to remove)."""
-    from lgi.orchestration import INTERRUPTED
-
     return INTERRUPTED.is_set() or (Path(out).parent / _STOP).exists()
 
 
@@ -88,8 +92,6 @@ def finish_chunk(index_dir: str, bundles: str, options: dict, choices: list[str]
 def rays_task(index_dir: str, bundles: str, options: dict, first: str, out: str) -> dict:
     """Markers seen by one camera onto their rays, from the first pass's meshes (see
     :func:`lgi.jobs.reconstruct.constrain_to_rays`)."""
-    from lgi.io.npz import npz_member
-
     shot = job.prepared_shot(index_dir, bundles, job.ReconstructOptions.from_json(options))
     return job.constrain_to_rays(shot, npz_member(Path(first) / "meshes.npz", "vertices"), out)
 
@@ -105,8 +107,6 @@ def review_task(out: str, index_dir: str, summary: dict, fps: float, scans: str 
                 warnings: list[str] | None = None) -> str:
     """The shot's review page in ``out/review`` (see :func:`lgi.jobs.review.review`), with the scan map of the
     compare folder ``scans``; returns its path."""
-    from lgi.jobs.review import ReviewOptions, review_beside
-
     return review_beside(out, index_dir, summary, ReviewOptions(fps=fps, scans=scans), warnings)["page"]
 
 
@@ -114,8 +114,6 @@ def review_task(out: str, index_dir: str, summary: dict, fps: float, scans: str 
 def compare_task(recon: str, options: dict) -> dict:
     """The shot's frames against their scans: ``lgi compare``'s job (:func:`lgi.jobs.compare.compare`), its
     tables and heat maps in ``options["out"]``."""
-    from lgi.jobs.compare import CompareOptions, compare
-
     return compare(recon, CompareOptions.from_json(options))
 
 
@@ -282,9 +280,6 @@ def _reconstruct_in_chunks(shot_job, runner) -> dict:
 def _chunk_folder(out: Path, key: str) -> Path:
     """The flow's working folder for its chunk files beside ``out``: a stopped run's of the same job ``key`` (its
     process gone) taken over, else a new one; the other stopped runs' are removed."""
-    import json
-
-    from lgi.io.atomic import RESUME_FILE, make_temp_dir, staged_key, stopped, sweep
 
     parent, prefix = out.absolute().parent, f".{out.name}.chunks-"
     parent.mkdir(parents=True, exist_ok=True)
@@ -306,8 +301,6 @@ def _chunk_folder(out: Path, key: str) -> Path:
 def _compare_scans(out: str, options: CompareOptions, pairs: list[tuple[int, Path]]) -> dict:
     """The compare job on the reconstructed shot, as a task (:func:`lgi.jobs.compare.compare_shot`: a scan that
     fails is logged and returned as ``status: failed``; the reconstruction stays)."""
-    from lgi.jobs.compare import compare_shot
-
     return compare_shot(out, options, pairs, get_run_logger(),
                         run=lambda recon, o: compare_task(recon, o.to_json()))
 
@@ -453,7 +446,6 @@ def _on_dask(index_dir: str, bundles: str, options: dict, bounds: list[tuple[int
     a future. (A future passed as a task's parameter ties the tasks into one graph, which the scheduler kept
     whole: its tasks, and the workers' memory, grew with the shot.) Returns the finished chunks' files, in order."""
     import dask
-    from prefect.futures import as_completed
 
     n = len(bounds)
     choices: list[str | None] = [None] * n
@@ -544,8 +536,6 @@ def _per_marker(path: Path, rows: int = 50_000):
     """Per marker (sorted by name): the share of frames contained, the frames projected, taking a neighbour's
     blend and missing or bridged, and the median projection (mm) of ``diagnostics.csv``, read ``rows`` at a time
     (a 36,000-frame ICT take's table is millions of rows; read whole, it was most of the flow's peak)."""
-    import pandas as pd
-
     counts: dict[str, np.ndarray] = {}
     projections: dict[str, list[np.ndarray]] = {}
     kinds = ("contained", "projected", "neighbour", "missing", "bridged")
@@ -571,8 +561,6 @@ def _per_marker(path: Path, rows: int = 50_000):
 
 def _report(summary: dict, out: str) -> None:
     """Per-marker table and a markdown report as artifacts."""
-    import pandas as pd
-
     per_marker = _per_marker(Path(out) / "diagnostics.csv")
     create_table_artifact(table=per_marker.to_dict(orient="records"), key=artifact_key("shot-markers", out),
                           description="per marker: share of frames contained in the data; frames projected, "

@@ -41,11 +41,18 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from functools import cached_property
+from itertools import product
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import lsq_linear
+from scipy.sparse.linalg import splu
 
+from lgi.dataset.shapes import ShapeDataset
 from lgi.errors import InputError
+from lgi.io.stored import ScratchArray
+from lgi.solve.streamed import frame_blocks
 from lgi.threads import one_blas_thread
 
 log = logging.getLogger(__name__)
@@ -189,9 +196,6 @@ def jaw_control_weights(rig: BlendRig, jaw: np.ndarray) -> np.ndarray:
     than 150 degrees) only one moves, the one that fits better: together they would cancel, and fitted poses are
     never exactly opposite, so both were driven to 1 on a centred jaw. A jaw half open gives jaw_open about 0.5,
     a jaw turned left jaw_left and not jaw_right."""
-    from itertools import product
-
-    from scipy.optimize import lsq_linear
 
     jc = rig.jaw_controls
     jaw = np.asarray(jaw, np.float64).reshape(-1, 4)
@@ -499,9 +503,6 @@ def smooth_curves(fits: list[FrameFit], lam: np.ndarray, lo: float | np.ndarray 
     lo, hi : float or array broadcastable to (F, K)
         The bounds (per unknown and frame: the jaw's are infinite, or equal where it is held).
     """
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
-
     n_f, k = len(fits), len(lam)
     if n_f < 3 or not np.any(lam > 0):
         return np.stack([f.weights for f in fits])
@@ -572,8 +573,6 @@ class ShotFits:
     """
 
     def __init__(self, n_frames: int, n: int) -> None:
-        from lgi.io.stored import ScratchArray
-
         self.n = n
         self.iterations = np.zeros(n_frames, np.int64)
         # Per frame: the Hessian's N columns, then the gradient, the weights and the precisions.
@@ -603,8 +602,6 @@ class ShotFits:
         return self._column(self.n + 2, 0, len(self), slice(None))
 
     def _column(self, c: int, lo: int, hi: int, columns: slice) -> np.ndarray:
-        from lgi.solve.streamed import frame_blocks
-
         out = np.empty((hi - lo, len(range(self.n)[columns])))
         for a, b in frame_blocks(hi - lo):
             out[a:b] = self._rows.rows(lo + a, lo + b)[:, columns, c]
@@ -758,8 +755,6 @@ JAW_CURVES = ("jaw_open_deg", "jaw_yaw_deg", "jaw_roll_deg", "jaw_forward_cm")
 
 def load_rig(rig_dir: str | Path):
     """The :class:`~lgi.retarget.solve.BlendRig` of a rig dataset, and the dataset."""
-    from lgi.dataset.shapes import ShapeDataset
-
     if not Path(rig_dir).is_dir():
         raise InputError("rig dataset folder not found (make it with lgi rig-generate)", path=rig_dir)
     ds = ShapeDataset.load(rig_dir)

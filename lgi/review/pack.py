@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import base64
 import gzip
+import hashlib
 import json
 import math
+import re
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -315,9 +317,6 @@ BLOCK_POLICY = "default-src 'none'; script-src {hashes}; base-uri 'none'; form-a
 def with_policy(html: str, policy: str) -> str:
     """``html`` with a ``<meta http-equiv="Content-Security-Policy">`` of ``policy`` (``{hashes}``: the sha256 of
     each inline ``<script>`` of ``html``) right after its ``<meta charset>``."""
-    import hashlib
-    import re
-
     scripts = re.findall(r"<script>(.*?)</script>", html, re.S)
     hashes = " ".join(f"'sha256-{base64.b64encode(hashlib.sha256(t.encode('utf-8')).digest()).decode()}'"
                       for t in scripts)

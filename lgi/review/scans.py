@@ -20,6 +20,8 @@ import numpy as np
 import pandas as pd
 
 from lgi.errors import InputError
+from lgi.evaluation.compare import frame_fingerprint
+from lgi.review.pack import NOT_COVERED, NOT_MEASURED, TOP_WITH_GAPS, blob, colour_top, quantise_gaps
 
 #: The columns of ``vertex_distances.parquet`` the map reads.
 VERTEX_COLUMNS = ("frame", "scan", "vertex", "distance_mm", "covered")
@@ -90,9 +92,6 @@ def read_scan_map(folder: str | Path, frames: np.ndarray, vertices: np.ndarray) 
     vertices than the reconstruction's (summary.json's ``vertices_sha256``: another reconstruction, or a re-run
     since).
     """
-    from lgi.evaluation.compare import frame_fingerprint
-    from lgi.review.pack import colour_top, quantise_gaps
-
     d = Path(folder)
     if not d.is_dir() or not (d / "summary.json").is_file() or not (d / "vertex_distances.parquet").is_file():
         raise InputError("--scans: not a folder written by lgi compare --out (it holds summary.json and "
@@ -157,8 +156,6 @@ def read_scan_map(folder: str | Path, frames: np.ndarray, vertices: np.ndarray) 
 def page_map(m: ScanMap, folder: str | Path) -> dict[str, Any]:
     """The map as the page's ``maps`` entry, whole: a scan exists for a few frames of a shot, so their codes go
     with the page's header (shown on any frame at once) rather than in the blocks of frames."""
-    from lgi.review.pack import NOT_COVERED, NOT_MEASURED, TOP_WITH_GAPS, blob
-
     return {"key": "scan", "label": "distance to the scan", "note": f"lgi compare's per-vertex distances in {folder}",
             "vmax_mm": m.vmax_mm, "max_mm": m.max_mm, "top": TOP_WITH_GAPS, "slots": m.slots.tolist(),
             "gaps": [{"code": NOT_COVERED, "label": "not covered by the scan"},

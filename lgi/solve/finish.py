@@ -3,6 +3,8 @@ second thread beside the choice when nothing is smoothed), and the per-bundle di
 
 from __future__ import annotations
 
+import queue
+import threading
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -13,6 +15,7 @@ from lgi.progress import progress
 from lgi.solve.jaw import PARAM_NAMES, smooth_parameters
 from lgi.solve.results import STATUS, FrameResult, SequenceResult
 from lgi.solve.surface import _append_rows, _stack_slots
+from lgi.solve.temporal import moving_average, window_slots
 from lgi.threads import one_blas_thread
 from lgi.units import MM_PER_CM
 
@@ -39,9 +42,6 @@ class Finishing:
         From frame ``start`` (a multiple of ``block``) on, with ``carried`` what the block before it yielded last
         (``(first, choices)``: the choices from frame ``first`` the next block reads), a run resumes where one
         stopped, with the same bits."""
-        import queue
-        import threading
-
         chosen: queue.Queue = queue.Queue(maxsize=16)
         stop = threading.Event()
 
@@ -156,7 +156,6 @@ class Finishing:
         fit_pos = pos if fit_pos is None else fit_pos
         if left is None and self.noise_left is not None and len(self.noise_left) == len(pos):
             left = self.noise_left
-        from lgi.solve.temporal import moving_average, window_slots
 
         n_f = len(sels)
         hi = n_f if hi is None else hi

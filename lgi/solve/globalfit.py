@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lgi.io.stored import ScratchArray
 from lgi.solve import _globalfit_kernels as K
 from lgi.solve.jaw import N_PARAMS, JawRig
 from lgi.units import MM_PER_CM
@@ -96,8 +97,6 @@ class FitStore:
     BLOCK = 256
 
     def __init__(self, n_frames: int, n_shapes: int, n_markers: int, jaw: bool) -> None:
-        from lgi.io.stored import ScratchArray
-
         self.weights = ScratchArray((n_frames, n_shapes), np.float64)
         self.residual = ScratchArray((n_frames, n_markers), np.float64)
         self.jaw = ScratchArray((n_frames, N_PARAMS), np.float64) if jaw else None

@@ -18,9 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from lgi.dataset.stabilise import rigid_fit
 from lgi.errors import InputError
 from lgi.io.atomic import atomic_file
-from lgi.io.npz import save_npz
+from lgi.io.npz import load_npz, save_npz
 from lgi.solve._jaw_kernels import jaw_map, jaw_map_derivatives, skin_points
 from lgi.units import MM_PER_CM
 
@@ -109,7 +110,6 @@ class JawRig:
         path = Path(path)
         if not path.is_file():
             raise InputError("jaw rig file not found", path=path)
-        from lgi.io.npz import load_npz
 
         z = load_npz(path, required=("pivot", "weights"))
         if z["pivot"].size != 3 or z["weights"].ndim != 1:
@@ -401,8 +401,6 @@ def fit_rig(neutral: np.ndarray, deltas: np.ndarray, jaw_vertices: np.ndarray, t
     ``WARN_RESIDUAL_CM`` RMS from the hinge model, a slide over ``WARN_SLIDE_CM``, or a pivot more than
     ``WARN_PIVOT_DISTANCE_CM`` from the jaw vertices' centroid or not behind and above them.
     """
-    from lgi.dataset.stabilise import rigid_fit
-
     x0 = np.asarray(neutral, np.float64)
     jv = np.asarray(jaw_vertices)
     names = [f"shape {k}" for k in range(len(deltas))] if names is None else [str(n) for n in names]

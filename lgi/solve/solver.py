@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import warnings
 from collections.abc import Iterator
 from typing import Any
 
@@ -31,6 +32,7 @@ from threadpoolctl import threadpool_limits
 from lgi.capture.bundles import Bundles
 from lgi.errors import InputError
 from lgi.index.build import LGIIndex
+from lgi.io.stored import ScratchArray, StoredArray
 from lgi.solve._blend_kernels import BundleReach
 from lgi.solve._select_kernels import OWN_WEIGHT, IndexArrays
 from lgi.solve.finish import Finishing, slot_labels
@@ -39,8 +41,9 @@ from lgi.solve.noise import NoiseHandling
 from lgi.solve.results import FITTED, STATUS, FrameResult, SequenceResult, join_results
 from lgi.solve.selection import LOCAL_MIN_MISFIT, Selection
 from lgi.solve.settings import FAR_FIELD, SolverSettings
+from lgi.solve.streamed import all_rows, frame_blocks
 from lgi.solve.surface import FAR_MARGIN, Surface, _FarField
-from lgi.solve.temporal import NoiseEstimate
+from lgi.solve.temporal import NoiseEstimate, bridge_gaps, bridged_blocks
 from lgi.threads import one_blas_thread
 
 __all__ = ["FAR_FIELD", "FAR_MARGIN", "FITTED", "LOCAL_MIN_MISFIT", "STATUS", "FrameResult", "LGISolver",
@@ -257,10 +260,6 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         Bundles read onto disk in the index's marker order (:func:`~lgi.capture.bundles.read_bundles` with
         ``on_disk``) are prepared a block of frames at a time, and the positions returned are on disk too
         (:class:`~lgi.io.stored.ScratchArray`): the same values, in memory that does not grow with the shot."""
-        from lgi.io.stored import ScratchArray, StoredArray
-        from lgi.solve.streamed import all_rows
-        from lgi.solve.temporal import bridge_gaps, bridged_blocks
-
         if isinstance(bundles, Bundles) and isinstance(bundles.positions, StoredArray) \
                 and bundles.markers == list(self.index.marker_names):
             # Read in the index's marker order onto disk (a long take's): used as it is, a block at a time.
@@ -307,8 +306,6 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
     def prepare(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
                 max_gap: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Positions (F, M, 3) in layout order with short gaps bridged, frame numbers, bridged mask (F, M)."""
-        from lgi.solve.temporal import bridge_gaps
-
         if isinstance(bundles, Bundles):
             pos = self.align(bundles)
             frames = bundles.frames
@@ -347,9 +344,6 @@ def _marker_medians(cov, columns: list[int | None]) -> tuple[np.ndarray, np.ndar
     (M, 3, 3) float64, cm^2
     (M,) bool
     """
-    import warnings
-
-    from lgi.solve.streamed import frame_blocks
 
     out = np.full((len(columns), 3, 3), np.nan)
     given = np.zeros(len(columns), bool)

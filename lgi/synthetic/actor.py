@@ -36,6 +36,7 @@ import numpy as np
 from lgi.dataset.mesh import triangulate, vertex_normals
 from lgi.dataset.shapes import ShapeDataset, ShapeMeta
 from lgi.errors import InputError
+from lgi.paths import shipped
 
 CONTROLS = [
     "jaw_open", "jaw_left", "jaw_right", "jaw_forward",
@@ -565,7 +566,6 @@ def default_layout(actor: SyntheticActor):
     import pandas as pd
 
     from lgi.dataset.markers import layout_from_points, read_layout
-    from lgi.paths import shipped
 
     path = shipped("markers_synth.csv")
     xyz = pd.read_csv(path)[["x", "y", "z"]].to_numpy(float)

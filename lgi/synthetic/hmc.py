@@ -27,8 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
+from lgi.capture.calibration import Board
 from lgi.capture.camera import Camera, StereoRig
+from lgi.dataset.mesh import vertex_normals
 from lgi.errors import InputError
+from lgi.io.npz import save_npz
+from lgi.progress import progress
+from lgi.synthetic.actor import EYE_CENTERS, MOUTH_Y
 
 MM_PER_CM = 10.0
 # Dots fixed on the helmet (head frame, mm), beside the face: each on a light plate, seen by both cameras.
@@ -199,8 +204,6 @@ class Renderer:
     albedo: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        from lgi.synthetic.actor import EYE_CENTERS, MOUTH_Y
-
         x, y = self.neutral_cm[:, 0], self.neutral_cm[:, 1]
         rng = np.random.default_rng(self.seed + 7)
         a = np.full(len(x), 0.74)
@@ -246,7 +249,6 @@ class Renderer:
         """
         import cv2
 
-        from lgi.dataset.mesh import vertex_normals
         from lgi.synthetic import _raster
 
         w, h = camera.size
@@ -472,9 +474,6 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
     """
     import cv2
 
-    from lgi.capture.calibration import Board
-    from lgi.progress import progress
-
     st = settings or FootageSettings()
     model, size, seed, dot_noise_px, board_views = st.model, st.size, st.seed, st.dot_noise_px, st.board_views
     flex_deg, contour_noise_px = st.flex_deg, st.contour_noise_px
@@ -526,7 +525,6 @@ def write_footage(out: str | os.PathLike[str], actor, layout, activations: np.nd
                   "z": hc[:, 2]}).to_csv(out / "helmet.csv", index=False)
     table = pd.concat(contours, ignore_index=True)
     table.to_csv(out / "lip_contours.csv", index=False, float_format="%.4f")
-    from lgi.io.npz import save_npz
 
     save_npz(out / "truth.npz", head_rotation=R, head_translation=t, jolting=jolting, slip=np.asarray(st.slip),
              centers=centers.astype(np.float32), visible=visible, markers=np.asarray(layout.names),

@@ -3,11 +3,14 @@ when they act together (``ict_combination``), and a capture session of that acto
 
 from __future__ import annotations
 
+import itertools
 import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from lgi.augment.combinations import compatible
+from lgi.dataset.mesh import vertex_normals
 from lgi.dataset.shapes import ShapeDataset, ShapeMeta
 from lgi.evaluation.benchsets.core import (
     SCAN_PERFORMANCE_FRAMES,
@@ -56,9 +59,6 @@ def overlapping_pairs(dataset: ShapeDataset, names: list[str], mask: np.ndarray,
     -------
     list of (a, b, overlap)
     """
-    import itertools
-
-    from lgi.augment.combinations import compatible
 
     d = np.stack([np.asarray(dataset.deltas[dataset.index(k)], np.float64)[mask] for k in names])
     mag = np.linalg.norm(d, axis=2)
@@ -105,8 +105,6 @@ def pair_corrective(neutral: np.ndarray, triangles: np.ndarray, delta_a: np.ndar
     -------
     (V, 3) float64, cm
     """
-    from lgi.dataset.mesh import vertex_normals
-
     x0 = np.asarray(neutral, np.float64)
     both = np.sqrt(np.linalg.norm(delta_a, axis=1) * np.linalg.norm(delta_b, axis=1))
     centre = x0[np.flatnonzero(mask)[int(np.argmax(both[mask]))]]

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from lgi.augment.combinations import compatible
 from lgi.dataset.markers import MarkerLayout
 from lgi.dataset.shapes import ShapeDataset
 from lgi.errors import InputError
@@ -226,8 +227,6 @@ def _assign_shapes(windows: list[tuple[float, float]], names: list[str], rng: np
                    ) -> list[str]:
     """A shape for every window: never one already active then, opposite to one active then (augment's
     rules), or forming a ``forbid_together`` pair with one active then. ``busy`` grows with the picks."""
-    from lgi.augment.combinations import compatible
-
     picks = []
     for w in windows:
         # Unique: one shape may be in two windows that overlap this one but not each other.

@@ -10,11 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
-from lgi.dataset.markers import MarkerLayout
+from lgi.augment.combinations import linear_combinations, pick_combinations
+from lgi.dataset.importing import import_obj_folder
+from lgi.dataset.markers import MarkerLayout, read_layout
 from lgi.dataset.shapes import ShapeDataset, ShapeMeta
+from lgi.dataset.stabilise import rigid_fit
 from lgi.errors import InputError
 from lgi.evaluation.benchsets.core import BenchSet, _expression_weights, _finish, _jaw_motion
-from lgi.solve.jaw import JawRig
+from lgi.paths import shared_data, shipped
+from lgi.solve.jaw import JawRig, _euler, fit_rig
 
 # ICT FaceKit vertex ranges (0-based; see the data folder's ABOUT.md).
 ICT_FACE_VERTICES = 9409  # the face area 0-9408: the only part that carries markers
@@ -28,16 +32,12 @@ ICT_NOT_PERFORMED = ("jawOpen", "jawLeft", "jawRight", "jawForward", "mouthClose
 def ict_dir_or_none() -> Path | None:
     """The ICT FaceKit folder (``$LGI_SHARED_DATA/ict-facekit``, else ``../shared/data/ict-facekit`` beside
     the repository, as the tests and ``lgi bench`` find it), or None when it is absent."""
-    from lgi.paths import shared_data
-
     path = shared_data("ict-facekit")
     return path if (path / "generic_neutral_mesh.obj").is_file() else None
 
 
 @functools.lru_cache(maxsize=2)
 def _ict_cached(ict_dir: str) -> ShapeDataset:
-    from lgi.dataset.importing import import_obj_folder
-
     return import_obj_folder(ict_dir, rigid_vertices="none", show_progress=False)
 
 
@@ -71,9 +71,6 @@ def _ict_lip_line(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
 
 
 def _ict_layout(triangles: np.ndarray) -> MarkerLayout:
-    from lgi.dataset.markers import read_layout
-    from lgi.paths import shipped
-
     return read_layout(shipped("markers_ict.csv"), triangles)
 
 
@@ -124,8 +121,6 @@ def jaw_actor_frames(dataset: ShapeDataset, rig: JawRig, names: list[str], weigh
 
 @functools.lru_cache(maxsize=2)
 def _jaw_actor_cached(ict_dir: str) -> _JawActor:
-    from lgi.solve.jaw import fit_rig
-
     full = _ict_cached(ict_dir)
     k = full.index("jawOpen")
     rig, params = fit_rig(full.neutral, full.deltas[[k]], ICT_LOWER_TEETH, full.triangles)
@@ -196,9 +191,6 @@ def ict_jaw_set(ict_dir: str | os.PathLike[str], frames: int = 200, seed: int = 
 
 def _teeth_opening(neutral: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """(N,) opening (degrees) of the lower teeth's rigid motion in each of ``positions`` (N, V, 3)."""
-    from lgi.dataset.stabilise import rigid_fit
-    from lgi.solve.jaw import _euler
-
     rest = np.asarray(neutral, np.float64)[ICT_LOWER_TEETH]
     # Least squares, not robust: the teeth have no outliers, and a robust fit is 5x slower.
     return np.array([_euler(rigid_fit(rest, np.asarray(p, np.float64)[ICT_LOWER_TEETH], robust=False).rotation)[0]
@@ -239,7 +231,6 @@ def ict_heldout_set(ict_dir: str | os.PathLike[str], n_combinations: int = 400, 
     BenchSet
         ``info`` has ``frame_names`` (F,) and ``teeth_opening_deg`` (F,).
     """
-    from lgi.augment.combinations import linear_combinations, pick_combinations
     from lgi.evaluation.accuracy import ICT_HELD_OUT
 
     full = _ict(ict_dir)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from lgi.evaluation.benchsets.core import SCAN_PERFORMANCE_FRAMES, BenchSet, _check_off_dataset, _finish, _spread
+from lgi.synthetic import actor as synth
 
 
 def synthetic_set(frames: int = 300, seed: int = 1, n_vertices: int = 20000) -> BenchSet:
@@ -25,7 +26,6 @@ def synthetic_set(frames: int = 300, seed: int = 1, n_vertices: int = 20000) -> 
     n_vertices : int
         At least this many vertices (see :func:`lgi.synthetic.actor.make_actor`).
     """
-    from lgi.synthetic import actor as synth
     actor = synth.make_actor(n_vertices)
     ds = synth.make_dataset(actor)
     layout, _ = synth.default_layout(actor)
@@ -47,8 +47,6 @@ def synthetic_set(frames: int = 300, seed: int = 1, n_vertices: int = 20000) -> 
 
 def _synthetic_lip_line(neutral: np.ndarray) -> np.ndarray:
     """The synthetic actor's mouth slit row, corner to corner (its lower-lip duplicates included)."""
-    from lgi.synthetic import actor as synth
-
     x0 = np.asarray(neutral)
     return np.flatnonzero((np.abs(x0[:, 1] - synth.MOUTH_Y) < 1e-6)
                           & (np.abs(x0[:, 0]) <= synth.MOUTH_HALF_WIDTH + 1e-6))
@@ -94,8 +92,6 @@ def session_set(n_scans: int, frames: int = 160, seed: int = 3, scan_seed: int =
     InputError
         More scans than the scan performance has frames with a control active.
     """
-    from lgi.synthetic import actor as synth
-
     actor = synth.make_actor(n_vertices)
     base_names, base_acts = synth.default_dataset_activations()
     session = synth.random_performance(SCAN_PERFORMANCE_FRAMES, seed=scan_seed)

@@ -21,7 +21,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lgi.capture.bundles import read_bundles
 from lgi.errors import InputError
+from lgi.jobs.reconstruct.outputs import OUTPUTS, check_outputs, write_reconstruction
+from lgi.jobs.reconstruct.summary import report_lines
+from lgi.progress import progress
 from lgi.units import MM_PER_CM
 
 log = logging.getLogger(__name__)
@@ -61,7 +65,6 @@ def fit_shot(index, positions: np.ndarray, show_progress: bool = False):
         Per frame: weights, jaw (with a rig), residuals (cm), RMS.
     """
     from lgi.evaluation.baselines import RiggedBlendshapeSolver
-    from lgi.progress import progress
 
     solver = RiggedBlendshapeSolver(index)
     prev, verts, fits = None, [], []
@@ -97,9 +100,7 @@ def reconstruct_blendshape(index_dir: str | Path, bundles: str | Path, out: str 
                            show_progress: bool = False) -> dict[str, Any]:
     """Reconstruct a shot with the rigged blendshape fit and write it as :func:`lgi.jobs.reconstruct.reconstruct`
     does; returns the summary (:func:`lgi.jobs.reconstruct.report_lines` formats it)."""
-    from lgi.capture.bundles import read_bundles
     from lgi.index.build import LGIIndex
-    from lgi.jobs.reconstruct.outputs import OUTPUTS, check_outputs, write_reconstruction
 
     check_options(options)
     check_outputs(out, (index_dir, bundles))
@@ -140,7 +141,6 @@ def blendshape_report(s: dict[str, Any]) -> list[str]:
              f"{sec['solve']:.2f} s (index loaded in {sec['load']:.2f} s)",
              f"bundles: {s['fitted_share'] * 100:.1f} % fitted, {s['missing_share'] * 100:.1f} % missing; no "
              f"correction: max bundle residual {s['max_residual_mm']:.3f} mm"]
-    from lgi.jobs.reconstruct.summary import report_lines
 
     # The jaw's range and where the outputs are, as LGI's report says them.
     lines += [line for line in report_lines(s) if line.startswith(("jaw:", "outputs in"))]

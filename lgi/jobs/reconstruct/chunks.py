@@ -9,6 +9,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,8 @@ import numpy as np
 import pandas as pd
 
 from lgi.errors import InputError
+from lgi.io.atomic import atomic_file
+from lgi.io.npz import load_npz, save_npz
 from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.jobs.reconstruct.outputs import reconstruction_outputs
 from lgi.jobs.reconstruct.shot import Shot
@@ -24,16 +27,12 @@ from lgi.jobs.reconstruct.summary import ShotSummary
 
 def replace_outputs(options: ReconstructOptions) -> ReconstructOptions:
     """``options`` for a first pass whose files are not the job's outputs: no OBJ, USD or plot."""
-    from dataclasses import replace
-
     return replace(options, obj=False, usd=False, plot=False)
 
 
 def save_choices(path: str | Path, sels: list, durable: bool = True) -> None:
     """Write frames' choices to an npz, exactly (every field a later frame or the finish reads); ``durable``:
     flushed to disk before it appears (see :func:`lgi.io.atomic.atomic_file`)."""
-    from lgi.io.atomic import atomic_file
-    from lgi.io.npz import save_npz
     from lgi.solve.surface import _stack_slots
 
     a: dict[str, np.ndarray] = {}
@@ -61,7 +60,6 @@ def save_choices(path: str | Path, sels: list, durable: bool = True) -> None:
 
 def load_choices(path: str | Path) -> list:
     """The choices :func:`save_choices` wrote."""
-    from lgi.io.npz import load_npz
     from lgi.solve.globalfit import GlobalFitResult
     from lgi.solve.results import FrameResult
 
@@ -225,9 +223,6 @@ def forget_parts(folder: str | Path) -> None:
 def save_part(path: str | Path, vertices: np.ndarray, jaw: np.ndarray | None, diagnostics: pd.DataFrame) -> None:
     """Write a finished chunk: its vertices ((F, V, 3) float32, cm) and the jaw used ((F, 6), if any) to
     ``path`` (npz), its rows of ``diagnostics.csv`` beside it (the same name, .parquet)."""
-    from lgi.io.atomic import atomic_file
-    from lgi.io.npz import save_npz
-
     with atomic_file(Path(path).with_suffix(".parquet"), durable=False) as tmp:
         diagnostics.to_parquet(tmp, index=False)
     with atomic_file(path, suffix=".npz", durable=False) as tmp:
@@ -236,8 +231,6 @@ def save_part(path: str | Path, vertices: np.ndarray, jaw: np.ndarray | None, di
 
 def load_part(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, pd.DataFrame]:
     """The finished chunk :func:`save_part` wrote: vertices, jaw (or None) and diagnostics."""
-    from lgi.io.npz import load_npz
-
     a = load_npz(path)
     return a["vertices"], a.get("jaw"), pd.read_parquet(Path(path).with_suffix(".parquet"))
 

@@ -4,6 +4,7 @@ asked extras): the one writer, its per-frame table, and the output folder's chec
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import math
@@ -16,7 +17,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lgi import __version__
+from lgi._debug_stages import stage as debug_stage
 from lgi.export.clips import USD_CLIP_CONTENTS
+from lgi.io.atomic import RESUME_FILE, check_job_folder, job_outputs, staged_key
+from lgi.io.csvio import CsvAppender
+from lgi.io.npz import NpzWriter, load_npz, save_npz
+from lgi.io.stored import StoredArray
 from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.jobs.reconstruct.rays import CONSTRAINED
 
@@ -32,8 +39,6 @@ OUTPUT_CONTENTS = {"obj": ("frame_*.obj", "*.mtl"), "shot.clips": USD_CLIP_CONTE
 def check_outputs(out: str | Path, inputs: tuple[Any, ...] = ()) -> None:
     """Refuse, before any work, an output path that cannot become the job's directory, or whose outputs would
     replace one of the run's ``inputs`` (index, bundles, jaw file)."""
-    from lgi.io.atomic import check_job_folder
-
     check_job_folder(out, OUTPUTS, OUTPUT_CONTENTS, inputs)
 
 
@@ -87,8 +92,6 @@ def run_record(options: ReconstructOptions, noise_mm: float | None, estimate=Non
     it was estimated, the estimate (mm, and per axis x, y, z) and its neighbour coherence. Nothing that varies
     between runs of the same job (no times, no absolute paths): the flow and the command line write the same
     file."""
-    from lgi import __version__
-
     def number(x: float | None) -> float | None:  # JSON has no NaN: an estimate that failed is null
         return None if x is None or not math.isfinite(float(x)) else float(x)
 
@@ -121,9 +124,6 @@ def _durable(path: Path, write) -> None:
 def resume_key(index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> str:
     """What a run's outputs depend on, as a key a stopped run's checkpoint is matched by: lgi's version, the
     options (not the scheduling), the bundles' and the given files' content, the index's files by size and time."""
-    import hashlib
-
-    from lgi import __version__
 
     h = hashlib.sha256(json.dumps([__version__, {k: v for k, v in options.to_json().items() if k != "chunk_size"}],
                                   sort_keys=True, default=str).encode())
@@ -154,8 +154,6 @@ def reconstruction_outputs(out: str | Path, frames: np.ndarray, arrays: dict[str
     ``resume``: the job's key (:func:`resume_key`). A run of the same job stopped after a checkpoint
     (:meth:`ReconstructionWriter.checkpoint`) is taken over: the writer starts where it stopped
     (:attr:`ReconstructionWriter.resumed`)."""
-    from lgi.io.atomic import job_outputs
-
     with job_outputs(out, OUTPUTS, OUTPUT_CONTENTS, resume) as stage:
         writer = ReconstructionWriter(stage, frames, arrays, options, with_jaw, constrained, resume)
         try:
@@ -194,9 +192,6 @@ class ReconstructionWriter:
     def __init__(self, stage: Path, frames: np.ndarray, arrays: dict[str, np.ndarray],
                  options: ReconstructOptions, with_jaw: bool, constrained: Path | None = None,
                  resume: str | None = None) -> None:
-        from lgi.io.csvio import CsvAppender
-        from lgi.io.npz import NpzWriter
-
         self.stage, self.frames, self.arrays, self.options = stage, np.asarray(frames), arrays, options
         self.constrained = constrained
         self.done = 0
@@ -222,7 +217,6 @@ class ReconstructionWriter:
         done = int(info["done"])
         # The frames written before the stop, copied from where they are into a new archive (its entry's size
         # is in its header, and the rows follow on).
-        from lgi.io.stored import StoredArray
 
         old = StoredArray(partial, int(info["rows_offset"]), (done, len(arrays["neutral"]), 3), np.float32)
         for lo in range(0, done, 64):
@@ -242,9 +236,6 @@ class ReconstructionWriter:
 
     def _saved_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]] | None:
         """The checkpoint a stopped run of this job left in the staging folder, or None."""
-        from lgi.io.atomic import RESUME_FILE, staged_key
-        from lgi.io.npz import load_npz
-
         if staged_key(self.stage) != self._key:
             return None
         info = json.loads((self.stage / RESUME_FILE).read_text())
@@ -259,8 +250,6 @@ class ReconstructionWriter:
         (:meth:`ShotSummary.state`) and the ``carried`` choices (``(first, choices)``, what the next block reads).
         The note (:data:`~lgi.io.atomic.RESUME_FILE`) is written last and replaced whole: a stop at any moment
         leaves the last complete checkpoint."""
-        from lgi.io.atomic import RESUME_FILE
-        from lgi.io.npz import save_npz
         from lgi.jobs.reconstruct.chunks import save_choices
 
         if self._key is None or not self.done:
@@ -290,8 +279,6 @@ class ReconstructionWriter:
     def append(self, res) -> None:
         """Write the next block of frames (a :class:`~lgi.solve.results.SequenceResult` of frames following the
         last block's)."""
-        from lgi._debug_stages import stage as debug_stage
-
         n = len(res.frames)
         if not np.array_equal(res.frames, self.frames[self.done:self.done + n]):
             raise RuntimeError(f"block of frames {res.frames[:1]}... does not follow frame {self.done} of the shot")
@@ -350,8 +337,6 @@ class ReconstructionWriter:
 
     def abandon(self) -> None:
         """Close the files of a run that stopped (the staging folder is then removed)."""
-        import contextlib
-
         with contextlib.suppress(Exception):
             self._npz.abort()
         with contextlib.suppress(Exception):

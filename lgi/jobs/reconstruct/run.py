@@ -8,6 +8,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lgi._debug_stages import stage
+from lgi.io.atomic import make_temp_dir, sweep
+from lgi.io.npz import npz_member
 from lgi.jobs.reconstruct.chunks import forget_shots, prepared_shot, replace_outputs
 from lgi.jobs.reconstruct.options import ReconstructOptions
 from lgi.jobs.reconstruct.outputs import check_outputs, reconstruction_outputs, resume_key
@@ -41,8 +44,6 @@ def reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path,
 
 def _reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path, options: ReconstructOptions,
                  show_progress: bool) -> dict[str, Any]:
-    from lgi._debug_stages import stage
-
     if options.method == "blendshape":
         from lgi.jobs.reconstruct.blendshape import reconstruct_blendshape
 
@@ -56,8 +57,6 @@ def _reconstruct(index_dir: str | Path, bundles: str | Path, out: str | Path, op
         tally, solve, write = write_shot(shot, out, options, show_progress=show_progress,
                                          resume=resume_key(index_dir, bundles, options))
         return tally.result(shot, out, {"load": t1 - t0, "solve": solve, "write": write})
-    from lgi.io.atomic import make_temp_dir, sweep
-    from lgi.io.npz import npz_member
 
     parent, prefix = Path(out).absolute().parent, f".{Path(out).name}.rays-"
     parent.mkdir(parents=True, exist_ok=True)

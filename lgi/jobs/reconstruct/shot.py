@@ -13,11 +13,15 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from lgi.capture.bundles import COLUMNS, read_bundles
+from lgi.capture.observations import points_on_rays, read_rays
 from lgi.errors import InputError
+from lgi.io.atomic import atomic_file
 from lgi.io.stored import ScratchArray, StoredArray
 from lgi.jobs.reconstruct.options import ReconstructOptions, read_jaw_file
 from lgi.jobs.reconstruct.rays import RAY_COLUMNS, read_constraints
 from lgi.memory import release_free_memory
+from lgi.solve.contours import ContourView
 from lgi.solve.streamed import all_rows, frame_blocks
 from lgi.units import MM_PER_CM
 
@@ -49,7 +53,6 @@ class Shot:
     """
 
     def __init__(self, index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> None:
-        from lgi.capture.bundles import read_bundles
         from lgi.index.build import LGIIndex
         from lgi.solve.solver import LGISolver
 
@@ -234,8 +237,6 @@ class Shot:
         (:meth:`lgi.solve.contours.LipContours.fit`); the diagnostics get each frame's RMS pixel distance of
         the lip edges from the curves before and after (``contour_px_before``, ``contour_px_after``), repeated
         on the frame's rows as the jaw's columns are; NaN where nothing was traced or the pose is unknown."""
-        from lgi.solve.contours import ContourView
-
         n_m = self.index.n_markers
         px = np.full((2, hi - lo), np.nan)
         no_pose, unmatched = [], []
@@ -268,10 +269,6 @@ def constrain_to_rays(shot: Shot, vertices: np.ndarray, out: str | Path) -> dict
     closest to where ``vertices`` (a reconstruction of the shot without it, (F, V, 3) float32, cm) put the
     marker; write the shot's bundles as given plus those points to ``out`` (Parquet, with a ``constraint``
     column: "bundle" or "ray"), the bundles file a second reconstruction reads. Returns counts."""
-    from lgi.capture.bundles import COLUMNS
-    from lgi.capture.observations import points_on_rays, read_rays
-    from lgi.io.atomic import atomic_file
-
     o = shot.options
     seen = shot.seen
     rays = read_rays(o.observations, shot.index.marker_names, shot.frames, seen, o.calib)
