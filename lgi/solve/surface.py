@@ -125,6 +125,22 @@ class Surface:
                 resid_vec = np.where(seen[:, None], p - self.layout.evaluate(x), 0.0)
         return np.where(seen, np.linalg.norm(resid_vec, axis=1), np.nan)
 
+    def meet_rays(self, x: np.ndarray, on: np.ndarray, origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """Move surface ``x`` (V, 3) float64 cm, in place, so that the markers ``on`` (M,) bool meet their viewing
+        rays (``origin`` (n, 3) cm, ``direction`` (n, 3) unit): each marker across its ray to the closest point, by
+        the correction fields (1 at the marker, 0 at every other marker, which keep their points). Returns each
+        marker's distance from its ray after it, (n,) mm.
+
+        Noisy bundles are fitted, not interpolated (``noise_gain`` 0): a ray's point, from the same noisy
+        observations, is then fitted like them, and the surface is moved the same share of the way."""
+        pts = self.layout.evaluate(x)
+        target = pts.copy()
+        closest = origin + np.einsum("ij,ij->i", pts[on] - origin, direction)[:, None] * direction
+        target[on] = pts[on] + self.noise_gain * (closest - pts[on])
+        self.correct(x, target, np.ones(len(pts), bool))
+        p = self.layout.evaluate(x)[on] - origin
+        return np.linalg.norm(p - np.einsum("ij,ij->i", p, direction)[:, None] * direction, axis=1) * MM_PER_CM
+
     def correct_far(self, x: np.ndarray, resid: np.ndarray, seen: np.ndarray, gain: float | np.ndarray,
                     t: np.ndarray | None, serial: bool = False) -> None:
         """Leave the far field's share of the global fit uncorrected (in place): :meth:`correct` took ``x``

@@ -212,22 +212,12 @@ class Shot:
         d["constraint"] = self.constraints(lo, hi)
         dist = np.full((hi - lo, self.index.n_markers), np.nan)
         if self.rays is not None:
-            solver = self.solver
             for f in np.flatnonzero(self.rays[lo:hi].any(axis=1)):
                 g = lo + f
                 x = res.vertices[f].astype(np.float64)
-                pts = solver.layout.evaluate(x)
                 on = self.rays[g]
-                o, u = self.ray_origin[g, on], self.ray_direction[g, on]
-                target = pts.copy()
-                # Noisy bundles are fitted, not interpolated (noise_gain 0): a ray's point, from the same noisy
-                # observations, is then fitted like them, and the surface is moved the same share of the way.
-                closest = o + np.einsum("ij,ij->i", pts[on] - o, u)[:, None] * u
-                target[on] = pts[on] + solver.noise_gain * (closest - pts[on])
-                solver.correct(x, target, np.ones(len(pts), bool))
+                dist[f, on] = self.solver.meet_rays(x, on, self.ray_origin[g, on], self.ray_direction[g, on])
                 res.vertices[f] = x
-                p = solver.layout.evaluate(x)[on] - o
-                dist[f, on] = np.linalg.norm(p - np.einsum("ij,ij->i", p, u)[:, None] * u, axis=1) * MM_PER_CM
         d["ray_distance_mm"] = dist.ravel()
         if self.contours is not None:
             self.meet_contours(res, lo, hi)
