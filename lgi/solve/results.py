@@ -24,9 +24,9 @@ STATUS = {CONTAINED: "contained", PROJECTED: "projected", MISSING: "missing", BO
           FITTED: "fitted"}
 
 
-@dataclass
+@dataclass(kw_only=True)
 class FrameResult:
-    """One reconstructed frame.
+    """One reconstructed frame (made by name: seventeen fields).
 
     Attributes
     ----------

@@ -136,9 +136,10 @@ class Selection:
         if previous is not None:
             # A bundle the global fit met had no simplex searched: no temporal preference from it.
             prev_shapes = np.where((previous.status == FITTED)[:, None], -1, previous.simplex_shapes)
-            prev_simplex = FrameResult(previous.vertices, prev_shapes, previous.simplex_weights,
-                                       previous.n_containing, previous.status, previous.projection, previous.score,
-                                       previous.residual, previous.fallback)
+            prev_simplex = FrameResult(vertices=previous.vertices, shapes=prev_shapes,
+                                       weights=previous.simplex_weights, n_containing=previous.n_containing,
+                                       status=previous.status, projection=previous.projection, score=previous.score,
+                                       residual=previous.residual, fallback=previous.fallback)
         keep = global_score = None
         if self.method == "local":
             # Where the global weights already fit a bundle's neighbourhood it keeps them (see :meth:`_local`),
@@ -168,9 +169,10 @@ class Selection:
             dense = np.zeros((len(p), self.global_fit.n_shapes + 1))
             np.add.at(dense, (np.repeat(np.arange(len(p)), shapes.shape[1]), shapes.ravel()), lam.ravel())
             share = self.far_shares(q, seen, dense[:, 1:], fit.weights)
-        return FrameResult(np.zeros((0, 3), np.float32), shapes, lam, n_contain, status, proj, score,
-                           np.where(seen, 0.0, np.nan), fallback, theta, p, None, source, fit, simplex_shapes,
-                           simplex_weights, share)
+        return FrameResult(vertices=np.zeros((0, 3), np.float32), shapes=shapes, weights=lam, n_containing=n_contain,
+                           status=status, projection=proj, score=score, residual=np.where(seen, 0.0, np.nan),
+                           fallback=fallback, jaw=theta, bundles=p, source=source, fit=fit,
+                           simplex_shapes=simplex_shapes, simplex_weights=simplex_weights, far_share=share)
 
     def _misfits(self, q: np.ndarray, seen: np.ndarray, w: np.ndarray, rows: np.ndarray | None = None
                  ) -> np.ndarray:

@@ -69,11 +69,13 @@ def load_choices(path: str | Path) -> list:
     for f, k in enumerate(a["width"]):
         fit = GlobalFitResult(a["fit_weights"][f], a["fit_jaw"][f] if "fit_jaw" in a else None,
                               a["fit_residual"][f], float(a["fit_rms"][f]), str(a["fit_jaw_source"][f]))
-        out.append(FrameResult(np.zeros((0, 3), np.float32), a["shapes"][f, :, :k], a["weights"][f, :, :k],
-                               a["n_containing"][f], a["status"][f], a["projection"][f], a["score"][f],
-                               a["residual"][f], notes[f], a["jaw"][f] if "jaw" in a else None, a["bundles"][f],
-                               None, a["source"][f].astype(object), fit, a["simplex_shapes"][f],
-                               a["simplex_weights"][f], a["far_share"][f] if "far_share" in a else None))
+        out.append(FrameResult(
+            vertices=np.zeros((0, 3), np.float32), shapes=a["shapes"][f, :, :k], weights=a["weights"][f, :, :k],
+            n_containing=a["n_containing"][f], status=a["status"][f], projection=a["projection"][f],
+            score=a["score"][f], residual=a["residual"][f], fallback=notes[f],
+            jaw=a["jaw"][f] if "jaw" in a else None, bundles=a["bundles"][f], source=a["source"][f].astype(object),
+            fit=fit, simplex_shapes=a["simplex_shapes"][f], simplex_weights=a["simplex_weights"][f],
+            far_share=a["far_share"][f] if "far_share" in a else None))
     return out
 
 
