@@ -153,6 +153,31 @@ class LipContours:
         self.col = col
         self.n_free = len(self.free)
 
+    def fit_frames(self, vertices: np.ndarray, curves: list, cameras: list, head_r: np.ndarray, head_t: np.ndarray
+                   ) -> tuple[np.ndarray, list[int], list[int]]:
+        """Fit frames of surfaces ``vertices`` (F, V, 3), cm, head frame, in place, onto their traced curves:
+        ``curves`` (F,), each frame's list of ``(camera index, curve name, (P, 2) px)`` (empty or None: nothing
+        traced), seen by ``cameras`` from the head poses ``head_r`` (F, 3, 3) and ``head_t`` (F, 3) mm (NaN:
+        unknown).
+
+        Returns the RMS pixel distance of the lip edges from the curves before and after (2, F) (NaN where nothing
+        was fitted), and the frames (positions) whose curves could not be used: those without a head pose, and
+        those where no lip edge vertex came within ``gate_px`` of the curves."""
+        px = np.full((2, len(vertices)), np.nan)
+        no_pose, unmatched = [], []
+        for f, frame_curves in enumerate(curves):
+            if not frame_curves:
+                continue
+            if not np.all(np.isfinite(head_r[f])):
+                no_pose.append(f)
+                continue
+            views = [ContourView(cameras[c], head_r[f], head_t[f], name, pts) for c, name, pts in frame_curves]
+            x, px[0, f], px[1, f] = self.fit(vertices[f], views)
+            if not np.isfinite(px[0, f]):
+                unmatched.append(f)
+            vertices[f] = x
+        return px, no_pose, unmatched
+
     def fit(self, x: np.ndarray, views: list[ContourView], iterations: int = 8) -> tuple[np.ndarray, float, float]:
         """Move the lip region of surface ``x`` (V, 3) float, cm, head frame, onto the traced curves.
 

@@ -21,7 +21,6 @@ from lgi.io.stored import ScratchArray, StoredArray
 from lgi.jobs.reconstruct.options import ReconstructOptions, read_jaw_file
 from lgi.jobs.reconstruct.rays import RAY_COLUMNS, read_constraints
 from lgi.memory import release_free_memory
-from lgi.solve.contours import ContourView
 from lgi.solve.streamed import all_rows, frame_blocks
 from lgi.units import MM_PER_CM
 
@@ -228,21 +227,11 @@ class Shot:
         the lip edges from the curves before and after (``contour_px_before``, ``contour_px_after``), repeated
         on the frame's rows as the jaw's columns are; NaN where nothing was traced or the pose is unknown."""
         n_m = self.index.n_markers
-        px = np.full((2, hi - lo), np.nan)
-        no_pose, unmatched = [], []
-        for f in range(lo, hi):
-            curves = self.contour_curves.get(f)
-            if not curves:
-                continue
-            if not np.all(np.isfinite(self.head_R[f])):
-                no_pose.append(int(self.frames[f]))
-                continue
-            views = [ContourView(self.rig.cameras[c], self.head_R[f], self.head_t[f], name, pts)
-                     for c, name, pts in curves]
-            x, px[0, f - lo], px[1, f - lo] = self.contours.fit(res.vertices[f - lo], views)
-            if not np.isfinite(px[0, f - lo]):
-                unmatched.append(int(self.frames[f]))
-            res.vertices[f - lo] = x
+        px, no_pose, unmatched = self.contours.fit_frames(
+            res.vertices, [self.contour_curves.get(f) for f in range(lo, hi)], self.rig.cameras, self.head_R[lo:hi],
+            self.head_t[lo:hi])
+        no_pose = [int(self.frames[lo + f]) for f in no_pose]
+        unmatched = [int(self.frames[lo + f]) for f in unmatched]
         # A traced curve the method could not use is said, not dropped in silence (the columns stay NaN).
         if no_pose:
             log.warning("lip contours of %d frames not used: the tracks table has no head pose for them (first: "
