@@ -85,13 +85,18 @@ _SHOTS_LOCK = threading.Lock()
 
 def _fingerprint(index_dir: str | Path, bundles: str | Path, options: ReconstructOptions) -> str:
     """What a prepared shot depends on: the index's and the bundles' (and a jaw file's) paths, sizes and
-    modification times, and the options."""
+    modification times, and the options. A file that is not there counts as such: preparing the shot then says
+    what is wrong with the input (an index folder without its manifest is not an LGI index)."""
     files = [Path(index_dir) / n for n in ("manifest.json", "index.npz", "deltas.npy")] + [Path(bundles)]
     if options.jaw not in ("auto", "none"):
         files.append(Path(options.jaw))
     stats = []
     for f in files:
-        st = f.stat()
+        try:
+            st = f.stat()
+        except OSError:
+            stats.append([str(f.absolute()), None, None])
+            continue
         stats.append([str(f.resolve()), st.st_size, st.st_mtime_ns])
     return json.dumps([stats, options.to_json()], sort_keys=True)
 
