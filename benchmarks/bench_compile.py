@@ -5,14 +5,14 @@ Usage::
     python benchmarks/bench_compile.py [--work DIR] [--checkout DIR ...] [--repeat 3] [--doc docs/benchmarks.md]
 
 For each checkout (default: this one) and each kind of shot (exact and noisy bundles), ``--repeat`` whole
-processes run ``lgi reconstruct`` on the 100-frame ICT shot of ``bench_speed.py`` (500 shapes, jaw rig) with
+processes run ``lgi reconstruct`` on the first 100 frames of ``bench_long.py``'s ICT shot (500 shapes, jaw rig) with
 ``NUMBA_CACHE_DIR`` set to a new, empty directory: every kernel the run reaches is compiled. numba's compile
 events are recorded in the process: the time of each outermost compilation (a kernel with every helper it
 compiles on the way) is credited to that kernel. Checkouts alternate run by run (A, B, A, B, ...), so that a
 change of the machine's load falls on both; the figures are medians.
 
 Needs ICT FaceKit (``../shared/data/ict-facekit``); prints why and exits 0 without it. ``--work`` keeps the
-material (shared with ``bench_speed.py``) between runs.
+material (shared with ``bench_long.py``) between runs.
 """
 
 from __future__ import annotations
@@ -28,13 +28,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_speed import NOISE_MM, Records, build_material
+from bench_long import BASE_FRAMES, NOISE_MM
+from bench_speed import Records, build_material
 from common import ICT_DIR, has_ict, log, write_marked
 
 SHAPES = 500
 FRAMES = 100
-#: The shot ``bench_speed.py`` builds (its first FRAMES frames are run here), so that one ``--work`` serves both.
-BASE_FRAMES = 1000
 #: Runs in the child: records numba's compile events around one ``lgi reconstruct``, prints them as JSON.
 CHILD = r"""
 import json, sys, time
@@ -80,6 +79,12 @@ def one_run(checkout: Path, argv: list[str], scratch: Path) -> dict:
     return {"wall": wall, "compile": got["compile"]}
 
 
+def label(checkout: Path) -> str:
+    """A checkout's name and its commit (when it is a git work tree)."""
+    done = subprocess.run(["git", "-C", str(checkout), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return f"{checkout.name} ({done.stdout.strip()})" if done.returncode == 0 else checkout.name
+
+
 def table(results: dict[tuple[str, str], list[dict]], top: int = 3) -> str:
     """Markdown: per checkout and shot, the median process time, the median compile time, and the kernels
     taking most of it."""
@@ -114,8 +119,9 @@ def main() -> int:
     work.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix="compile-", dir=work))
     try:
+        # The material of bench_long.py (its first FRAMES frames are run here), so that one --work serves both.
         mat = build_material(work, ICT_DIR, [SHAPES], BASE_FRAMES, FRAMES, kinds, NOISE_MM,
-                             Records(work / "records.json"))
+                             Records(work / "records.json"), stereo=True)
         index = mat.indexes[(SHAPES, True)]
         results: dict[tuple[str, str], list[dict]] = {}
         for rep in range(args.repeat):
@@ -125,7 +131,7 @@ def main() -> int:
                     argv = ["reconstruct", str(index), "--bundles", str(mat.files[(kind, FRAMES)]), "--out", str(out),
                             "-q"]
                     log(f"{checkout.name}, {kind}, run {rep + 1} of {args.repeat}")
-                    results.setdefault((checkout.name, kind), []).append(one_run(checkout, argv, scratch))
+                    results.setdefault((label(checkout), kind), []).append(one_run(checkout, argv, scratch))
                     shutil.rmtree(out, ignore_errors=True)
         load = os.getloadavg()
         text = (f"First run after an install: `lgi reconstruct` of the {FRAMES}-frame ICT shot ({SHAPES} shapes, jaw "

@@ -215,7 +215,7 @@ def _take_simplex(s, lam, sx, pt_shape, d, shapes, apt):  # pragma: no cover - c
         shapes[c] = pt_shape[sx[s, c]]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _local_coordinates(i, ix, p, y):  # pragma: no cover - compiled
     """Bundle i in its cloud's local frame (``y`` (3,), the first d real); returns its squared distance off
     the cloud's span, cm^2."""
@@ -234,7 +234,7 @@ def _local_coordinates(i, ix, p, y):  # pragma: no cover - compiled
     return off2
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _rescore(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
     """The second pass: the first pass's distinct best containing simplices, no grid scan. The agreement term
     adds at most nu and the sweep only raises a first-pass score, so a candidate more than nu behind the
@@ -257,7 +257,7 @@ def _rescore(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
     return found
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _scan_grid(i, ix, cfg, fr, y, off2, kept, out):  # pragma: no cover - compiled
     """The first pass: every simplex of the bundle's grid cell containing it, pre-screened by misfit; the best
     ``top_k`` distinct blends scored in full and kept in ``out`` for the second pass. Returns the number of
@@ -324,7 +324,7 @@ def _scan_grid(i, ix, cfg, fr, y, off2, kept, out):  # pragma: no cover - compil
     return found
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _snap(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
     """Points within the snap radius: their dropped and merged shapes lie there, so each point is tried alone
     (with its aliases), the bundle's own distance counted in the score. Returns the squared distance to the
@@ -347,7 +347,7 @@ def _snap(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
     return snapped
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _project(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
     """No simplex contains the bundle: onto the hull, the ``n_project`` nearest facets, then the simplices
     containing each projected point, scored with the bundle's own distance included. Returns the squared
@@ -419,7 +419,7 @@ def _project(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
     return best_proj
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _borrow(i, ix, cfg, fr, kept):  # pragma: no cover - compiled
     """Second pass: each seen natural neighbour's first-pass mixture, scored with this bundle's own distance.
     A bundle that barely moves, or sits where its cloud has no combination of the shapes its neighbours show,
