@@ -134,10 +134,12 @@ def main() -> int:
                     results.setdefault((label(checkout), kind), []).append(one_run(checkout, argv, scratch))
                     shutil.rmtree(out, ignore_errors=True)
         load = os.getloadavg()
-        text = (f"First run after an install: `lgi reconstruct` of the {FRAMES}-frame ICT shot ({SHAPES} shapes, jaw "
-                f"rig) with an empty numba cache, median of {args.repeat} whole processes per row, checkouts "
-                f"alternating (1-minute load average {load[0]:.2f} at the end; {os.cpu_count()} cores). Compiling: "
-                "the outermost compilations numba reported, each kernel with the helpers it compiled.\n\n"
+        text = (f"First run after an install: `lgi reconstruct` of the first {FRAMES} frames of bench_long.py's "
+                f"ICT shot (held-out 2-3 shape mixes, not dataset shapes, eased into each other; clean, and "
+                f"{NOISE_MM:g} mm stereo noise; {SHAPES} shapes, jaw rig, the jaw estimated) with an empty numba "
+                f"cache, median of {args.repeat} whole processes per row, checkouts alternating (1-minute load "
+                f"average {load[0]:.2f} at the end; {os.cpu_count()} cores). Compiling: the outermost compilations "
+                "numba reported, each kernel with the helpers it compiled.\n\n"
                 + table(results))
         print(text)
         for doc in args.doc:
