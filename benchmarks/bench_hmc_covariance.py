@@ -191,7 +191,7 @@ def solver_noise(shot: Path, bundles: Path) -> tuple[np.ndarray, np.ndarray]:
     _, v = np.linalg.eigh(cov[ok])
     along = np.einsum("ni,ni->n", e[ok], v[:, :, 2])
     across = np.einsum("ni,nik->nk", e[ok], v[:, :, :2])
-    return np.asarray(s.solver.noise_axes, float), np.array([np.sqrt(np.mean(across**2)), np.sqrt(np.mean(along**2))])
+    return np.asarray(s.noise.axes, float), np.array([np.sqrt(np.mean(across**2)), np.sqrt(np.mean(along**2))])
 
 
 def main() -> None:

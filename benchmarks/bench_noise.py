@@ -60,24 +60,23 @@ def run_one(bs, index, pos: np.ndarray, axes: np.ndarray) -> dict:
     row: dict = {}
     t = time.perf_counter()
     solver = LGISolver(index)  # lgi reconstruct's defaults
-    res = solver.solve_sequence(pos)
+    # solve_sequence's steps, to keep the noise they resolve
+    prep = solver.prepare_shot(pos)
+    fit_pos, noise = solver.denoise(prep.positions, prep.noise)
+    res = solver.with_noise(noise).solve_prepared(prep.positions, prep.frames, prep.bridged, fit_pos)
     row["lgi_s"] = time.perf_counter() - t
     row["lgi"] = errors(res.vertices, bs.truth, bs.mask)
-    est = solver.noise_estimate
+    est = noise.estimate
     row["estimate"] = np.full(3, np.nan) if est is None else est.axis_mm
-    row["noise_used"] = solver.noise_axes
-    told_lgi = LGISolver(index)
-    told_lgi.set_noise(axes)
-    told_res = told_lgi.solve_sequence(pos, noise=None)
+    row["noise_used"] = noise.axes
+    told_res = LGISolver(index, noise=axes).solve_sequence(pos, noise=None)
     row["lgi_true"] = errors(told_res.vertices, bs.truth, bs.mask)
     fit = RiggedBlendshapeSolver(index)
     row["fit"] = errors(fit.solve_sequence(pos), bs.truth, bs.mask)
     smooth = LGISolver(index)
-    smooth.resolve_noise(pos, "auto")
-    row["fit_smoothed"] = errors(fit.solve_sequence(smooth.denoise(pos)), bs.truth, bs.mask)
-    told = LGISolver(index)
-    told.set_noise(axes)
-    row["fit_true"] = errors(fit.solve_sequence(told.denoise(pos)), bs.truth, bs.mask)
+    row["fit_smoothed"] = errors(fit.solve_sequence(smooth.denoise(pos, smooth.resolve_noise(pos, "auto"))[0]),
+                                 bs.truth, bs.mask)
+    row["fit_true"] = errors(fit.solve_sequence(LGISolver(index, noise=axes).denoise(pos)[0]), bs.truth, bs.mask)
     return row
 
 

@@ -61,7 +61,8 @@ def test_noise_is_estimated_and_handled(synth_set) -> None:
     assert clean.noise_mm < 0.05
     sol = LGISolver(index)
     res = sol.solve_sequence(bs.noisy)
-    assert abs(res.noise - 0.3) < 0.05 and sol.denoise_windows is not None
+    prep = sol.prepare_shot(bs.noisy)
+    assert abs(res.noise - 0.3) < 0.05 and sol.denoise(prep.positions, prep.noise)[1].windows is not None
     # Noisy bundles keep their local geometry: they are refitted locally, not all given the global weights.
     d = res.diagnostics
     assert (d.source == "local fit").mean() > 0.5 and (d.source == "simplex").sum() == 0
@@ -95,8 +96,8 @@ def test_independent_poses_are_not_taken_for_noise(synth_set, caplog) -> None:
     poses = rest + 10 * (bs.bundles[rng.permutation(bs.n_frames)] - rest)
     sol = LGISolver(index)
     with caplog.at_level(logging.WARNING, logger="lgi"):
-        sol.resolve_noise(poses)
-    assert sol.noise == 0 and sol.noise_estimate.coherence > 0.3 and sol.noise_estimate.noise_mm > 0.05
+        noise = sol.resolve_noise(poses)
+    assert noise.level == 0 and noise.estimate.coherence > 0.3 and noise.estimate.noise_mm > 0.05
     assert any("not measurement noise" in r.getMessage() for r in caplog.records)
 
 
@@ -146,8 +147,9 @@ def test_sequence_on_two_threads_equals_the_two_passes(synth_set, noise) -> None
     sol = LGISolver(index)
     shot = bs.noisy if noise else bs.bundles
     res = sol.solve_sequence(shot, noise=noise)
-    pos, frames, bridged = sol.prepare_shot(shot, None, 0, noise)
-    fit_pos = sol.denoise(pos)
+    pos, frames, bridged, shot_noise = sol.prepare_shot(shot, None, 0, noise)
+    fit_pos, shot_noise = sol.denoise(pos, shot_noise)
+    sol = sol.with_noise(shot_noise)
     sels = sol.select_sequence(fit_pos, frames)
     if not noise:
         assert (res.diagnostics.source == "local fit").any()  # the local fits ran on both threads' paths
@@ -168,8 +170,9 @@ def test_a_shot_streamed_in_blocks_gives_the_bits_of_the_whole(synth_set, smooth
     # blocks (an odd size, so that windows straddle them) must join into the whole shot's result.
     bs, index = synth_set
     sol = LGISolver(index)
-    pos, frames, bridged = sol.prepare_shot(bs.noisy, None, 0, "auto")
-    fit_pos = sol.denoise(pos)
+    pos, frames, bridged, noise = sol.prepare_shot(bs.noisy, None, 0, "auto")
+    fit_pos, noise = sol.denoise(pos, noise)
+    sol = sol.with_noise(noise)
     whole = sol.solve_prepared(pos, frames, bridged, fit_pos, smooth)
     blocks = list(sol.stream_prepared(pos, frames, bridged, fit_pos, smooth, block=23))
     assert [(lo, hi) for lo, hi, _ in blocks] == [(lo, min(lo + 23, len(pos))) for lo in range(0, len(pos), 23)]

@@ -35,7 +35,7 @@ def test_exact_bundles_give_the_exact_reconstruction(synth) -> None:
     auto = LGISolver(index)
     res = auto.solve_sequence(bs.bundles)
     # The shot's trajectories, off the face model's fit, do not change beyond a micrometre: exact.
-    assert auto.noise == 0 and auto.noise_estimate.noise_mm < 1e-3
+    assert res.noise == 0 and auto.resolve_noise(bs.bundles).estimate.noise_mm < 1e-3
     told = LGISolver(index).solve_sequence(bs.bundles, noise=0)
     assert np.array_equal(res.vertices, told.vertices)
     assert gaps_mm(res.vertices, bs.layout, bs.bundles).max() < THROUGH_MM
@@ -45,10 +45,11 @@ def test_exact_bundles_give_the_exact_reconstruction(synth) -> None:
 def test_noise_is_seen_per_axis_from_a_hundredth_of_a_millimetre(synth, axes) -> None:
     bs, index = synth
     sol = LGISolver(index)
-    est = sol.resolve_noise(_noisy(bs.bundles, axes))
+    noise = sol.resolve_noise(_noisy(bs.bundles, axes))
+    est = noise.estimate
     assert est.is_noise
     np.testing.assert_allclose(est.axis_mm, axes, rtol=0.3)
-    np.testing.assert_allclose(sol.noise_axes, est.axis_mm)
+    np.testing.assert_allclose(noise.axes, est.axis_mm)
     if axes[2] > axes[0]:  # stereo-like noise is seen as such: deeper along z
         assert est.axis_mm[2] > 2.5 * est.axis_mm[:2].max()
 
@@ -59,10 +60,10 @@ def test_small_noise_keeps_the_local_geometry(synth) -> None:
     res = LGISolver(index).solve_sequence(shot)
     assert res.noise > 0
     smoothing = LGISolver(index)
-    smoothing.resolve_noise(shot)
     fits = RiggedBlendshapeSolver(index)
     best_fit = min(_rms(fits.solve_sequence(shot), bs.truth, bs.mask),
-                   _rms(fits.solve_sequence(smoothing.denoise(shot)), bs.truth, bs.mask))
+                   _rms(fits.solve_sequence(smoothing.denoise(shot, smoothing.resolve_noise(shot))[0]), bs.truth,
+                        bs.mask))
     ours = _rms(res.vertices, bs.truth, bs.mask)
     assert ours < 0.9 * best_fit, (ours, best_fit)
     # Between the noisy bundles, not through them.
@@ -79,10 +80,12 @@ def test_covariances_given_are_the_noise(synth, caplog) -> None:
     axes = np.array([0.005, 0.005, 0.02])
     cov = np.broadcast_to(np.diag((axes / 10) ** 2), (*bs.bundles.shape[:2], 3, 3)).copy()
     sol = LGISolver(index)
-    res = sol.solve_sequence(_with_covariance(bs, _noisy(bs.bundles, axes), cov))
-    np.testing.assert_allclose(sol.noise_axes, axes)
-    assert sol.noise_estimate is None and res.noise > 0
-    np.testing.assert_allclose(np.sort(sol.noise_sigma, axis=1), np.tile(np.sort(axes), (bs.n_markers, 1)))
+    shot = _with_covariance(bs, _noisy(bs.bundles, axes), cov)
+    res = sol.solve_sequence(shot)
+    noise = sol.prepare_shot(shot).noise
+    np.testing.assert_allclose(noise.axes, axes)
+    assert noise.estimate is None and res.noise > 0
+    np.testing.assert_allclose(np.sort(noise.sigma, axis=1), np.tile(np.sort(axes), (bs.n_markers, 1)))
     # A marker given no covariance takes the median marker's noise, and the user hears of it.
     cov[:, 7] = np.nan
     with caplog.at_level("WARNING", logger="lgi"):
@@ -111,9 +114,10 @@ def test_noisy_shot_finished_in_chunks_gives_the_same_bits(synth) -> None:
     bs, index = synth
     sol = LGISolver(index)
     shot = _noisy(bs.bundles, (0.01, 0.01, 0.04))
-    pos, frames, bridged = sol.prepare_shot(shot, None, 0, "auto")
-    fit_pos = sol.denoise(pos)
-    left = sol.noise_left
+    pos, frames, bridged, noise = sol.prepare_shot(shot, None, 0, "auto")
+    fit_pos, noise = sol.denoise(pos, noise)
+    sol = sol.with_noise(noise)
+    left = noise.left
     sels = sol.select_sequence(fit_pos, frames)
     whole = sol.finish_sequence(sels, pos, frames, bridged, fit_pos=fit_pos)
     parts = [sol.finish_sequence(sels, pos, frames, bridged, fit_pos=fit_pos, lo=lo, hi=min(lo + 25, len(pos)),
@@ -128,7 +132,7 @@ def test_the_fits_leverage_is_the_share_of_noise_it_takes_at_each_bundle(synth) 
     sol = LGISolver(index)
     sigma_cm = 1e-4
     draws = bs.bundles[40] + np.random.default_rng(3).normal(size=(400, *bs.bundles.shape[1:])) * sigma_cm
-    fitted, leverage = sol.model_fit(draws)
+    fitted, leverage, _ = sol.model_fit(draws)
     passed = np.var(fitted, axis=0) / sigma_cm**2
     assert leverage.shape == passed.shape == (index.n_markers, 3)
     assert leverage.max() > 3 * np.median(leverage)  # far from one share for all
@@ -144,6 +148,30 @@ def test_an_exact_shot_is_fitted_once_per_frame(synth) -> None:
     solve = sol.global_fit.solve
     sol.global_fit.solve = lambda *a, **k: calls.append(1) or solve(*a, **k)
     res = sol.solve_sequence(bs.bundles)
-    assert sol.noise == 0 and len(calls) == len(bs.bundles)
+    assert res.noise == 0 and len(calls) == len(bs.bundles)
     told = LGISolver(index).solve_sequence(bs.bundles, noise=0)
     assert np.array_equal(res.vertices, told.vertices)
+
+
+def test_a_shot_leaves_the_solver_as_it_was(synth) -> None:
+    # The noise is a value the shot carries: after a shot whose covariances drop a marker and turn every noise
+    # axis, the solver's next frame and its next shot keeping the solver's noise (noise=None) are a fresh
+    # solver's, bit for bit.
+    bs, index = synth
+    axes = np.array([0.005, 0.005, 0.02])
+    shot = _noisy(bs.bundles, axes)
+    cov = np.broadcast_to(np.diag((axes / 10) ** 2), (*shot.shape[:2], 3, 3)).copy()
+    cov[:, 40] = np.eye(3)
+    fresh = LGISolver(index)
+    frame = fresh.solve_frame(shot[10])
+    whole = fresh.solve_sequence(shot, noise=None)
+    sol = LGISolver(index)
+    noisy = sol.solve_sequence(_with_covariance(bs, shot, cov))
+    assert noisy.noise > 0 and not np.array_equal(noisy.vertices, whole.vertices)
+    assert sol.noise == 0 and np.array_equal(sol.solve_frame(shot[10]).vertices, frame.vertices)
+    assert np.array_equal(sol.solve_sequence(shot, noise=None).vertices, whole.vertices)
+    # A solver bound to the shot's noise is another object; the one it came from is unchanged.
+    prep = sol.prepare_shot(_with_covariance(bs, shot, cov))
+    bound = sol.with_noise(prep.noise)
+    assert bound.noise > 0 and bound.shot_noise.dropped[40] and not sol.shot_noise.dropped.any()
+    assert bound.global_fit is not sol.global_fit and bound.index is sol.index

@@ -109,10 +109,11 @@ def test_a_shot_on_disk_is_prepared_as_in_memory(monkeypatch) -> None:
     for positions, block in ((pos, WHOLE), (ScratchArray.of(pos), 48)):
         monkeypatch.setattr(streamed, "BLOCK_FRAMES", block)
         sol = LGISolver(index)
-        p, _, bridged = sol.prepare_shot(Bundles(frames, list(index.marker_names), positions), None, 3, "auto")
-        fit = sol.denoise(p)
-        results.append([sol.noise, np.asarray(p), bridged, np.asarray(fit), np.asarray(sol.noise_left),
-                        sol.global_fit.gain])
+        p, _, bridged, noise = sol.prepare_shot(Bundles(frames, list(index.marker_names), positions), None, 3,
+                                                "auto")
+        fit, noise = sol.denoise(p, noise)
+        results.append([noise.level, np.asarray(p), bridged, np.asarray(fit), np.asarray(noise.left),
+                        sol.with_noise(noise).global_fit.gain])
     assert isinstance(p, StoredArray) and isinstance(fit, StoredArray)
     assert results[0][0] > 0 and results[0][2].any()  # noisy, with gaps bridged: every stage ran
     assert _equal(results[0], results[1])

@@ -104,8 +104,7 @@ def smoothed_bundles(index, solver) -> Callable[[np.ndarray], np.ndarray]:
     """
     def run(pos: np.ndarray) -> np.ndarray:
         s = LGISolver(index)
-        s.resolve_noise(pos, "auto")
-        return solver.solve_sequence(s.denoise(pos))
+        return solver.solve_sequence(s.denoise(pos, s.resolve_noise(pos, "auto"))[0])
 
     return run
 

@@ -244,7 +244,7 @@ def demo(out: str | Path, options: DemoOptions | None = None, show_progress: boo
     t = time.perf_counter()
     res = shot.run(show_progress)
     dt = time.perf_counter() - t
-    write_reconstruction(out, res, index.arrays, opts, noise_estimate=shot.solver.noise_estimate)
+    write_reconstruction(out, res, index.arrays, opts, noise_estimate=shot.noise.estimate)
     err = np.linalg.norm(res.vertices - r["truth"], axis=2) * MM_PER_CM
     s = {"frames_per_second": o.frames / dt, "warm_up_s": warm, "rms_mm": float(np.sqrt(np.mean(err**2))),
          "p95_mm": float(np.percentile(err, 95)), "max_mm": float(err.max()),

@@ -240,8 +240,7 @@ class TemplateTransfer:
             from lgi.solve.solver import LGISolver
 
             # The exact solver measures coverage (how far outside the clouds); this one makes the shapes.
-            self.fitter = LGISolver(index)
-            self.fitter.set_noise(self.fit_mm)
+            self.fitter = LGISolver(index, noise=self.fit_mm)
         affine, shift = fit_affine(template.neutral, self.neutral)
         sv = np.linalg.svd(affine, compute_uv=False)
         if not np.all(np.isfinite(sv)) or sv.min() < 0.5 or sv.max() > 2.0:

@@ -74,7 +74,7 @@ class Finishing:
                     return
 
         n = len(pos)
-        left = self.noise_left if self.noise_left is not None and len(self.noise_left) == n else None
+        left = self.shot_noise.left if self.shot_noise.left is not None and len(self.shot_noise.left) == n else None
         # The shot is chosen on one thread and blended on another: both run the kernels' one-thread twins
         # (``serial``), the same bits, so no parallel region is launched from two threads (the "workqueue" threading
         # layer aborts on that) or competes for the two cores.
@@ -117,7 +117,7 @@ class Finishing:
         kept. A frame's result depends only on the frames in its windows, so the blocks give the bits of the
         whole shot finished at once (tested)."""
         n = len(pos)
-        left = self.noise_left if self.noise_left is not None and len(self.noise_left) == n else None
+        left = self.shot_noise.left if self.shot_noise.left is not None and len(self.shot_noise.left) == n else None
         reach = smoothing_reach(smooth, jaw_smooth)
         first, sels = carried if carried else (0, [])
         sels = list(sels)
@@ -154,8 +154,8 @@ class Finishing:
         (F, M, 3) cm^2: the noise variance left in ``fit_pos`` (:meth:`denoise`; default the solver's when it
         covers these frames, None for exact bundles), which sets each frame's :meth:`correction_step`."""
         fit_pos = pos if fit_pos is None else fit_pos
-        if left is None and self.noise_left is not None and len(self.noise_left) == len(pos):
-            left = self.noise_left
+        if left is None and self.shot_noise.left is not None and len(self.shot_noise.left) == len(pos):
+            left = self.shot_noise.left
 
         n_f = len(sels)
         hi = n_f if hi is None else hi

@@ -16,6 +16,7 @@ baselines, so that every method is given the same rig and the same jaw estimate.
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass
 
@@ -156,7 +157,7 @@ class GlobalFit:
         the bundles.
     gain : float
         Least decrease of the squared residual (cm^2) for which a shape joins the fit (:func:`join_gain`;
-        the attribute may be changed between frames).
+        :meth:`with_gain` gives the same fit with another).
     """
 
     def __init__(self, table: np.ndarray, rig: JawRig | None = None, bundle_weights: np.ndarray | None = None,
@@ -188,9 +189,15 @@ class GlobalFit:
         pivot = np.zeros(3) if rig is None else np.asarray(rig.pivot, np.float64).reshape(3)
         self.model = K.FitModel(self.rest, self.basis, self._prod, pivot, self._bw, rig is not None, THETA_SCALE)
 
+    def with_gain(self, gain: float) -> GlobalFit:
+        """The same fit (its arrays shared) with another join gain (cm^2)."""
+        out = copy.copy(self)
+        out.gain = float(gain)
+        return out
+
     # ------------------------------------------------------------------ the model
     def settings(self) -> K.FitSettings:
-        """The compiled fit's settings as they stand (``l2``, ``gain`` and ``grow`` may change between frames)."""
+        """The compiled fit's settings (``l2``, ``gain`` and ``grow``)."""
         return K.FitSettings(self.l2, self.gain, MAX_STEPS, self.grow)
 
     def _maps(self, theta: np.ndarray) -> np.ndarray:

@@ -3,8 +3,11 @@ the shot's trajectories), and the smoothing of noisy trajectories before the fra
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import warnings
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -44,23 +47,96 @@ NOISE_LEFT_OUT = 100.0
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True, eq=False)
+class ShotNoise:
+    """The bundles' noise as the solver's stages read it: a value, made by :meth:`NoiseHandling.resolve_noise`,
+    :meth:`NoiseHandling.noise_from_covariance` or :meth:`uniform`, completed by :meth:`NoiseHandling.denoise`,
+    and handed to a solver with :meth:`~lgi.solve.solver.LGISolver.with_noise`.
+
+    Attributes
+    ----------
+    axes : (3,) float, mm
+        The noise per coordinate along the bundles' axes (the median marker's when per marker); zeros: exact.
+    sigma : (M, 3) float, mm
+        Each marker's noise along its own axes.
+    rotations : (M, 3, 3) float or None
+        Rows: each marker's noise axes (None: the bundles' own axes).
+    dropped : (M,) bool
+        Markers left out of the fits and the correction for their noise.
+    estimate
+        The estimate the noise was taken from (``--noise auto``; None when given).
+    independent_poses : bool
+        The frames change like independent poses, not a performance (their gaps are not bridged).
+    left : (F, M, 3) float, cm^2, or None
+        The noise variance left in the smoothed positions along each marker's axes (after :meth:`denoise`).
+    windows : (F, M, 3) int or None
+        The smoothing windows chosen (after :meth:`denoise`).
+    fit_noise : float, mm, or None
+        The noise left in the smoothed positions, pooled (after :meth:`denoise`); sets the global fit's join gain.
+    """
+
+    axes: np.ndarray
+    sigma: np.ndarray
+    dropped: np.ndarray
+    rotations: np.ndarray | None = None
+    estimate: NoiseEstimate | None = None
+    independent_poses: bool = False
+    left: StoredArray | None = None
+    windows: StoredArray | None = None
+    fit_noise: float | None = None
+    # The resolve's fit of the shot, (positions, fitted, leverage), which denoise reuses once.
+    model: tuple | None = field(default=None, repr=False)
+    # An exact shot's (frame numbers, positions, each frame's model fit), which its choice reuses.
+    frame_fits: tuple | None = field(default=None, repr=False)
+
+    @classmethod
+    def uniform(cls, noise_mm: float | np.ndarray, n_markers: int, **more: Any) -> ShotNoise:
+        """Exact bundles (0) or measurements with this noise (mm per coordinate, or (3,) per axis of the
+        bundles' frame), the same for every marker."""
+        axes = np.broadcast_to(np.asarray(noise_mm, np.float64), (3,)).copy()
+        if not np.all(np.isfinite(axes)) or np.any(axes < 0):
+            raise InputError(f"noise must be a finite number of mm >= 0, not {noise_mm}")
+        return cls(axes, np.tile(axes, (n_markers, 1)), np.zeros(n_markers, bool), **more)
+
+    @property
+    def level(self) -> float:
+        """mm per coordinate, the root mean square of ``axes``: 0 for exact bundles."""
+        return float(np.sqrt(np.mean(self.axes**2)))
+
+    @property
+    def join_gain(self) -> float:
+        """The global fit's join gain (:func:`~lgi.solve.globalfit.join_gain`) for this noise: from what
+        smoothing left when the positions were smoothed, else from the bundles' noise."""
+        return join_gain(self.level if self.fit_noise is None else self.fit_noise)
+
+    @property
+    def ray_gain(self) -> float:
+        """How far a one-camera marker's point is taken onto its ray: all the way for exact bundles; with noisy
+        bundles it is fitted like them."""
+        return 1.0 if self.level == 0 else 0.0
+
+
 class NoiseHandling:
     """How noisy a shot's bundles are and what the frames are fitted to (:meth:`resolve_noise`, :meth:`denoise`).
 
     A part of :class:`~lgi.solve.solver.LGISolver`, which composes the stages: its methods read the state that
     ``LGISolver.__init__`` sets up from the index (``_a`` its arrays, ``_basis``, ``_rest``, the natural-neighbour
-    pairs ``_pair_i``/``_pair_j``, ``layout``, ``rig``, ``global_fit``, ...).
+    pairs ``_pair_i``/``_pair_j``, ``layout``, ``rig``, ``global_fit``, ...). The noise is a value
+    (:class:`ShotNoise`): resolving and smoothing a shot return it, and a solver bound to it
+    (:meth:`~lgi.solve.solver.LGISolver.with_noise`) reads it as ``shot_noise``.
     """
 
     @one_blas_thread
-    def model_fit(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def model_fit(self, positions: np.ndarray, noise: ShotNoise | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, FitStore]:
         """Each frame's global fit (:class:`~lgi.solve.globalfit.GlobalFit`, from the previous frame's) of
         ``positions`` (F, M, 3) cm (an array or a :class:`~lgi.io.stored.StoredArray`, read a block at a time) as
         bundle positions (F, M, 3) cm (a :class:`~lgi.io.stored.ScratchArray`; NaN in frames without a bundle),
         and its leverage per marker and axis (M, 3): the share of a coordinate's noise variance the fit takes with
         it (the diagonal of its hat matrix over the free parameters, the weights strictly inside their bounds and
         the jaw's when estimated), averaged over the frames that see it, along each marker's noise axes when they
-        are set.
+        are set (``noise``, default the solver's; its left-out markers are not fitted), and each frame's fit
+        (:class:`~lgi.solve.globalfit.FitStore`).
 
         The share is far from uniform: on ICT's rotating jaw it runs from 0.01 to 0.2 (a mean of 0.1), the jaw
         and lip markers holding most. Smoothing every marker's fitted part as if it held the mean left the jaw's
@@ -71,48 +147,44 @@ class NoiseHandling:
         lev = np.zeros((n_m, 3))
         count = np.zeros(n_m)
         init = None
-        gf = self.global_fit
+        noise = self.shot_noise if noise is None else noise
+        # Every shape the frame wants joins: what a coarser fit leaves of the motion would be smoothed as noise (the
+        # synthetic actor at 0.3 mm: LGI at 1.071x the smoothed fit with a noise-sized join gain, 1.014x exact).
+        gf = self.global_fit.with_gain(EXACT_GAIN)
         # Each frame's fit goes to disk as it is made: an exact shot's choice reuses them (:meth:`cached_fits`).
         fits = FitStore(n_f, gf.n_shapes, n_m, gf.rig is not None)
         with_jaw = gf.rig is not None and gf.jaw_observable
-        rot = self.noise_rotations
+        rot = noise.rotations
         stride = max(1, n_f // LEVERAGE_FRAMES)
-        # Every shape the frame wants joins: what a coarser fit leaves of the motion would be smoothed as noise (the
-        # synthetic actor at 0.3 mm: LGI at 1.071x the smoothed fit with a noise-sized join gain, 1.014x exact).
-        gain, gf.gain = gf.gain, EXACT_GAIN
-        try:
-            for lo, hi in frame_blocks(n_f):
-                p = np.array(positions[lo:hi], np.float64)
-                p[:, self.noise_dropped] = np.nan
-                o = np.full(p.shape, np.nan)
-                for k, f in enumerate(range(lo, hi)):
-                    seen = np.isfinite(p[k]).all(axis=1)
-                    if not seen.any():
-                        continue
-                    init = gf.solve(p[k], init=init)
-                    fits.put(f, init)
-                    o[k] = gf.predict(init.weights, init.jaw)
-                    if f % stride == 0:
-                        lev[seen] += self._fit_leverage(init, o[k], seen, with_jaw, rot)
-                        count[seen] += 1
-                out.write(lo, o)
-        finally:
-            gf.gain = gain
+        for lo, hi in frame_blocks(n_f):
+            p = np.array(positions[lo:hi], np.float64)
+            p[:, noise.dropped] = np.nan
+            o = np.full(p.shape, np.nan)
+            for k, f in enumerate(range(lo, hi)):
+                seen = np.isfinite(p[k]).all(axis=1)
+                if not seen.any():
+                    continue
+                init = gf.solve(p[k], init=init)
+                fits.put(f, init)
+                o[k] = gf.predict(init.weights, init.jaw)
+                if f % stride == 0:
+                    lev[seen] += self._fit_leverage(gf, init, o[k], seen, with_jaw, rot)
+                    count[seen] += 1
+            out.write(lo, o)
         fits.flush()
-        self._last_fits = fits
         sampled = count > 0
         if not sampled.any():
-            return out, np.zeros((n_m, 3))
+            return out, np.zeros((n_m, 3)), fits
         lev[sampled] /= count[sampled, None]
         lev[~sampled] = np.mean(lev[sampled], axis=0)
-        return out, np.clip(lev, 0.0, 0.9)
+        return out, np.clip(lev, 0.0, 0.9), fits
 
-    def _fit_leverage(self, fit, at: np.ndarray, seen: np.ndarray, with_jaw: bool, rot: np.ndarray | None
+    @staticmethod
+    def _fit_leverage(gf, fit, at: np.ndarray, seen: np.ndarray, with_jaw: bool, rot: np.ndarray | None
                       ) -> np.ndarray:
-        """(n, 3) the hat matrix's diagonal of one frame's fit (``at``: its bundle positions, (M, 3) cm) at its
-        ``seen`` markers, per axis (of each marker's noise, with ``rot``): the fit's Jacobian over its free
+        """(n, 3) the hat matrix's diagonal of one frame's fit by ``gf`` (``at``: its bundle positions, (M, 3) cm)
+        at its ``seen`` markers, per axis (of each marker's noise, with ``rot``): the fit's Jacobian over its free
         parameters (a free shape's displacement, skinned; the jaw's by a finite difference)."""
-        gf = self.global_fit
         free = np.flatnonzero((fit.weights > 1e-9) & (fit.weights < 1 - 1e-9))
         cols = gf.basis[free][:, seen]  # (k, n, 3)
         if gf.rig is not None:
@@ -142,16 +214,20 @@ class NoiseHandling:
         return np.sum(q**2, axis=2)
 
     @one_blas_thread
-    def denoise(self, positions: np.ndarray) -> np.ndarray:
-        """The positions the frames are fitted to: with noisy bundles (``noise`` > 0) each marker's trajectory
+    def denoise(self, positions: np.ndarray, noise: ShotNoise | None = None) -> tuple[np.ndarray, ShotNoise]:
+        """The positions the frames are fitted to, and the noise completed with what smoothing left.
+
+        With noisy bundles (``noise``, default the solver's, with a level above 0) each marker's trajectory is
         smoothed in two parts, the face model's fit and what it leaves (:func:`lgi.solve.temporal.denoise_with_model`);
-        the noise left after it (``noise_left``, (F, M, 3) cm^2) sets how far the surface is taken through each
-        bundle (:meth:`correction_gain`). Exact bundles are returned as they are."""
-        self.denoise_windows = None
-        self.noise_left = None
-        self.global_fit.gain = join_gain(self.noise)
-        if self.noise <= 0:
-            return positions
+        the noise left after it (``left``, (F, M, 3) cm^2) sets how far the surface is taken through each bundle
+        (:meth:`correction_step`), and its pooled size the global fit's join gain. Exact bundles are returned as
+        they are."""
+        noise = self.shot_noise if noise is None else noise
+        # The resolve's fit is used once: a long take's fitted positions are not held past here.
+        model = noise.model
+        noise = dataclasses.replace(noise, left=None, windows=None, fit_noise=None, model=None)
+        if noise.level <= 0:
+            return positions, noise
         n_f = len(positions)
         seen = sum((np.all(np.isfinite(positions[lo:hi]), axis=2).sum(axis=0) for lo, hi in frame_blocks(n_f)),
                    start=np.zeros(positions.shape[1], np.int64))
@@ -160,48 +236,35 @@ class NoiseHandling:
             # Their trajectories are left as they are: the surface is still held off their bundles by the noise.
             log.warning("%d of %d markers are seen in fewer than %d frames: too few to smooth their noisy "
                         "trajectories, which are fitted frame by frame", short, len(seen), MIN_SMOOTHED_FRAMES)
-        model, self._model = self._model, None  # used once: a long take's fitted positions are not held
         # The shot's noise was resolved on these positions before its gaps were bridged (a copy): reuse that fit.
         if model is None or not same_rows(model[0], positions):
-            model = (positions, *self.model_fit(positions))
-            self._last_fits = None
-        rot = self.noise_rotations
+            model = (positions, *self.model_fit(positions, noise)[:2])
+        rot = noise.rotations
         into = None if rot is None else (lambda x: np.einsum("mij,fmj->fmi", rot, x))
         # Smoothed a block at a time into files read a block at a time by the choice and the finish: a long take's
         # would not fit in memory. Each marker's trajectory is smoothed in its noise's principal axes (its
         # covariance's), where the axes are apart.
         out = ScratchArray((n_f, *positions.shape[1:]), np.float64)
-        self.noise_left = ScratchArray(out.shape, np.float64)
-        self.denoise_windows = ScratchArray(out.shape, np.int64)
-        for lo, _, smoothed, left, windows in model_denoised_blocks(positions, model[1], self.noise_sigma, model[2],
-                                                                    into):
+        left = ScratchArray(out.shape, np.float64)
+        windows = ScratchArray(out.shape, np.int64)
+        for lo, _, smoothed, lf, win in model_denoised_blocks(positions, model[1], noise.sigma, model[2], into):
             out.write(lo, smoothed if rot is None else np.einsum("mji,fmj->fmi", rot, smoothed))
-            self.noise_left.write(lo, left)
-            self.denoise_windows.write(lo, windows)
+            left.write(lo, lf)
+            windows.write(lo, win)
         del model
         # np.nanmean(left), bit for bit: numpy's sum of the left with its NaN as 0, over the count of the others
-        read = row_reader(self.noise_left, lambda x: np.where(np.isnan(x), 0.0, x))
-        given = sum((int(np.count_nonzero(~np.isnan(self.noise_left[lo:hi]))) for lo, hi in frame_blocks(n_f)),
-                    start=0)
+        read = row_reader(left, lambda x: np.where(np.isnan(x), 0.0, x))
+        given = sum((int(np.count_nonzero(~np.isnan(left[lo:hi]))) for lo, hi in frame_blocks(n_f)), start=0)
         fit_noise = float(np.sqrt(streamed_sum(read, int(np.prod(out.shape))) / given)) * MM_PER_CM
-        self.global_fit.gain = join_gain(fit_noise)
         log.info("noisy bundles smoothed (the face model's fit and what it leaves): about %.4f mm noise left per "
                  "coordinate", fit_noise)
-        return out
+        return out, dataclasses.replace(noise, left=left, windows=windows, fit_noise=fit_noise)
 
-    def set_noise(self, noise_mm: float | np.ndarray) -> None:
-        """Treat the bundles as exact (0) or as measurements with this noise (mm per coordinate, or (3,) per axis of
-        the bundles' frame), the same for every marker."""
-        axes = np.broadcast_to(np.asarray(noise_mm, np.float64), (3,)).copy()
-        if not np.all(np.isfinite(axes)) or np.any(axes < 0):
-            raise InputError(f"noise must be a finite number of mm >= 0, not {noise_mm}")
-        self._set_noise_model(axes, None, np.tile(axes, (self.index.n_markers, 1)))
-
-    def set_noise_covariance(self, covariance: np.ndarray) -> None:
+    def noise_from_covariance(self, covariance: np.ndarray) -> ShotNoise:
         """The bundles' noise from their covariances (F, M, 3, 3) or (M, 3, 3), cm^2 (NaN where not given): each
         marker's median over the frames, in its principal axes; a marker without any takes the median marker's.
         Markers whose noise is far above the shot's (``NOISE_LEFT_OUT`` times the median variance) are left out
-        of the fits and the correction (:attr:`noise_dropped`); the others weigh alike."""
+        of the fits and the correction (``dropped``); the others weigh alike."""
         cov = np.asarray(covariance, np.float64)
         if cov.ndim == 3:
             per_marker = cov
@@ -216,32 +279,14 @@ class NoiseHandling:
         lam, vec = np.linalg.eigh(0.5 * (per_marker + np.transpose(per_marker, (0, 2, 1))))
         sigma = np.sqrt(np.maximum(lam, 0.0)) * MM_PER_CM
         axes = np.sqrt(np.maximum(np.median(np.diagonal(per_marker, axis1=1, axis2=2), axis=0), 0.0)) * MM_PER_CM
-        self._set_noise_model(axes, np.transpose(vec, (0, 2, 1)), sigma)
         var = np.mean(sigma**2, axis=1)
-        self.noise_dropped = var > NOISE_LEFT_OUT * max(float(np.median(var)), 1e-30)
-        if self.noise_dropped.any():
-            names = [self.index.marker_names[i] for i in np.flatnonzero(self.noise_dropped)]
+        dropped = var > NOISE_LEFT_OUT * max(float(np.median(var)), 1e-30)
+        if dropped.any():
+            names = [self.index.marker_names[i] for i in np.flatnonzero(dropped)]
             log.warning("%d markers are noisier than %g times the median marker (%s): left out of the fits and not "
                         "passed through; their points follow their neighbours", len(names), NOISE_LEFT_OUT,
                         ", ".join(names[:5]) + (" ..." if len(names) > 5 else ""))
-
-    def _set_noise_model(self, axes: np.ndarray, rotations: np.ndarray | None, sigma: np.ndarray) -> None:
-        self.noise_axes = axes
-        self.noise = float(np.sqrt(np.mean(axes**2)))
-        #: (M, 3, 3) rows: each marker's noise axes (None: the bundles' own axes)
-        self.noise_rotations = rotations
-        #: (M, 3) mm, each marker's noise along its axes
-        self.noise_sigma = sigma
-        #: (M,) bool, markers left out of the fits for their noise
-        self.noise_dropped = np.zeros(self.index.n_markers, bool)
-        self.global_fit.gain = join_gain(self.noise)
-        self.noise_left = None
-        self._model = None
-        #: an exact shot's frame numbers, positions and each frame's model fit (:meth:`model_fit`), for its choice
-        self._frame_fits: tuple | None = None
-        self._last_fits: list | None = None
-        # A marker seen by one camera stands on its ray; with noisy bundles its point is fitted like them.
-        self.noise_gain = 1.0 if self.noise == 0 else 0.0
+        return ShotNoise(axes, sigma, dropped, np.transpose(vec, (0, 2, 1)))
 
     @staticmethod
     def _face_variance(resid: np.ndarray, left: np.ndarray) -> np.ndarray:
@@ -270,10 +315,10 @@ class NoiseHandling:
         (M, 3) float64, cm (0 where missing)
         """
         r = np.nan_to_num(np.asarray(resid, np.float64))
-        ok = np.all(np.isfinite(resid), axis=1) & ~self.noise_dropped
+        ok = np.all(np.isfinite(resid), axis=1) & ~self.shot_noise.dropped
         if left is None:
             return np.where(ok[:, None], r, 0.0)
-        rot = self.noise_rotations
+        rot = self.shot_noise.rotations
         if rot is not None:
             r = np.einsum("mij,mj->mi", rot, r)
         if not ok.any():
@@ -283,60 +328,53 @@ class NoiseHandling:
         step = np.where(ok[:, None], m2 / np.maximum(m2 + left, 1e-300) * r, 0.0)
         return step if rot is None else np.einsum("mji,mj->mi", rot, step)
 
-    def resolve_noise(self, positions: np.ndarray, noise: float | str = "auto") -> NoiseEstimate | None:
-        """Set the solver's noise for a shot (F, M, 3): a given value (mm) or "auto", estimated per axis from the
-        shot's trajectories off the face model's fit of each frame (:func:`lgi.solve.temporal.estimate_noise`).
-        Where what the fit leaves changes together at neighbouring markers (independent poses rather than a
-        performance), the bundles are exact. Returns the estimate (None for a given value); the decision is
-        logged."""
+    def resolve_noise(self, positions: np.ndarray, noise: float | str = "auto") -> ShotNoise:
+        """A shot's noise (F, M, 3): a given value (mm) or "auto", estimated per axis from the shot's trajectories
+        off the face model's fit of each frame (:func:`lgi.solve.temporal.estimate_noise`). Where what the fit
+        leaves changes together at neighbouring markers (independent poses rather than a performance), the
+        bundles are exact. The decision is logged; the estimate is the value's ``estimate`` (None for a given
+        value)."""
+        n_m = self.index.n_markers
         if noise != "auto":
             try:
                 value = float(noise)
             except (TypeError, ValueError):
                 raise InputError(f"noise must be a number of mm or 'auto', not {noise!r}") from None
-            self.set_noise(value)
-            self.noise_estimate = None
-            self.independent_poses = False
-            return None
-        fitted, leverage = self.model_fit(positions)
-        fits, self._last_fits = self._last_fits, None
+            return ShotNoise.uniform(value, n_m)
+        # Fitted with every marker in the bundles' own axes: the shot's noise is not known yet.
+        fitted, leverage, fits = self.model_fit(positions, ShotNoise.uniform(0.0, n_m))
         est = estimate_noise(positions, self._nb_pairs, fitted, leverage)
-        self.noise_estimate = est
-        self.independent_poses = bool(np.isfinite(est.noise_mm) and est.noise_mm >= EXACT_NOISE_MM and not est.is_noise)
+        found = {"estimate": est,
+                 "independent_poses": bool(np.isfinite(est.noise_mm) and est.noise_mm >= EXACT_NOISE_MM
+                                           and not est.is_noise)}
         if not np.isfinite(est.noise_mm):
             # A fallback the user must hear of: noisy bundles taken as exact make a surface that chases the noise.
             log.warning("the bundle noise cannot be estimated (no marker is seen for 13 frames in a row): bundles "
                         "treated as exact; give --noise MM if they are not")
-            self.set_noise(0.0)
         elif est.noise_mm < EXACT_NOISE_MM:
             log.info("the bundles change from frame to frame by %.5f mm beyond the face model's fit: exact",
                      est.noise_mm)
-            self.set_noise(0.0)
         elif not est.is_noise:
             log.warning("the bundles change from frame to frame by %.4f mm (median, per coordinate) beyond the face "
                         "model's fit, and neighbouring markers change together (correlation %.2f): that is motion "
                         "(independent poses?), not measurement noise, so the bundles are treated as exact; give the "
                         "noise if they are measurements", est.noise_mm, est.coherence)
-            self.set_noise(0.0)
         else:
             log.info("bundle noise estimated at %.4f mm per coordinate (x %.4f, y %.4f, z %.4f; %d residuals, "
                      "neighbour correlation %.2f)", est.noise_mm, *est.axis_mm, est.samples, est.coherence)
-            self.set_noise(est.axis_mm)
-            self._model = (positions, fitted, leverage)
-        if self.noise == 0:
-            # Exact bundles are chosen from the same fit of the same positions: the choice takes it (see
-            # :meth:`cached_fits`; :meth:`prepare_shot` names the frames) instead of solving every frame twice. The
-            # positions and fits wait on disk (a long take's would not fit in memory).
-            self._frame_fits = (None, positions if isinstance(positions, StoredArray) else ScratchArray.of(positions),
-                                fits)
-        return est
+            return ShotNoise.uniform(est.axis_mm, n_m, model=(positions, fitted, leverage), **found)
+        # Exact bundles are chosen from the same fit of the same positions: the choice takes it (see
+        # :meth:`cached_fits`; :meth:`prepare_shot` names the frames) instead of solving every frame twice. The
+        # positions and fits wait on disk (a long take's would not fit in memory).
+        stored = positions if isinstance(positions, StoredArray) else ScratchArray.of(positions)
+        return ShotNoise.uniform(0.0, n_m, frame_fits=(None, stored, fits), **found)
 
     def cached_fits(self, positions: np.ndarray, frames: np.ndarray) -> list:
         """Per frame of ``positions`` (F, M, 3) cm, numbered ``frames``, the global fit that resolving an exact
         shot made of the same frame (:meth:`resolve_noise` through ``prepare_shot``); None where there is none
         or the frame's bundles differ from those fitted (a bridged gap). Reads only these frames' fits."""
-        cache = self._frame_fits
-        if cache is None or cache[0] is None or self.noise != 0:
+        cache = self.shot_noise.frame_fits
+        if cache is None or cache[0] is None or self.shot_noise.level != 0:
             return [None] * len(positions)
         shot_frames, fitted, store = cache
         shot_frames, frames = np.asarray(shot_frames, np.int64), np.asarray(frames, np.int64)

@@ -117,9 +117,9 @@ class Selection:
         p = np.asarray(bundles, np.float64)
         if p.shape != (self.index.n_markers, 3):
             raise InputError(f"bundles have shape {p.shape}, the index has {self.index.n_markers} markers")
-        left_out = self.noise_dropped & np.all(np.isfinite(p), axis=1)
+        left_out = self.shot_noise.dropped & np.all(np.isfinite(p), axis=1)
         if left_out.any():
-            # Too noisy to weigh in (:meth:`set_noise_covariance`): chosen as a missing bundle is.
+            # Too noisy to weigh in (:meth:`noise_from_covariance`): chosen as a missing bundle is.
             p = p.copy()
             p[left_out] = np.nan
         seen = np.all(np.isfinite(p), axis=1)
@@ -159,11 +159,12 @@ class Selection:
         source = np.full(len(p), "simplex", object)
         if self.method == "local":
             if left is None and self.noise > 0:
-                left = (self.noise_sigma / MM_PER_CM) ** 2
+                left = (self.shot_noise.sigma / MM_PER_CM) ** 2
             shapes, lam, score, source, fallback = self._local(q, seen, fit, shapes, lam, score, fallback,
                                                                global_score, left, serial)
         for i in np.flatnonzero(left_out):
-            fallback[i] = f"left out for its noise ({np.sqrt(np.mean(self.noise_sigma[i] ** 2)):.3f} mm): {fallback[i]}"
+            mm = np.sqrt(np.mean(self.shot_noise.sigma[i] ** 2))
+            fallback[i] = f"left out for its noise ({mm:.3f} mm): {fallback[i]}"
         share = None
         if self._far.active:
             dense = np.zeros((len(p), self.global_fit.n_shapes + 1))
@@ -310,10 +311,10 @@ class Selection:
         ``emit(f, choice)`` is called with each as it is made (with ``keep`` False, the only place they go: a long
         shot's choices are not held). ``previous``: the choice of the frame before
         ``pos[0]`` when a shot is chosen in chunks (the result is then the one a single call gives). ``left``
-        (F, M, 3) cm^2: the noise variance left in ``pos`` (default: the solver's, :meth:`denoise`, when it covers
-        these frames). ``serial``: as for :meth:`select`."""
-        if left is None and self.noise_left is not None and len(self.noise_left) == len(pos):
-            left = self.noise_left
+        (F, M, 3) cm^2: the noise variance left in ``pos`` (default: the solver's noise's, :meth:`denoise`, when it
+        covers these frames). ``serial``: as for :meth:`select`."""
+        if left is None and self.shot_noise.left is not None and len(self.shot_noise.left) == len(pos):
+            left = self.shot_noise.left
         sels = []
         prev = previous
         lo = hi = 0

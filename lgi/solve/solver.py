@@ -19,11 +19,12 @@ The solver composes the stages a frame goes through, each in its own module: the
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import warnings
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.sparse
@@ -37,23 +38,41 @@ from lgi.solve._blend_kernels import BundleReach
 from lgi.solve._select_kernels import OWN_WEIGHT, IndexArrays
 from lgi.solve.finish import Finishing, slot_labels
 from lgi.solve.globalfit import GlobalFit
-from lgi.solve.noise import NoiseHandling
+from lgi.solve.noise import NoiseHandling, ShotNoise
 from lgi.solve.results import FITTED, STATUS, FrameResult, SequenceResult, join_results
 from lgi.solve.selection import LOCAL_MIN_MISFIT, Selection
 from lgi.solve.settings import FAR_FIELD, SolverSettings
 from lgi.solve.streamed import all_rows, frame_blocks
 from lgi.solve.surface import FAR_MARGIN, Surface, _FarField
-from lgi.solve.temporal import NoiseEstimate, bridge_gaps, bridged_blocks
+from lgi.solve.temporal import bridge_gaps, bridged_blocks
 from lgi.threads import one_blas_thread
 
 __all__ = ["FAR_FIELD", "FAR_MARGIN", "FITTED", "LOCAL_MIN_MISFIT", "STATUS", "FrameResult", "LGISolver",
-           "SequenceResult", "slot_labels"]
+           "PreparedShot", "SequenceResult", "ShotNoise", "slot_labels"]
 
 log = logging.getLogger(__name__)
 
 
+class PreparedShot(NamedTuple):
+    """A shot made ready to solve (:meth:`LGISolver.prepare_shot`)."""
+
+    #: (F, M, 3) cm, the bundles in layout order with gaps bridged (NaN: missing)
+    positions: np.ndarray
+    #: (F,) frame numbers
+    frames: np.ndarray
+    #: (F, M) bool, the positions bridged over a gap
+    bridged: np.ndarray
+    #: the bundles' noise, given, estimated or from their covariances
+    noise: ShotNoise
+
+
 class LGISolver(NoiseHandling, Selection, Surface, Finishing):
     """Reconstruct frames of bundles with a built :class:`~lgi.index.build.LGIIndex`.
+
+    The solver is the index's arrays made ready once, and the stages that read them; it does not change after
+    it is made. A shot's noise is a value (:class:`~lgi.solve.noise.ShotNoise`) that :meth:`prepare_shot` and
+    :meth:`denoise` return, and :meth:`with_noise` gives the solver of it (the arrays shared), so what a call
+    does never depends on an earlier shot.
 
     Parameters
     ----------
@@ -74,11 +93,6 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
             raise InputError(f"unknown method {st.method!r}: use 'local' or 'simplex'")
         self.method = st.method
         self.local_prior = float(st.local_prior)
-        self.noise_estimate: NoiseEstimate | None = None
-        self.noise_left: np.ndarray | None = None
-        self.denoise_windows: np.ndarray | None = None
-        self._model: tuple | None = None
-        self.independent_poses = False
         self.index = index
         a = index.arrays
         self._a = a
@@ -100,7 +114,8 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         self._x0 = np.asarray(a["neutral"], np.float64)
         self._deltas = np.ascontiguousarray(index.deltas)  # read once: the blend touches all of it every frame
         self._deltas_flat = self._deltas.reshape(len(self._deltas), -1)  # a view: rows of 3V for blend_uniform
-        self._w_sum: np.ndarray | None = None  # (V,) total blend weight per vertex, for uniform blends
+        # (V,) each vertex's total natural-neighbour weight (1 where bundles reach, 0 elsewhere), for uniform blends
+        self._w_sum = np.add.reduceat(np.r_[a["w_data"], 0.0], a["w_indptr"][:-1]) * (np.diff(a["w_indptr"]) > 0)
         # The natural-neighbour weights by bundle (CSC), for blending each bundle's own weights over the vertices
         # it reaches (:func:`lgi.solve._blend_kernels.blend_on_base`).
         csc = scipy.sparse.csr_matrix((a["w_data"], a["w_indices"], a["w_indptr"]),
@@ -122,8 +137,9 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
         if self.rig is not None:
             self._skin_w = np.ascontiguousarray(self.rig.weights, np.float64)
             self._bundle_w = self.layout.evaluate(self.rig.weights[:, None])[:, 0]
-        self.global_fit = GlobalFit(a["ptab"], self.rig, self._bundle_w)
-        self.set_noise(st.noise)
+        #: the bundles' noise the stages read (:class:`~lgi.solve.noise.ShotNoise`; a shot's: :meth:`with_noise`)
+        self.shot_noise = ShotNoise.uniform(st.noise, index.n_markers)
+        self.global_fit = GlobalFit(a["ptab"], self.rig, self._bundle_w, gain=self.shot_noise.join_gain)
         if self.rig is not None and not self.global_fit.jaw_observable:
             log.warning("%s", self.global_fit.jaw_note)
         self._basis = self.global_fit.basis
@@ -153,6 +169,22 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
                                a["class_off"], a["alias_shape"], a["sx"], a["tinv"], a["hull"], a["hull_off"],
                                a["grid_lo"], a["grid_h"], a["grid_dims"], a["cell_off"], a["cell_start"],
                                a["cell_items"], a["ptab"], a["nb_off"], a["nb_idx"], a["snap_radius"])
+
+    def with_noise(self, noise: ShotNoise | float | np.ndarray) -> LGISolver:
+        """This solver for bundles with this noise (a :class:`~lgi.solve.noise.ShotNoise`, as :meth:`prepare_shot`
+        and :meth:`denoise` return it, or mm per coordinate, or (3,) per axis, the same for every marker). The
+        index's arrays are shared; this solver is unchanged."""
+        if not isinstance(noise, ShotNoise):
+            noise = ShotNoise.uniform(noise, self.index.n_markers)
+        out = copy.copy(self)
+        out.shot_noise = noise
+        out.global_fit = self.global_fit.with_gain(noise.join_gain)
+        return out
+
+    @property
+    def noise(self) -> float:
+        """mm per coordinate: the bundles' noise this solver fits (0: exact, the surface through every bundle)."""
+        return self.shot_noise.level
 
     @one_blas_thread
     def solve_frame(self, bundles: np.ndarray, previous: FrameResult | None = None,
@@ -205,14 +237,17 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
             solver's. Noisy trajectories are first smoothed marker by marker
             (:func:`lgi.solve.temporal.denoise_trajectories`, the window chosen by Stein's unbiased risk estimate).
         """
-        pos, frames, bridged = self.prepare_shot(bundles, frames, max_gap, noise)
-        return self.solve_prepared(pos, frames, bridged, self.denoise(pos), smooth, jaw_smooth, jaw, show_progress)
+        pos, frames, bridged, shot_noise = self.prepare_shot(bundles, frames, max_gap, noise)
+        fit_pos, shot_noise = self.denoise(pos, shot_noise)
+        return self.with_noise(shot_noise).solve_prepared(pos, frames, bridged, fit_pos, smooth, jaw_smooth, jaw,
+                                                          show_progress)
 
     @one_blas_thread
     def solve_prepared(self, pos: np.ndarray, frames: np.ndarray, bridged: np.ndarray, fit_pos: np.ndarray,
                        smooth: int = 1, jaw_smooth: int | None = None, jaw: np.ndarray | None = None,
                        show_progress: bool = False) -> SequenceResult:
-        """:meth:`solve_sequence` of a shot already prepared (:meth:`prepare_shot`, :meth:`denoise`)."""
+        """:meth:`solve_sequence` of a shot already prepared (:meth:`prepare_shot`, :meth:`denoise`), by the solver
+        of its noise (:meth:`with_noise`)."""
         parts = [r for _, _, r in self.stream_prepared(pos, frames, bridged, fit_pos, smooth, jaw_smooth, jaw,
                                                          show_progress, max(len(pos), 1))]
         return parts[0] if len(parts) == 1 else join_results(parts)
@@ -251,9 +286,10 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
 
     @one_blas_thread
     def prepare_shot(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None, max_gap: int = 0,
-                     noise: float | str | None = "auto") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """A shot's positions (F, M, 3) in layout order, frame numbers and bridged mask (F, M), with the
-        solver's noise resolved (:meth:`resolve_noise`) on the positions as given. Gaps are bridged (up to
+                     noise: float | str | None = "auto") -> PreparedShot:
+        """A shot's positions (F, M, 3) in layout order, frame numbers, bridged mask (F, M) and noise: ``noise``
+        (mm) or "auto", resolved (:meth:`resolve_noise`) on the positions as given, or the bundles' covariances
+        where they carry them; None keeps the solver's. Gaps are bridged (up to
         ``max_gap`` frames) unless the frames are independent poses rather than a performance: interpolating
         a marker between two unrelated poses would invent a position (a warning says so).
 
@@ -277,31 +313,32 @@ class LGISolver(NoiseHandling, Selection, Surface, Finishing):
                 names = [self.index.marker_names[i] for i in np.flatnonzero(bare)]
                 log.warning("%d markers have positions but no covariance in any frame (%s): they take the median "
                             "marker's noise", len(names), ", ".join(names[:5]) + (" ..." if len(names) > 5 else ""))
-            self.set_noise_covariance(per_marker)
+            shot_noise = self.noise_from_covariance(per_marker)
             log.info("bundle noise from the bundles' covariances: x %.4f, y %.4f, z %.4f mm (median marker)",
-                     *self.noise_axes)
-            self.noise_estimate = None
-            self.independent_poses = False
+                     *shot_noise.axes)
         elif noise is not None:
-            self.resolve_noise(raw, noise)
-            if self._frame_fits is not None:
-                self._frame_fits = (np.asarray(frames), *self._frame_fits[1:])
-        if max_gap > 0 and self.independent_poses and not all_rows(raw, lambda p: np.isfinite(p).all(axis=(1, 2))
+            shot_noise = self.resolve_noise(raw, noise)
+            if shot_noise.frame_fits is not None:
+                shot_noise = dataclasses.replace(shot_noise,
+                                                 frame_fits=(np.asarray(frames), *shot_noise.frame_fits[1:]))
+        else:
+            shot_noise = self.shot_noise
+        if max_gap > 0 and shot_noise.independent_poses and not all_rows(raw, lambda p: np.isfinite(p).all(axis=(1, 2))
                                                                    ).all():
             log.warning("missing markers are not bridged: the frames change like independent poses")
             max_gap = 0
         if not isinstance(raw, StoredArray):
             pos, bridged = bridge_gaps(raw, max_gap)
-            return pos, frames, bridged
+            return PreparedShot(pos, frames, bridged, shot_noise)
         if max_gap <= 0:  # nothing to bridge: the positions on disk are read as they are
-            return raw, frames, np.zeros(raw.shape[:2], bool)
+            return PreparedShot(raw, frames, np.zeros(raw.shape[:2], bool), shot_noise)
         # A long take's bridged positions go to disk a block at a time.
         pos = ScratchArray(raw.shape, np.float64)
         bridged = np.zeros(raw.shape[:2], bool)
         for lo, hi, filled, was in bridged_blocks(raw, max_gap):
             pos.write(lo, filled)
             bridged[lo:hi] = was
-        return pos, frames, bridged
+        return PreparedShot(pos, frames, bridged, shot_noise)
 
     def prepare(self, bundles: Bundles | np.ndarray, frames: np.ndarray | None = None,
                 max_gap: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

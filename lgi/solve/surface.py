@@ -56,7 +56,7 @@ class Surface:
         x = np.empty_like(self._x0)
         if (shapes == shapes[0]).all() and (weights == weights[0]).all():
             # Every bundle has the same weights (noisy bundles: the global fit's): no per-vertex mixing.
-            blend_uniform(self._x0.reshape(-1), self._deltas_flat, self._blend_w_sum(),
+            blend_uniform(self._x0.reshape(-1), self._deltas_flat, self._w_sum,
                             shapes[0], weights[0], x.reshape(-1))
         elif len(shapes) == self.index.n_markers + 1:
             # The last row is the global fit's, which the far field blends toward. Most bundles of an exact
@@ -70,7 +70,7 @@ class Surface:
                 ramp, share = self._no_ramp, np.zeros(m)
             d_shapes, d_lam = _differences(shapes, weights)
             rows = np.flatnonzero(d_lam[:m, 0] != 0)
-            blend_on_base(self._x0.reshape(-1), self._deltas_flat, shapes[-1], weights[-1], self._blend_w_sum(),
+            blend_on_base(self._x0.reshape(-1), self._deltas_flat, shapes[-1], weights[-1], self._w_sum,
                             self._reach, ramp, share, rows, d_shapes, d_lam, x.reshape(-1))
         else:
             blend(self._x0, self._deltas, a["w_indptr"], a["w_indices"], a["w_data"], shapes[:self.index.n_markers],
@@ -101,7 +101,7 @@ class Surface:
         at = self.layout.evaluate(x)
         before = np.where(seen, np.linalg.norm(np.where(seen[:, None], p, 0) - at, axis=1), np.nan)
         # One frame on its own: the noise left is all of it.
-        left = None if self.noise == 0 else (self.noise_sigma / MM_PER_CM) ** 2
+        left = None if self.noise == 0 else (self.shot_noise.sigma / MM_PER_CM) ** 2
         step = self.correction_step(np.where(seen[:, None], p - at, np.nan), left)
         self.correct(x, at + step, seen)
         self.correct_far(x, step, seen, 1.0, t)
@@ -131,12 +131,12 @@ class Surface:
         the correction fields (1 at the marker, 0 at every other marker, which keep their points). Returns each
         marker's distance from its ray after it, (n,) mm.
 
-        Noisy bundles are fitted, not interpolated (``noise_gain`` 0): a ray's point, from the same noisy
+        Noisy bundles are fitted, not interpolated (``ray_gain`` 0): a ray's point, from the same noisy
         observations, is then fitted like them, and the surface is moved the same share of the way."""
         pts = self.layout.evaluate(x)
         target = pts.copy()
         closest = origin + np.einsum("ij,ij->i", pts[on] - origin, direction)[:, None] * direction
-        target[on] = pts[on] + self.noise_gain * (closest - pts[on])
+        target[on] = pts[on] + self.shot_noise.ray_gain * (closest - pts[on])
         self.correct(x, target, np.ones(len(pts), bool))
         p = self.layout.evaluate(x)[on] - origin
         return np.linalg.norm(p - np.einsum("ij,ij->i", p, direction)[:, None] * direction, axis=1) * MM_PER_CM
@@ -160,13 +160,6 @@ class Surface:
         y = np.zeros_like(x)
         _add_correction(serial, y, a["corr_indptr"], a["corr_indices"], a["corr_data"], fix, d[fix])
         x += t[:, None] * y
-
-    def _blend_w_sum(self) -> np.ndarray:
-        """(V,) each vertex's total natural-neighbour weight (1 where bundles reach, 0 elsewhere)."""
-        if self._w_sum is None:
-            a = self._a
-            self._w_sum = np.add.reduceat(np.r_[a["w_data"], 0.0], a["w_indptr"][:-1]) * (np.diff(a["w_indptr"]) > 0)
-        return self._w_sum
 
     def far_global_share(self, share: np.ndarray | None) -> np.ndarray:
         """(V,) the far field's share t of the global fit per vertex, given the bundles' far shares (M,) (None:

@@ -265,5 +265,5 @@ def assemble(index_dir: str, bundles: str, options: ReconstructOptions, parts: l
             writer.append(res)
             tally.add(res)
             done += len(vertices)
-        writer.close(shot.solver.noise, shot.solver.noise_estimate)
+        writer.close(shot.solver.noise, shot.noise.estimate)
     return tally.result(shot, out, {"finish": time.perf_counter() - t0})

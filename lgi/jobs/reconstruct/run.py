@@ -104,7 +104,7 @@ def write_shot(shot: Shot, out: str | Path, options: ReconstructOptions, constra
                 saved = time.monotonic()
             writing += time.perf_counter() - t
         t = time.perf_counter()
-        writer.close(shot.solver.noise, shot.solver.noise_estimate)
+        writer.close(shot.solver.noise, shot.noise.estimate)
     end = time.perf_counter()
     writing += end - t
     return tally, end - start - writing, writing

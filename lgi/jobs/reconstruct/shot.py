@@ -78,14 +78,17 @@ class Shot:
 
             rest = index.layout().evaluate(index.arrays["neutral"])
             b.positions = bilateral_filter(np.asarray(b.positions), sig[0], sig[1], rest, sig[2])
-        self.solver = s = LGISolver(index, temporal_weight=o.temporal_weight, spatial_weight=o.spatial_weight,
-                                    jaw="none" if o.jaw == "none" else "auto", method=o.method,
-                                    far_field=o.far_field_cm())
+        s = LGISolver(index, temporal_weight=o.temporal_weight, spatial_weight=o.spatial_weight,
+                      jaw="none" if o.jaw == "none" else "auto", method=o.method, far_field=o.far_field_cm())
         # The shot's per-frame arrays wait on disk, and its blocks read them by range: a long take's would not fit
         # in memory (ICT's 108 markers: 2.6 kB per frame each).
-        pos, self.frames, self.bridged = s.prepare_shot(b, None, o.max_gap, o.noise)
+        pos, self.frames, self.bridged, noise = s.prepare_shot(b, None, o.max_gap, o.noise)
         del b
-        fit_pos = s.denoise(pos)
+        fit_pos, noise = s.denoise(pos, noise)
+        #: the bundles' noise (:class:`~lgi.solve.noise.ShotNoise`: given or estimated, and what smoothing left)
+        self.noise = noise
+        #: the solver of this shot's noise (:meth:`~lgi.solve.solver.LGISolver.with_noise`)
+        self.solver = s.with_noise(noise)
         if not isinstance(pos, StoredArray):
             pos = ScratchArray.of(pos)
             fit_pos = pos if fit_pos is pos else fit_pos
@@ -146,7 +149,7 @@ class Shot:
         """The choices (:class:`~lgi.solve.solver.FrameResult`, no vertices) of frames lo:hi, continuing from
         ``previous``, the choice of frame lo - 1."""
         jaw = None if self.given_jaw is None else self.given_jaw[lo:hi]
-        left = self.solver.noise_left
+        left = self.noise.left
         return self.solver.select_sequence(self.fit_pos[lo:hi], self.frames[lo:hi], jaw, previous=previous,
                                            left=None if left is None else left[lo:hi])
 
@@ -160,7 +163,7 @@ class Shot:
             need = self.needs(lo, hi)
             if a > need[0] or b < need[1]:
                 raise ValueError(f"frames {lo}:{hi} need the choices of {need[0]}:{need[1]}, given {a}:{b}")
-        left = self.solver.noise_left
+        left = self.noise.left
         res = self.solver.finish_sequence(sels, self.pos[a:b], self.frames[a:b], self.bridged[a:b], o.smooth,
                                           o.jaw_smooth, show_progress, self.fit_pos[a:b], lo - a, hi - a,
                                           None if left is None else left[a:b])
@@ -203,7 +206,7 @@ class Shot:
         take a surface through its bundles: 1 at the marker, 0 at every other marker, which keep their points).
         Exact bundles already meet their rays (the ray's point is a bundle) up to the correction's truncation,
         which this removes. Noisy bundles are fitted, not interpolated, and so is a ray's point: the surface is
-        moved ``noise_gain`` (0) of the way, and ``ray_distance_mm`` says how far it stays. Adds the
+        moved ``ray_gain`` (0) of the way, and ``ray_distance_mm`` says how far it stays. Adds the
         diagnostics' ``constraint`` and ``ray_distance_mm`` (the surface's distance from the ray after it)
         columns."""
         hi = self.n_frames if hi is None else hi

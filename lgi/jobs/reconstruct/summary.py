@@ -108,7 +108,7 @@ class ShotSummary:
             return float(sum(self.status.get(k, 0) for k in names) / n)
 
         proj = np.concatenate(self.projections) if self.projections else np.zeros(0)
-        est = shot.solver.noise_estimate
+        est = shot.noise.estimate
         s: dict[str, Any] = {
             "out": str(Path(out).resolve()), "frames": self.frames, "markers": shot.index.n_markers,
             "vertices": shot.index.n_vertices,
