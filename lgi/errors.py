@@ -1,4 +1,4 @@
-"""Errors raised on bad input.
+"""Errors raised on bad input, and the warnings of what a run could not do as asked.
 
 Every error names where the problem is (file, line, frame, marker) so that a user can fix the input
 without reading the code. The command line turns them into a one-line message and exit status 2.
@@ -6,6 +6,10 @@ without reading the code. The command line turns them into a one-line message an
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import threading
+from collections.abc import Iterator
 from os import PathLike
 
 #: The most of a user's text an error quotes (a cell, a line): a 50 MB cell is not echoed into a terminal or log.
@@ -93,3 +97,23 @@ def cell_text(value: object) -> str:
 class Terminated(KeyboardInterrupt):
     """SIGTERM (a scheduler or a farm cancelling the job), unwound like Ctrl-C so the run cleans up after itself
     and ends with status 143."""
+
+
+@contextlib.contextmanager
+def collected_warnings(this_thread: bool = False) -> Iterator[list[str]]:
+    """The warnings lgi logs inside the block (what a run could not do as asked), for the review page; with
+    ``this_thread``, only those logged by the thread that entered it (a chunk task beside others)."""
+    seen: list[str] = []
+    me = threading.get_ident()
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if not this_thread or record.thread == me:
+                seen.append(record.getMessage())
+
+    handler = Collect(logging.WARNING)
+    logging.getLogger("lgi").addHandler(handler)
+    try:
+        yield seen
+    finally:
+        logging.getLogger("lgi").removeHandler(handler)

@@ -197,3 +197,15 @@ def test_the_summary_of_a_long_take_holds_no_block_of_the_diagnostics() -> None:
     gc.collect()
     assert refs and all(r() is None for r in refs)
     assert tally.frames == n_f and len(tally.fit_rms[0]) == n_f
+
+
+def test_a_finished_chunk_carries_its_warnings(tmp_path: Path) -> None:
+    # A chunk finished in another process (a Dask worker) logs its warnings there: they travel with its part.
+    from lgi.jobs.reconstruct.chunks import load_part
+
+    diag = pd.DataFrame({"frame": [0, 1], "marker": ["a", "a"]})
+    vertices = np.zeros((2, 4, 3), np.float32)
+    for said in (["lip contours of 3 frames not used", "another"], []):
+        _save_part(tmp_path / "part.npz", vertices, None, diag, said)
+        v, jaw, d, back = load_part(tmp_path / "part.npz")
+        assert back == said and jaw is None and np.array_equal(v, vertices) and d.equals(diag)

@@ -115,3 +115,30 @@ def test_shot_flow_on_threads_finishes_a_few_chunks_at_a_time(prefect_harness, s
                  "-q"]) == 0
     np.testing.assert_array_equal(np.load(shot / "few" / "meshes.npz")["vertices"],
                                   np.load(ref / "meshes.npz")["vertices"])
+
+
+def test_the_flow_page_lists_the_warnings_the_commands_page_does(prefect_harness, shot: Path, tmp_path) -> None:
+    # A marker seen in 5 of 40 frames of noisy bundles is too rarely seen to smooth, which the run can only say;
+    # the flow's page (its chunks on Prefect's threads) lists it as the command's does, once.
+    import json
+
+    from flows.reconstruct_shot import reconstruct_shot
+
+    table = pd.read_csv(shot / "s" / "bundles.csv")
+    rare = table.marker.iloc[0]
+    table = table[(table.marker != rare) | (table.frame < 5)]
+    bundles = tmp_path / "rare.csv"
+    table.to_csv(bundles, index=False)
+    args = ["--noise", "0.05", "--review"]
+    assert main(["reconstruct", str(shot / "idx"), "--bundles", str(bundles), "--out", str(tmp_path / "cli"), "-q",
+                 *args]) == 0
+    reconstruct_shot(index_dir=str(shot / "idx"), bundles=str(bundles), out=str(tmp_path / "flow"), noise=0.05,
+                     review=True, chunk_size=15)
+
+    def warnings(out: Path) -> list[str]:
+        meta = (out / "review" / "review_meta.js").read_text()
+        return json.loads(meta[meta.index("{"):meta.rindex("}") + 1])["warnings"]
+
+    said = warnings(tmp_path / "cli")
+    assert any("1 of 110 markers are seen in fewer than" in w for w in said), said
+    assert warnings(tmp_path / "flow") == said and len(set(said)) == len(said)

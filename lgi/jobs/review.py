@@ -19,7 +19,6 @@ The command line, ``lgi demo``, ``lgi reconstruct --review`` and the flows all c
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
@@ -838,23 +837,6 @@ def review_beside(out: str | Path, index_dir: str | Path, summary: dict[str, Any
     """The review page of the reconstruction in ``out``, written to ``out/review`` (``--review``, the demo and the
     flows)."""
     return review(out, index_dir, Path(out) / "review", options, summary, warnings)
-
-
-@contextlib.contextmanager
-def collected_warnings() -> Iterator[list[str]]:
-    """The warnings lgi logs inside the block (what a run could not do as asked), for the page."""
-    seen: list[str] = []
-
-    class Collect(logging.Handler):
-        def emit(self, record: logging.LogRecord) -> None:
-            seen.append(record.getMessage())
-
-    handler = Collect(logging.WARNING)
-    logging.getLogger("lgi").addHandler(handler)
-    try:
-        yield seen
-    finally:
-        logging.getLogger("lgi").removeHandler(handler)
 
 
 def remove_review(out: str | Path) -> None:

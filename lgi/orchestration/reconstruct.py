@@ -199,8 +199,6 @@ class FlowSteps:
     first when given, the shot in chunk tasks (Prefect's threads, or Dask at ``dask_address``), the comparison and
     the page as tasks."""
 
-    collects_warnings = False  # the chunk tasks may run in other processes: the page shows only the scans' failure
-
     def __init__(self, footage: str | None, calib: str | None, markers: str | None, helmet: str | None,
                  dask_address: str | None):
         self.footage, self.calib, self.markers, self.helmet = footage, calib, markers, helmet
@@ -257,10 +255,11 @@ def _reconstruct_in_chunks(shot_job, runner) -> dict:
             # As lgi reconstruct does: the shot without the markers seen by one camera, then through their points
             # on their rays.
             first = job.replace_outputs(opts)
-            chunks(bundles, first.to_json(), str(work / "first"), work / "pass1")
+            said = chunks(bundles, first.to_json(), str(work / "first"), work / "pass1")["chunk_warnings"]
             constrained = str(work / job.CONSTRAINED)
             counts = rays_task(index_dir, bundles, opts.to_json(), str(work / "first"), constrained)
             summary = {**chunks(constrained, opts.to_json(), out, work / "pass2"), **counts}
+            summary["chunk_warnings"] = said + summary["chunk_warnings"]
         else:
             summary = chunks(bundles, opts.to_json(), out, work)
     except (KeyboardInterrupt, SystemExit):

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from lgi.errors import InputError
+from lgi.errors import InputError, collected_warnings
 from lgi.io.atomic import atomic_file
 from lgi.io.npz import load_npz, save_npz
 from lgi.jobs.reconstruct.options import ReconstructOptions
@@ -191,11 +191,13 @@ def finish_chunk(index_dir: str, bundles: str, options: ReconstructOptions, choi
     ``first``, covering :meth:`Shot.needs`; by default the whole shot's); write the part to ``out``
     (:func:`save_part`), or with ``keep`` hold it in this process's memory under that name for
     :func:`assemble` in the same process (a flow on threads: the same values, without the disk), while the parts
-    held stay within :data:`PARTS_KEPT_BYTES`."""
+    held stay within :data:`PARTS_KEPT_BYTES`. The warnings logged while finishing go with the part: a chunk
+    finished in another process logs them there."""
     shot = prepared_shot(index_dir, bundles, options)
     sels = [s for path in choices for s in _recall(path, load_choices)]
-    res = shot.finish(sels, lo, hi, first=first)
-    part = (res.vertices, res.jaw, res.diagnostics)
+    with collected_warnings(this_thread=True) as warned:
+        res = shot.finish(sels, lo, hi, first=first)
+    part = (res.vertices, res.jaw, res.diagnostics, warned)
     size = res.vertices.nbytes + int(res.diagnostics.memory_usage(deep=False).sum())
     with _SHOTS_LOCK:
         # Held in memory up to a budget, on disk beyond: a long take's finished chunks wait for the writer there.
@@ -215,7 +217,7 @@ def finish_chunk(index_dir: str, bundles: str, options: ReconstructOptions, choi
 PARTS_KEPT_BYTES = 64 * 2**20
 # Finished chunks kept in memory (finish_chunk's ``keep``) until assemble takes them, or forget_parts; and their
 # total size.
-_PARTS: dict[str, tuple[tuple[np.ndarray, np.ndarray | None, pd.DataFrame], int]] = {}
+_PARTS: dict[str, tuple[tuple[np.ndarray, np.ndarray | None, pd.DataFrame, list[str]], int]] = {}
 _PARTS_BYTES = [0]
 
 
@@ -227,31 +229,37 @@ def forget_parts(folder: str | Path) -> None:
             _PARTS_BYTES[0] -= _PARTS.pop(k)[1]
 
 
-def save_part(path: str | Path, vertices: np.ndarray, jaw: np.ndarray | None, diagnostics: pd.DataFrame) -> None:
-    """Write a finished chunk: its vertices ((F, V, 3) float32, cm) and the jaw used ((F, 6), if any) to
-    ``path`` (npz), its rows of ``diagnostics.csv`` beside it (the same name, .parquet)."""
+def save_part(path: str | Path, vertices: np.ndarray, jaw: np.ndarray | None, diagnostics: pd.DataFrame,
+              warnings: list[str] = ()) -> None:
+    """Write a finished chunk: its vertices ((F, V, 3) float32, cm), the jaw used ((F, 6), if any) and the
+    warnings logged while finishing it to ``path`` (npz), its rows of ``diagnostics.csv`` beside it (the same
+    name, .parquet)."""
     with atomic_file(Path(path).with_suffix(".parquet"), durable=False) as tmp:
         diagnostics.to_parquet(tmp, index=False)
     with atomic_file(path, suffix=".npz", durable=False) as tmp:
-        save_npz(tmp, vertices=vertices, **({} if jaw is None else {"jaw": jaw}))
+        save_npz(tmp, vertices=vertices, warnings=np.array(list(warnings), dtype=str),
+                 **({} if jaw is None else {"jaw": jaw}))
 
 
-def load_part(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, pd.DataFrame]:
-    """The finished chunk :func:`save_part` wrote: vertices, jaw (or None) and diagnostics."""
+def load_part(path: str | Path) -> tuple[np.ndarray, np.ndarray | None, pd.DataFrame, list[str]]:
+    """The finished chunk :func:`save_part` wrote: vertices, jaw (or None), diagnostics and warnings."""
     a = load_npz(path)
-    return a["vertices"], a.get("jaw"), pd.read_parquet(Path(path).with_suffix(".parquet"))
+    return (a["vertices"], a.get("jaw"), pd.read_parquet(Path(path).with_suffix(".parquet")),
+            [str(w) for w in a.get("warnings", ())])
 
 
 def assemble(index_dir: str, bundles: str, options: ReconstructOptions, parts: list[str],
              out: str) -> dict[str, Any]:
     """Write the finished chunks (in frame order) as the shot's outputs, one after another
-    (:func:`reconstruction_outputs`: a chunk at a time in memory); returns the summary."""
+    (:func:`reconstruction_outputs`: a chunk at a time in memory); returns the summary, with the warnings
+    logged while finishing the chunks as ``chunk_warnings``."""
     from lgi.solve.results import SequenceResult
 
     t0 = time.perf_counter()
     shot = prepared_shot(index_dir, bundles, options)
     tally = ShotSummary(shot.index.n_markers)
     done = 0
+    warned: list[str] = []
     with reconstruction_outputs(out, shot.frames, shot.index.arrays, options, shot.index.jaw_rig() is not None,
                                 shot.constrained_file) as writer:
         for path in parts:
@@ -259,11 +267,12 @@ def assemble(index_dir: str, bundles: str, options: ReconstructOptions, parts: l
                 kept = _PARTS.pop(str(path), None)
                 if kept is not None:
                     _PARTS_BYTES[0] -= kept[1]
-            vertices, jaw, diag = load_part(path) if kept is None else kept[0]
+            vertices, jaw, diag, said = load_part(path) if kept is None else kept[0]
+            warned += said
             res = SequenceResult(np.asarray(shot.frames[done:done + len(vertices)]), vertices, diag, jaw,
                                  shot.solver.noise, options.smooth)
             writer.append(res)
             tally.add(res)
             done += len(vertices)
         writer.close(shot.solver.noise, shot.noise.estimate)
-    return tally.result(shot, out, {"finish": time.perf_counter() - t0})
+    return {**tally.result(shot, out, {"finish": time.perf_counter() - t0}), "chunk_warnings": warned}

@@ -13,21 +13,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+from lgi.errors import collected_warnings
 from lgi.jobs.reconstruct.options import ReconstructOptions
 
 
 class Steps(Protocol):
     """How a :class:`ReconstructJob`'s steps are run."""
 
-    #: Whether the warnings logged while reconstructing and comparing reach the page (they do when the work runs
-    #: in this process, where they are logged).
-    collects_warnings: bool
-
     def before(self, job: ReconstructJob) -> None:
         """After the outputs are checked, before the shot is read (the flow tracks its footage here)."""
 
     def reconstruct(self, job: ReconstructJob) -> dict[str, Any]:
-        """The shot's outputs into ``job.out`` (both passes with observations); returns the summary."""
+        """The shot's outputs into ``job.out`` (both passes with observations); returns the summary, with the
+        warnings logged by work done in other processes as ``chunk_warnings`` (those logged here are seen)."""
 
     def compare(self, job: ReconstructJob, pairs: list[tuple[int, Path]]) -> dict[str, Any]:
         """The meshes against the scans (:func:`lgi.jobs.compare.compare_shot`)."""
@@ -78,22 +76,26 @@ class ReconstructJob:
         (:func:`lgi.io.atomic.output_lock`)."""
         from lgi.jobs.compare import IN_SHOT, check_scan_frames, remove_outputs
         from lgi.jobs.reconstruct.chunks import prepared_shot
-        from lgi.jobs.review import collected_warnings, remove_review
+        from lgi.jobs.review import remove_review
 
         pairs = self.check()
         steps.before(self)
-        if pairs:
-            # The shot is prepared once: the reconstruction in this process starts from this one.
-            check_scan_frames(pairs, prepared_shot(self.index_dir, self.bundles, self.options).frames, self.scans)
+        # Preparing the shot logs what it could not do as asked (the noise, gaps): the page lists it.
         with collected_warnings() as warned:
+            if pairs:
+                # The shot is prepared once: the reconstruction in this process starts from this one.
+                check_scan_frames(pairs, prepared_shot(self.index_dir, self.bundles, self.options).frames,
+                                  self.scans)
             summary = steps.reconstruct(self)
             if self.scans is not None:
                 summary["compare"] = steps.compare(self, pairs)
+        warned += summary.pop("chunk_warnings", [])
         failed = self.scans is not None and summary["compare"]["status"] != "done"
         if self.scans is None:
             remove_outputs(Path(self.out) / IN_SHOT)  # an earlier run's distances were measured on other meshes
         if self.review:
-            notes = [*(warned if steps.collects_warnings else []),
+            # Once each: two passes, or chunks seen here and in their parts, log the same warning again.
+            notes = [*dict.fromkeys(warned),
                      *([f"scan comparison failed: {summary['compare']['error']}"] if failed else [])]
             scans_dir = self.scans.out if self.scans is not None and not failed else None
             summary["review"] = steps.review(self, {**summary, "options": self.options.to_json()}, scans_dir, notes)
@@ -108,7 +110,6 @@ class InProcess:
     job, the review page."""
 
     show_progress: bool = False
-    collects_warnings: bool = True
 
     def before(self, job: ReconstructJob) -> None:
         pass
