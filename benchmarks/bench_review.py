@@ -304,8 +304,7 @@ def table(rows: list[dict], repeat: int, load0: str, note: str = "") -> str:
     lines = [f"Headless Chromium {_chromium()} (Debian's, through Playwright; WebGL on the CPU with SwiftShader), the "
              f"page opened from `file://`, median of {repeat} loads (a fresh browser each); {os.cpu_count()} cores, "
              f"1-minute load average {load0} before and {_load()} after. Times from the start of the page; a jump "
-             f"is to a random frame at "
-             f"least 3 blocks away, median (worst) of {JUMPS}; memory after the jumps.{note}\n",
+             f"is to a random frame at least 3 blocks away, median (worst) of {JUMPS}; memory after the jumps.{note}\n",
              "| page | size (per 1000 frames) | overview | `lgi review` (peak RSS) | first frame drawn | first block "
              "drawn | jump: overview drawn | jump: full frame drawn | per frame step | JS heap | renderer RSS | GPU "
              "process RSS |",
