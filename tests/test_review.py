@@ -137,9 +137,9 @@ def test_review_writes_a_self_contained_page(shot):
     page = shot / "page"
     assert sorted(p.name for p in page.iterdir()) == [RECORD_FILE, "frames", "index.html", "review_frames.js",
                                                       "review_meta.js", "viewer.js"]
-    # 20 frames: a block of 16 and one of 4
+    # 20 frames: two blocks of 8 and one of 4
     assert sorted(p.name for p in (page / "frames").iterdir()) == ["block_00000.html", "block_00001.html",
-                                                                    "overview.html"]
+                                                                    "block_00002.html", "overview.html"]
     html = (page / "index.html").read_text()
     js = (page / "viewer.js").read_text()
     for text in (html, js):  # nothing fetched at view time
@@ -229,7 +229,7 @@ def small_blocks(shot, tmp_path_factory) -> Path:
     d = pd.read_csv(rec / "diagnostics.csv", keep_default_na=False, na_values=[""])
     d.sample(frac=1.0, random_state=0).to_csv(rec / "diagnostics.csv", index=False)
     mp = pytest.MonkeyPatch()
-    mp.setattr(job, "BLOCK", 8)
+    mp.setattr(job, "BLOCK", 6)
     mp.setattr(job, "DIAG_CHUNK_ROWS", 150)
     try:
         job.review(rec, shot / "idx", t / "page", job.ReviewOptions(truth=str(shot / "s" / "truth.npz")))
@@ -239,14 +239,15 @@ def small_blocks(shot, tmp_path_factory) -> Path:
 
 
 def test_blocks_decode_to_the_shot_quantised_whole(shot, small_blocks):
-    """Blocks of 8 frames hold the codes of the whole shot quantised at once (one scale for the shot: the same
-    values as the page of blocks of 16), within half a step of the meshes; the colour maps and the overview are the
+    """Blocks of 6 frames hold the codes of the whole shot quantised at once (one scale for the shot: the same
+    values as the page of lgi's blocks), within half a step of the meshes; the colour maps and the overview are the
     same whatever the block size."""
     from lgi.index.build import LGIIndex
 
     meta = _payload(small_blocks / "review_meta.js")
     header, blocks = _page_blocks(small_blocks)
-    assert [b["lo"] for b in blocks] == [0, 8, 16] and [b["n"] for b in blocks] == [8, 8, 4]
+    assert [b["lo"] for b in blocks] == [0, 6, 12, 18] and [b["n"] for b in blocks] == [6, 6, 6, 2]
+    assert _page_blocks(shot / "page")[0]["block"] != 6
     got = _decoded(small_blocks)
     one = _decoded(shot / "page")
     verts = np.load(shot / "rec" / "meshes.npz")["vertices"]
@@ -670,11 +671,12 @@ def test_clicking_a_curve_jumps_to_its_frame(page):
 
 
 def test_frames_in_blocks_show_the_same_picture(browser, shot, monkeypatch, tmp_path):
-    """A shot longer than a block is loaded block by block; frame 19 from blocks of 8 frames is the same
-    picture as from blocks of 16."""
+    """A shot longer than a block is loaded block by block; frame 19 from blocks of 3 frames is the same
+    picture as from lgi's blocks."""
     import lgi.jobs.review as job
 
-    monkeypatch.setattr(job, "BLOCK", 8)
+    assert job.BLOCK != 3
+    monkeypatch.setattr(job, "BLOCK", 3)
     job.review(shot / "rec", shot / "idx", tmp_path / "blocks", job.ReviewOptions(truth=str(shot / "s" / "truth.npz")))
     shots = []
     for folder in (shot / "page", tmp_path / "blocks"):
@@ -707,7 +709,7 @@ def test_a_block_file_loads_on_its_own(browser, small_blocks):
     pg.goto((small_blocks / "frames" / "block_00001.html").resolve().as_uri())
     got = pg.evaluate("[Object.keys(window.LGI_REVIEW_BLOCKS), window.LGI_REVIEW_BLOCKS[1].lo, "
                       "window.LGI_REVIEW_BLOCKS[1].n, Object.keys(window.LGI_REVIEW_BLOCKS[1].maps)]")
-    assert got == [["1"], 8, 8, ["truth", "correction"]]
+    assert got == [["1"], 6, 6, ["truth", "correction"]]
     pg.close()
 
 
@@ -717,11 +719,11 @@ def test_a_far_frame_shows_the_overview_then_the_full_frame(browser, shot, monke
     had it from the start); far blocks are dropped, so the page holds a bounded number however long the shot."""
     import lgi.jobs.review as job
 
-    monkeypatch.setattr(job, "BLOCK", 2)  # 10 blocks of 2 frames
+    monkeypatch.setattr(job, "BLOCK", 1)  # 20 blocks of 1 frame
     job.review(shot / "rec", shot / "idx", tmp_path / "page", job.ReviewOptions())
     pg = _open(browser, tmp_path / "page")
     assert pg.evaluate("window.lgiReview.error") is None and pg.errors == []
-    assert pg.evaluate("window.lgiReview.blocksHeld()") == [0, 1, 2]  # the cursor's and two ahead
+    assert pg.evaluate("window.lgiReview.blocksHeld()") == [0, 1, 2, 3, 4]  # the cursor's and four ahead
     pg.uncheck("#showMarkers")
     first = pg.evaluate("""async () => { const p = window.lgiReview.setFrame(15); const at = window.lgiReview.shown();
         const rough = window.lgiReview.positions(); await p;
@@ -731,10 +733,10 @@ def test_a_far_frame_shows_the_overview_then_the_full_frame(browser, shot, monke
     full = _pixels(pg.locator("#gl").screenshot())
     pg.evaluate("window.lgiReview.setFrame(16)")
     assert np.allclose(first[2], pg.evaluate("window.lgiReview.positions()"))  # the rough mesh was frame 16's
-    # Step through the whole shot: never more than 6 blocks held.
+    # Step through the whole shot: never more than 12 blocks held.
     held = [len(pg.evaluate(f"window.lgiReview.setFrame({f}).then(() => window.lgiReview.blocksHeld())"))
             for f in range(20)]
-    assert max(held) <= 6 and pg.evaluate("window.lgiReview.blocksHeld()")[0] > 0
+    assert max(held) <= 12 and pg.evaluate("window.lgiReview.blocksHeld()")[0] > 0
     pg.close()
     other = _open(browser, shot / "page")  # frame 15 in its first block: there from the start
     other.uncheck("#showMarkers")

@@ -62,10 +62,10 @@ FRAMES_DIR = "frames"
 #: What a review folder holds (anything else in an existing one makes the job refuse to replace it).
 REVIEW_ENTRIES = ("index.html", "viewer.js", "review_meta.js", "review_frames.js", FRAMES_DIR)
 #: Frames per block file: what the page loads when the cursor comes near it and drops far from it. A far jump waits
-#: for the block's page to be framed and its positions inflated and summed, which grow with the block: blocks of 64
-#: ICT frames (a 3.2 MB page) took about 0.2 s on a 2-core machine, against the 0.1 s a scrub must stay within
-#: (docs/review.md, table:review-blocks). A 36,000-frame take is 2,250 files.
-BLOCK = 16
+#: for the block's page to be framed and decoded, which grow with the block: on a 2-core machine a noisy take's
+#: blocks of 16 ICT frames took about 0.105 s, over the 0.1 s a scrub must stay within (docs/review.md,
+#: table:review-blocks). A 36,000-frame take is 4,500 files.
+BLOCK = 8
 #: Where a block page opened on its own puts its block (``window.LGI_REVIEW_BLOCKS[k]``; framed by the review page,
 #: it hands the block over instead).
 BLOCK_REGISTRY = "LGI_REVIEW_BLOCKS"

@@ -102,9 +102,9 @@
   // ---------------------------------------------------------------- state
   // Blocks kept decoded: the cursor's, BEHIND before it and AHEAD after it in the direction of play (loaded in that
   // order, PARALLEL at a time), and up to KEEP in all (the nearest stay, so scrubbing back and forth does not
-  // reload them). KEEP bounds the page's memory however long the shot: 6 blocks of 16 ICT frames with a colour map
+  // reload them). KEEP bounds the page's memory however long the shot: 12 blocks of 8 ICT frames with a colour map
   // are about 14 MB decoded.
-  const AHEAD = 2, BEHIND = 1, KEEP = 6, PARALLEL = 2;
+  const AHEAD = 4, BEHIND = 2, KEEP = 12, PARALLEL = 2;
   const S = { frame: 0, dir: 1, playing: false, speed: 1, map: "none", showMarkers: true, yaw: 0, pitch: 0, dist: 1,
               target: [0, 0, 0], radius: 1, hover: -1, pinned: -1, acc: 0, last: 0, shown: null };
   let nF, nV, nM, nK, tris, rest, moving, scale, status, maps = {}, mv, mw, OV, curveData = [];
