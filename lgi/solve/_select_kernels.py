@@ -94,7 +94,7 @@ class Choice(NamedTuple):
     cand: np.ndarray  # (M, top_k) int64: the distinct best containing simplices (-1 padded)
     cand_score: np.ndarray  # (M, top_k): their scores
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _misfit(i, ix, fr, shapes, lam, nz, own2):  # pragma: no cover - compiled
     """RMS distance (cm) of the natural neighbours, and of the bundle itself (``own2``, squared, weighted
     OWN_WEIGHT), to where the candidate's blend of shapes puts them."""
@@ -113,7 +113,7 @@ def _misfit(i, ix, fr, shapes, lam, nz, own2):  # pragma: no cover - compiled
     return np.sqrt(tot / cnt)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _penalty(i, fr, shapes, lam, nz):  # pragma: no cover - compiled
     """Temporal (shapes not shared with the previous frame) and agreement (shapes the frame's evidence
     does not support) terms of the score, cm."""
@@ -136,9 +136,10 @@ def _penalty(i, fr, shapes, lam, nz):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True)
-def _consider(i, ix, cfg, fr, shapes_in, lam_in, nz, own2, alias_pt, kept):  # pragma: no cover - compiled
+def _consider(i, ix, cfg, fr, shapes, lam, nz, own2, alias_pt, kept):  # pragma: no cover - compiled
     """Score one candidate and keep it in ``kept`` (best shapes, weights, points, score; the last score) if it
-    is the best so far; returns True if it is.
+    is the best so far; returns True if it is. ``shapes`` is changed in place (each corner left at its best
+    alias): the callers fill a candidate afresh each time.
 
     Every corner with weight >= alias_min_w (heaviest first) tries the shapes merged into its cloud
     point, one alias class at a time (a class: shapes that also coincide at all natural neighbours, so
@@ -147,15 +148,13 @@ def _consider(i, ix, cfg, fr, shapes_in, lam_in, nz, own2, alias_pt, kept):  # p
     alias_off, class_off, alias_shape = ix.alias_off, ix.class_off, ix.alias_shape
     prev, mu, agree, nu = fr.prev, fr.mu, fr.agree, fr.nu
     best_shapes, best_lam, best_pts, best, last = kept
-    shapes = shapes_in.copy()
-    lam = lam_in.copy()
-    done = np.zeros(4, np.bool_)
+    done = 0  # a bit per corner
     for _ in range(nz):
         c = -1
         for q in range(nz):
-            if not done[q] and (c < 0 or lam[q] > lam[c]):
+            if not done & (1 << q) and (c < 0 or lam[q] > lam[c]):
                 c = q
-        done[c] = True
+        done |= 1 << c
         pt = alias_pt[c]
         if pt < 0 or lam[c] < cfg.alias_min_w or alias_off[pt + 1] - alias_off[pt] <= 1 and \
                 class_off[alias_off[pt] + 1] - class_off[alias_off[pt]] <= 1:
@@ -235,14 +234,12 @@ def _local_coordinates(i, ix, p, y):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, inline="always")
-def _rescore(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
+def _rescore(i, ix, cfg, fr, y, off2, kept, work):  # pragma: no cover - compiled
     """The second pass: the first pass's distinct best containing simplices, no grid scan. The agreement term
     adds at most nu and the sweep only raises a first-pass score, so a candidate more than nu behind the
     first-pass winner cannot win: skipped. Returns the number of candidates."""
     d = ix.dim[i]
-    lam = np.zeros(4)
-    shapes = np.zeros(4, np.int64)
-    apt = np.full(4, -1, np.int64)
+    lam, shapes, apt = work[0], work[1], work[2]
     found = 0
     for r in range(cfg.top_k):
         s = fr.cand[i, r]
@@ -258,14 +255,12 @@ def _rescore(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, inline="always")
-def _scan_grid(i, ix, cfg, fr, y, off2, kept, out):  # pragma: no cover - compiled
+def _scan_grid(i, ix, cfg, fr, y, off2, kept, work, out):  # pragma: no cover - compiled
     """The first pass: every simplex of the bundle's grid cell containing it, pre-screened by misfit; the best
     ``top_k`` distinct blends scored in full and kept in ``out`` for the second pass. Returns the number of
     containing simplices."""
     d = ix.dim[i]
-    lam = np.zeros(4)
-    shapes = np.zeros(4, np.int64)
-    apt = np.full(4, -1, np.int64)
+    lam, shapes, apt = work[0], work[1], work[2]
     last = kept[4]
     cell = _cell(y, i, ix.lo, ix.h, ix.dims, ix.cell_off, d)
     if cell < 0:
@@ -325,14 +320,12 @@ def _scan_grid(i, ix, cfg, fr, y, off2, kept, out):  # pragma: no cover - compil
 
 
 @nb.njit(cache=True, inline="always")
-def _snap(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
+def _snap(i, ix, cfg, fr, y, off2, kept, work):  # pragma: no cover - compiled
     """Points within the snap radius: their dropped and merged shapes lie there, so each point is tried alone
     (with its aliases), the bundle's own distance counted in the score. Returns the squared distance to the
     point that won (-1: none)."""
     d = ix.dim[i]
-    lam = np.zeros(4)
-    shapes = np.zeros(4, np.int64)
-    apt = np.full(4, -1, np.int64)
+    lam, shapes, apt = work[0], work[1], work[2]
     snapped = -1.0
     for a in range(ix.pt_off[i], ix.pt_off[i + 1]):
         dd = off2
@@ -348,17 +341,13 @@ def _snap(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, inline="always")
-def _project(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
+def _project(i, ix, cfg, fr, y, off2, kept, work):  # pragma: no cover - compiled
     """No simplex contains the bundle: onto the hull, the ``n_project`` nearest facets, then the simplices
     containing each projected point, scored with the bundle's own distance included. Returns the squared
     projection distance within the cloud's span, cm^2."""
     d = ix.dim[i]
     pts, hull = ix.pts, ix.hull
-    lam = np.zeros(4)
-    shapes = np.zeros(4, np.int64)
-    apt = np.full(4, -1, np.int64)
-    q = np.zeros(3)
-    tmp = np.zeros(3)
+    lam, shapes, apt, q, tmp = work
     best = kept[3]
     nh = ix.hull_off[i + 1] - ix.hull_off[i]
     dists = np.empty(nh)
@@ -420,14 +409,12 @@ def _project(i, ix, cfg, fr, y, off2, kept):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, inline="always")
-def _borrow(i, ix, cfg, fr, kept):  # pragma: no cover - compiled
+def _borrow(i, ix, cfg, fr, kept, work):  # pragma: no cover - compiled
     """Second pass: each seen natural neighbour's first-pass mixture, scored with this bundle's own distance.
     A bundle that barely moves, or sits where its cloud has no combination of the shapes its neighbours show,
     cannot tell those shapes apart; its neighbours can. Returns the squared distance of the mixture that won
     (-1: none)."""
-    lam = np.zeros(4)
-    shapes = np.zeros(4, np.int64)
-    apt = np.full(4, -1, np.int64)
+    lam, shapes, apt = work[0], work[1], work[2]
     borrowed = -1.0
     for e in range(ix.nb_off[i], ix.nb_off[i + 1]):
         j = ix.nb_idx[e]
@@ -458,23 +445,23 @@ def _solve_one(i, ix, cfg, fr, out):  # pragma: no cover - compiled
     y = np.zeros(3)
     kept = (np.zeros(4, np.int64), np.zeros(4), np.full(4, -1, np.int64), np.full(1, 1e300), np.zeros(1))
     bshapes, blam, bpts, best, _ = kept
+    # The candidate being scored (weights, shapes, cloud points) and a projection's points, filled by each step.
+    work = (np.zeros(4), np.zeros(4, np.int64), np.full(4, -1, np.int64), np.zeros(3), np.zeros(3))
     off2 = _local_coordinates(i, ix, fr.p, y)
     found = 0
     if d == 0:
-        lam = np.zeros(4)
+        lam, shapes, apt = work[0], work[1], work[2]
         lam[0] = 1.0
-        shapes = np.zeros(4, np.int64)
         shapes[0] = ix.pt_shape[ix.pt_off[i]]
-        apt = np.full(4, -1, np.int64)
         apt[0] = ix.pt_off[i]
         # np.int64(1), not 1: a literal argument is a type of its own, compiled again (first run after an install).
         _consider(i, ix, cfg, fr, shapes, lam, np.int64(1), off2, apt, kept)
         found = 1
     elif fr.cand[i, 0] >= -1:
-        found = _rescore(i, ix, cfg, fr, y, off2, kept)
+        found = _rescore(i, ix, cfg, fr, y, off2, kept, work)
     else:
-        found = _scan_grid(i, ix, cfg, fr, y, off2, kept, out)
-    snapped = _snap(i, ix, cfg, fr, y, off2, kept)
+        found = _scan_grid(i, ix, cfg, fr, y, off2, kept, work, out)
+    snapped = _snap(i, ix, cfg, fr, y, off2, kept, work)
     out.n_contain[i] = found
     if snapped >= 0:
         # On a dataset point (a pruned shape's position): inside the data, not a projection.
@@ -484,11 +471,11 @@ def _solve_one(i, ix, cfg, fr, out):  # pragma: no cover - compiled
         out.status[i] = CONTAINED if off2 <= cfg.dist_tol * cfg.dist_tol else PROJECTED
         out.proj[i] = np.sqrt(off2)
     else:
-        best_proj = _project(i, ix, cfg, fr, y, off2, kept)
+        best_proj = _project(i, ix, cfg, fr, y, off2, kept, work)
         out.status[i] = PROJECTED
         out.proj[i] = np.sqrt(off2 + best_proj)
     if fr.nu > 0:
-        borrowed = _borrow(i, ix, cfg, fr, kept)
+        borrowed = _borrow(i, ix, cfg, fr, kept, work)
         if borrowed >= 0:
             out.status[i] = BORROWED
             out.proj[i] = np.sqrt(borrowed)
