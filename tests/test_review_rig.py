@@ -49,6 +49,8 @@ def test_rig_map_is_the_solve_residual(solved):
 
     t = solved
     m, codes = _rig_map(t)
+    # Over more than one block: each block's frames are played from their own frames' curves.
+    assert len(list((t / "page" / "frames").glob("block_*.html"))) > 1
     region = load_npz(t / "solve" / "vertex_error.npz")["region"].astype(bool)
     assert codes.shape == (FRAMES, region.size)
     assert 0 < region.sum() < region.size

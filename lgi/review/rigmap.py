@@ -59,9 +59,9 @@ class RigMap:
         n_b = len(vertices)
         dist = np.full((n_b, len(self.region)), np.nan, np.float32)
         for a in range(0, n_b, CHUNK):
-            play = playback(self.model, self.curves[lo + a:lo + a + CHUNK], idx)
-            dist[a:a + CHUNK, idx] = np.linalg.norm(play - vertices[a:a + CHUNK, idx].astype(np.float32),
-                                                    axis=2) * MM_PER_CM
+            b = min(n_b, a + CHUNK)  # the block's frames: the curves go on past a block that is not the shot's last
+            play = playback(self.model, self.curves[lo + a:lo + b], idx)
+            dist[a:b, idx] = np.linalg.norm(play - vertices[a:b, idx].astype(np.float32), axis=2) * MM_PER_CM
         return dist
 
 
