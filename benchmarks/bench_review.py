@@ -246,9 +246,12 @@ def page_figures(page: Path, repeat: int, seed: int = 0) -> dict[str, float]:
             rng = np.random.default_rng(seed)
             jumps = []
             for _ in range(JUMPS):
-                # A frame at least 3 blocks from the cursor (its block not held), where the shot allows.
+                # A frame at least 3 blocks from the cursor whose block the page does not hold (it holds blocks
+                # ahead of and behind the cursor), where the shot allows.
                 here = pg.evaluate("window.lgiReview.frame()")
-                far = [f for f in range(n) if abs(f // block - here // block) > 3] or list(range(n))
+                held = set(pg.evaluate("window.lgiReview.blocksHeld()"))
+                far = [f for f in range(n) if abs(f // block - here // block) > 3 and f // block not in held] \
+                    or list(range(n))
                 f = int(rng.choice(far))
                 jumps.append(pg.evaluate(f"""async () => {{ const api = window.lgiReview, t = performance.now();
                     const p = api.setFrame({f}); api.finish(); const rough = performance.now() - t;
@@ -304,7 +307,9 @@ def table(rows: list[dict], repeat: int, load0: str, note: str = "") -> str:
     lines = [f"Headless Chromium {_chromium()} (Debian's, through Playwright; WebGL on the CPU with SwiftShader), the "
              f"page opened from `file://`, median of {repeat} loads (a fresh browser each); {os.cpu_count()} cores, "
              f"1-minute load average {load0} before and {_load()} after. Times from the start of the page; a jump "
-             f"is to a random frame at least 3 blocks away, median (worst) of {JUMPS}; memory after the jumps.{note}\n",
+             f"is to a random frame at least 3 blocks away whose block the page does not hold, median (worst) of "
+             f"{JUMPS} (the full frame: of those not in the overview, which are whole at once); memory after the "
+             f"jumps.{note}\n",
              "| page | size (per 1000 frames) | overview | `lgi review` (peak RSS) | first frame drawn | first block "
              "drawn | jump: overview drawn | jump: full frame drawn | per frame step | JS heap | renderer RSS | GPU "
              "process RSS |",
